@@ -1,0 +1,59 @@
+# The README's two commands are `make run` and `make test`; both start with `make setup`.
+SHELL := /bin/bash
+PYTHON ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+GEOLOC := $(BIN)/geoloc
+SHARED ?= ../shared
+CONFIG ?= hybrid
+MANIFEST := data/manifests/penn-campus-gps.csv
+MODEL := models/squeezenet1_1.onnx
+FOLDS ?= 5
+DEMO_QUERY ?= $(SHARED)/data/penn-campus-gps/photos/img_00008.jpg
+
+.PHONY: setup model manifests fit demo run test lint eval results clean-index
+
+setup: $(VENV)/.installed
+
+$(VENV)/.installed: pyproject.toml
+	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install -q --upgrade pip
+	$(BIN)/python -m pip install -q -e '.[dev]'
+	touch $@
+
+model: $(MODEL)
+$(MODEL): | setup
+	$(GEOLOC) models build --from $(SHARED)/models/squeezenet1.1/caffe-openvino-ir
+
+manifests: $(MANIFEST)
+$(MANIFEST): | setup
+	$(GEOLOC) datasets --shared $(SHARED)/data --out data/manifests
+
+fit: models/pipelines/$(CONFIG)/pipeline.json
+models/pipelines/$(CONFIG)/pipeline.json: $(MODEL) $(MANIFEST)
+	$(GEOLOC) fit --manifest $(MANIFEST) --config $(CONFIG)
+
+# The demo collection: penn-campus-gps db rows in index/ (identical images are skipped on re-runs).
+demo: fit
+	$(GEOLOC) ingest --manifest $(MANIFEST) --split db --config $(CONFIG)
+
+run: demo
+	@echo "--- demo query: $(DEMO_QUERY) (a query-side photo, not in the collection)"
+	$(GEOLOC) locate $(DEMO_QUERY) --top-k 5
+
+test: setup
+	$(BIN)/python -m pytest -q
+
+lint: setup
+	$(BIN)/ruff check app tests bench
+
+# One evaluation per named configuration, with the query role rotated over FOLDS folds.
+eval: $(MODEL) $(MANIFEST)
+	$(BIN)/python bench/results.py --manifest $(MANIFEST) --folds $(FOLDS) --out out/eval --no-write
+
+# Regenerate docs/RESULTS.md (every configuration plus the parameter sweeps behind the defaults).
+results: $(MODEL) $(MANIFEST)
+	$(BIN)/python bench/results.py --manifest $(MANIFEST) --folds $(FOLDS) --out out/eval
+
+clean-index:
+	rm -rf index/*.sqlite* index/*.faiss index/index.json index/images

@@ -1,0 +1,101 @@
+"""SqueezeNet 1.1 (ONNX) as a feature extractor: the fire9 map as local descriptors, GeM as a global one.
+
+The model follows one load/predict lifecycle (after immich's ML service): ``load()`` is idempotent and
+guarded by a lock because two requests may race to load it; ``predict`` loads on first use.
+"""
+
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from app.engine.errors import ModelNotReady
+from app.engine.ort import create_session
+from app.engine.squeezenet_onnx import FIRE9_OUTPUT, INPUT_NAME, LOGITS_OUTPUT
+
+MODEL_FILENAME = "squeezenet1_1.onnx"
+
+
+@dataclass(frozen=True)
+class CnnOutput:
+    """fire9 as (H, W, 512) float32 and the 1000 logits of one image."""
+
+    fire9: np.ndarray
+    logits: np.ndarray
+    input_hw: tuple[int, int]
+
+
+class SqueezeNet:
+    """The built ONNX SqueezeNet."""
+
+    def __init__(self, model_path: Path):
+        self.model_path = Path(model_path)
+        self._session = None
+        self._lock = threading.Lock()
+
+    def load(self) -> None:
+        with self._lock:
+            if self._session is None:
+                if not self.model_path.exists():
+                    raise ModelNotReady(f"{self.model_path} is missing: run `geoloc models build` first")
+                self._session = create_session(self.model_path)
+
+    @property
+    def loaded(self) -> bool:
+        return self._session is not None
+
+    def run(self, rgb: np.ndarray) -> CnnOutput:
+        """Run the net on an RGB uint8 image at its own size (resize first if you want another)."""
+        if self._session is None:
+            self.load()
+        x = np.ascontiguousarray(rgb.astype(np.float32).transpose(2, 0, 1)[None])
+        fire9, logits = self._session.run([FIRE9_OUTPUT, LOGITS_OUTPUT], {INPUT_NAME: x})
+        return CnnOutput(fire9=fire9[0].transpose(1, 2, 0), logits=logits[0], input_hw=rgb.shape[:2])
+
+    def features(self, rgb: np.ndarray, short_side: int) -> CnnOutput:
+        """Resize so the short side is ``short_side`` (aspect kept), then run."""
+        return self.run(resize_short_side(rgb, short_side))
+
+
+def resize_short_side(rgb: np.ndarray, short_side: int) -> np.ndarray:
+    h, w = rgb.shape[:2]
+    s = short_side / min(h, w)
+    size = (max(1, round(w * s)), max(1, round(h * s)))
+    interp = cv2.INTER_AREA if s < 1 else cv2.INTER_LINEAR
+    return cv2.resize(rgb, size, interpolation=interp)
+
+
+def gem_pool(fire9: np.ndarray, p: float = 3.0) -> np.ndarray:
+    """Generalised-mean pooling of an (H, W, C) ReLU map, L2-normalised: the global CNN descriptor."""
+    x = np.clip(fire9.reshape(-1, fire9.shape[-1]).astype(np.float64), 1e-6, None)
+    g = np.power(np.mean(np.power(x, p), axis=0), 1.0 / p)
+    return (g / max(np.linalg.norm(g), 1e-12)).astype(np.float32)
+
+
+def sample_at(fire9: np.ndarray, xy_norm: np.ndarray) -> np.ndarray:
+    """Bilinear sample of the (H, W, C) map at positions ``xy_norm`` (N, 2), given as fractions of the
+    image width and height (0..1), so the local-feature and CNN image sizes need not agree.
+    Returns (N, C) float32; map cells are taken to cover the image evenly."""
+    fh, fw, c = fire9.shape
+    if len(xy_norm) == 0:
+        return np.zeros((0, c), np.float32)
+    gx = np.clip(xy_norm[:, 0] * fw - 0.5, 0, fw - 1)
+    gy = np.clip(xy_norm[:, 1] * fh - 0.5, 0, fh - 1)
+    x0 = np.floor(gx).astype(int)
+    y0 = np.floor(gy).astype(int)
+    x1 = np.minimum(x0 + 1, fw - 1)
+    y1 = np.minimum(y0 + 1, fh - 1)
+    ax = (gx - x0)[:, None]
+    ay = (gy - y0)[:, None]
+    top = fire9[y0, x0] * (1 - ax) + fire9[y0, x1] * ax
+    bottom = fire9[y1, x0] * (1 - ax) + fire9[y1, x1] * ax
+    return (top * (1 - ay) + bottom * ay).astype(np.float32)
+
+
+def softmax(logits: np.ndarray) -> np.ndarray:
+    e = np.exp(logits - logits.max())
+    return e / e.sum()

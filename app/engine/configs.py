@@ -1,0 +1,154 @@
+"""Named pipeline configurations: one name means exactly one pipeline (the hloc ``confs`` shape).
+
+A fitted model records its configuration in its manifest, so ``--config hybrid-bin`` today and a reload
+next month build the same thing. Sizes and counts were chosen by measurement on penn-campus-gps with
+``geoloc eval --folds`` (docs/RESULTS.md has the figures).
+"""
+
+from __future__ import annotations
+
+import json
+from typing import ClassVar, Literal
+
+from pydantic import BaseModel, ConfigDict
+
+from app.engine.errors import GeolocError
+
+
+class UnknownConfig(GeolocError):
+    pass
+
+
+class PipelineConfig(BaseModel):
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    name: str
+    description: str
+    #: Local handcrafted features, or None for a CNN-only pipeline.
+    local: Literal["sift", "orb"] | None = "sift"
+    local_long_side: int = 640
+    max_keypoints: int = 1000
+    #: CNN (SqueezeNet fire9): used as local descriptors (hybrid) and/or as a pooled global descriptor.
+    cnn_short_side: int = 448
+    cnn_local_weight: float = 0.0  # > 0: feature-level hybrid, fire9 sampled at each keypoint
+    cnn_global_weight: float = 0.0  # > 0: GeM vector joined to the aggregated one (image-level hybrid)
+    gem_p: float = 3.0
+    #: Aggregation of local features.
+    codebook: Literal["kmeans", "minibatch"] | None = "minibatch"
+    k: int = 64
+    power_law: float = 0.5
+    intra_norm: bool = True
+    codebook_samples_per_image: int = 300
+    #: Codes: PCA-whitened floats (pca_dim None = full dimension, no PCA) and/or binary codes.
+    pca_dim: int | None = 256
+    whiten_power: float = 0.5
+    float_codes: bool = True
+    binary: Literal["sign", "itq"] | None = None
+    bits: int = 256
+    #: Index kinds (flat is exact; ivf / hnsw for large collections).
+    float_index: Literal["flat", "ivf", "hnsw"] = "flat"
+    binary_index: Literal["flat", "ivf", "hnsw"] = "flat"
+    shortlist: int = 100  # two-stage: binary shortlist size before the float re-rank
+
+    #: Fields that change what ``Pipeline.extract`` returns (the evaluation caches features by them).
+    EXTRACTION_FIELDS: ClassVar[tuple[str, ...]] = (
+        "local",
+        "local_long_side",
+        "max_keypoints",
+        "cnn_short_side",
+        "cnn_local_weight",
+        "cnn_global_weight",
+        "gem_p",
+    )
+
+    def extraction_key(self) -> str:
+        return json.dumps({f: getattr(self, f) for f in self.EXTRACTION_FIELDS}, sort_keys=True)
+
+    def with_overrides(self, overrides: dict[str, str]) -> PipelineConfig:
+        """A variant for experiments (``geoloc eval --set k=32``); it keeps the name with a suffix."""
+        if not overrides:
+            return self
+        data = self.model_dump()
+        unknown = set(overrides) - set(data)
+        if unknown:
+            raise UnknownConfig(f"unknown configuration fields {sorted(unknown)}")
+        data.update(overrides)
+        data["name"] = self.name + "[" + ",".join(f"{k}={v}" for k, v in sorted(overrides.items())) + "]"
+        return PipelineConfig.model_validate(data)
+
+    @property
+    def uses_cnn(self) -> bool:
+        return self.cnn_local_weight > 0 or self.cnn_global_weight > 0 or self.local is None
+
+    @property
+    def modes(self) -> list[str]:
+        """Search modes this configuration can serve, the best first."""
+        if self.float_codes and self.binary:
+            return ["two-stage", "float", "binary"]
+        if self.float_codes:
+            return ["float"]
+        return ["binary"]
+
+
+_HYBRID = dict(local="sift", cnn_local_weight=1.0, cnn_global_weight=1.0, codebook="minibatch", k=64, pca_dim=256)
+
+CONFIGS: dict[str, PipelineConfig] = {
+    c.name: c
+    for c in [
+        PipelineConfig(
+            name="sift-vlad-kmeans",
+            description="Baseline: RootSIFT, Lloyd k-means codebook, VLAD (signed sqrt + L2), full dimension, "
+            "exhaustive float search",
+            local="sift",
+            codebook="kmeans",
+            intra_norm=False,
+            pca_dim=None,
+        ),
+        PipelineConfig(
+            name="sift-mbvlad",
+            description="RootSIFT MBVLAD (mini-batch codebook, power-law, intra-norm), PCA-whitened floats",
+            local="sift",
+            codebook="minibatch",
+            whiten_power=0.25,
+        ),
+        PipelineConfig(
+            name="orb-mbvlad-bin",
+            description="ORB MBVLAD, PCA then ITQ binary codes, Hamming search",
+            local="orb",
+            codebook="minibatch",
+            float_codes=False,
+            binary="itq",
+            bits=256,
+        ),
+        PipelineConfig(
+            name="squeezenet-gem",
+            description="SqueezeNet fire9 GeM-pooled global descriptor, PCA-whitened floats",
+            local=None,
+            codebook=None,
+            cnn_global_weight=1.0,
+            whiten_power=0.25,
+        ),
+        PipelineConfig(
+            name="hybrid",
+            description="Feature-level hybrid (RootSIFT + fire9 sampled at each keypoint) MBVLAD, joined with "
+            "fire9 GeM, PCA-whitened floats (the default)",
+            **_HYBRID,
+        ),
+        PipelineConfig(
+            name="hybrid-bin",
+            description="The hybrid descriptor with ITQ binary codes for a Hamming shortlist and float codes "
+            "for the exact re-rank",
+            binary="itq",
+            bits=256,
+            **_HYBRID,
+        ),
+    ]
+}
+DEFAULT_CONFIG = "hybrid"
+
+
+def get_config(name: str) -> PipelineConfig:
+    try:
+        return CONFIGS[name]
+    except KeyError:
+        raise UnknownConfig(f"unknown configuration {name!r}; choose one of {', '.join(CONFIGS)}") from None

@@ -1,0 +1,73 @@
+"""Fuse ranked candidates into one position with a confidence, or decline with a reason.
+
+Why: most users want one answer first. The top-1 alone is brittle (one look-alike facade wins), while
+several references agreeing on one spot is strong evidence. So: weight each candidate by a softmax of its
+score, group candidates lying within ``cluster_radius_m`` of each other, take the heaviest group, and
+report its weighted centre, its spread as the uncertainty radius, and its share of the total weight as
+the confidence. A confidence below ``min_confidence`` marks it as not confident, with a reason.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from app.engine.geo import haversine_m
+
+
+@dataclass(frozen=True)
+class Estimate:
+    lat: float | None  # the fused position, even when not confident (evaluation measures it)
+    lon: float | None
+    radius_m: float | None
+    confidence: float
+    reason: str | None = None  # why the estimate should not be trusted, or None when it is confident
+    support: int = 0  # candidates in the winning cluster
+
+    @property
+    def confident(self) -> bool:
+        return self.reason is None
+
+
+def fuse_position(
+    lats: np.ndarray,
+    lons: np.ndarray,
+    scores: np.ndarray,
+    cluster_radius_m: float = 25.0,
+    temperature: float = 0.02,
+    min_confidence: float = 0.3,
+    top_n: int = 10,
+) -> Estimate:
+    """``scores`` are in [0, 1], best first. ``temperature`` sets how fast weight falls with score: at
+    0.02 a candidate 0.05 below the best weighs 8 % as much (scores bunch close together in practice)."""
+    lats, lons, scores = (np.asarray(a, np.float64)[:top_n] for a in (lats, lons, scores))
+    if len(scores) == 0:
+        return Estimate(None, None, None, 0.0, "no candidates: the index is empty or the region holds none")
+    w = np.exp((scores - scores.max()) / temperature)
+    d = haversine_m(lats[:, None], lons[:, None], lats[None, :], lons[None, :])
+    near = d <= cluster_radius_m
+    mass = near @ w  # weight of the group centred on each candidate
+    best = int(np.argmax(mass))
+    members = near[best]
+    wm = w[members]
+    lat = float(np.sum(lats[members] * wm) / wm.sum())
+    lon = float(np.sum(lons[members] * wm) / wm.sum())
+    spread = haversine_m(lat, lon, lats[members], lons[members])
+    radius = float(max(np.sqrt(np.sum(wm * spread**2) / wm.sum()), 5.0))
+    # Share of the weight, discounted when only one candidate supports it (no independent agreement).
+    confidence = float(mass[best] / w.sum())
+    if members.sum() == 1 and len(scores) > 1:
+        confidence *= 0.5
+    confidence = float(np.clip(confidence, 0.0, 1.0))
+    if confidence < min_confidence:
+        return Estimate(
+            lat,
+            lon,
+            radius,
+            confidence,
+            f"ambiguous: the best group holds {confidence:.0%} of the "
+            "candidates' weight; candidates disagree on the place",
+            int(members.sum()),
+        )
+    return Estimate(lat, lon, radius, confidence, None, int(members.sum()))

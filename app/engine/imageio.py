@@ -1,0 +1,169 @@
+"""Decode an uploaded image safely: limits first, EXIF orientation applied, EXIF GPS read.
+
+Why so careful: uploads come from strangers. The byte limit and the pixel limit are checked before any
+pixel is decoded (a 30000 x 30000 PNG header costs nothing to read, its pixels cost 2.7 GB), large JPEGs
+are downscaled while decoding (libjpeg's DCT scaling) so a 12 MP phone photo never lives in memory at full
+size, and phone photos store their pixels rotated, so orientation is applied before anything else sees
+them.
+"""
+
+from __future__ import annotations
+
+import io
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from PIL import Image, ImageOps, UnidentifiedImageError
+
+from app.engine.errors import ImageTooLarge, ImageTooSmall, UnreadableImage, UnsupportedImageFormat
+
+ACCEPTED_FORMATS = {"JPEG", "PNG", "WEBP", "TIFF", "MPO"}  # MPO: multi-picture JPEG some phones write
+try:  # HEIC only when the optional plugin is installed
+    import pillow_heif  # type: ignore
+
+    pillow_heif.register_heif_opener()
+    ACCEPTED_FORMATS |= {"HEIF", "HEIC"}
+except ImportError:  # pragma: no cover - depends on the environment
+    pass
+
+GPS_IFD = 0x8825
+EXIF_IFD = 0x8769
+DATETIME_ORIGINAL = 0x9003
+
+
+@dataclass(frozen=True)
+class ImageLimits:
+    """Defaults admit 12 MP (and up to 50 MP) phone photos and refuse decompression bombs."""
+
+    max_bytes: int = 30 * 1024 * 1024
+    max_pixels: int = 50_000_000
+    min_side: int = 32
+    #: Decode-time downscale target: the long side after decoding is at least this and at most ~2x it.
+    decode_long_side: int = 1600
+
+
+@dataclass(frozen=True)
+class LoadedImage:
+    rgb: np.ndarray  # (H, W, 3) uint8, orientation applied
+    format: str
+    original_size: tuple[int, int]  # (width, height) as stored, before orientation and downscale
+    gps: tuple[float, float] | None
+    captured_at: str | None
+
+
+def sniff_format(data: bytes) -> str | None:
+    """Format from the magic bytes, not from a filename or a client's content type."""
+    if data[:3] == b"\xff\xd8\xff":
+        return "JPEG"
+    if data[:8] == b"\x89PNG\r\n\x1a\n":
+        return "PNG"
+    if data[:4] == b"RIFF" and data[8:12] == b"WEBP":
+        return "WEBP"
+    if data[:4] in (b"II*\x00", b"MM\x00*"):
+        return "TIFF"
+    if data[:6] in (b"GIF87a", b"GIF89a"):
+        return "GIF"
+    if data[4:8] == b"ftyp" and data[8:12] in (b"heic", b"heix", b"mif1", b"msf1", b"hevc", b"avif"):
+        return "HEIC" if data[8:12] != b"avif" else "AVIF"
+    if data[:2] == b"BM":
+        return "BMP"
+    return None
+
+
+def load_image(data: bytes, limits: ImageLimits | None = None, decode_long_side: int | None = None) -> LoadedImage:
+    """Decode ``data`` into an upright RGB array, downscaled at decode time towards ``decode_long_side``."""
+    limits = limits or ImageLimits()
+    if len(data) == 0:
+        raise UnreadableImage("the upload is empty (0 bytes)")
+    if len(data) > limits.max_bytes:
+        raise ImageTooLarge(f"the upload has {len(data)} bytes; the limit is {limits.max_bytes}")
+    kind = sniff_format(data)
+    if kind is None:
+        raise UnreadableImage("the bytes are not a JPEG, PNG, WebP or TIFF image")
+    if kind not in ACCEPTED_FORMATS:
+        raise UnsupportedImageFormat(
+            f"{kind} images are not supported; send JPEG, PNG, WebP or TIFF"
+            + (" (HEIC needs the pillow-heif plugin)" if kind in ("HEIC", "AVIF") else "")
+        )
+    try:
+        img = Image.open(io.BytesIO(data))
+    except Image.DecompressionBombError as e:
+        raise ImageTooLarge(
+            f"the image declares too many pixels to decode safely: {e}; the limit is {limits.max_pixels} pixels"
+        ) from None
+    except (UnidentifiedImageError, OSError, ValueError) as e:
+        raise UnreadableImage(f"cannot read the {kind} header: {e}") from None
+    w, h = img.size
+    if w * h > limits.max_pixels:
+        raise ImageTooLarge(f"the image declares {w} x {h} = {w * h} pixels; the limit is {limits.max_pixels}")
+    if min(w, h) < limits.min_side:
+        raise ImageTooSmall(f"the image is {w} x {h}; each side must be at least {limits.min_side} pixels")
+    if getattr(img, "n_frames", 1) > 1 and img.format not in ("MPO", "TIFF"):
+        raise UnsupportedImageFormat("animated images are not supported; send a single photo")
+    gps, captured_at = read_exif_gps(img)
+    target = decode_long_side or limits.decode_long_side
+    try:
+        if img.format in ("JPEG", "MPO") and max(w, h) > 2 * target:
+            # DCT-domain downscale by a power of two: the full-size pixels are never materialised.
+            scale = max(w, h) / target
+            img.draft("RGB", (math.ceil(w / scale), math.ceil(h / scale)))
+        img = ImageOps.exif_transpose(img)
+        rgb = _to_rgb(img)
+    except Image.DecompressionBombError as e:
+        raise ImageTooLarge(str(e)) from None
+    except (OSError, ValueError, SyntaxError) as e:
+        raise UnreadableImage(f"the {kind} data is damaged or truncated: {e}") from None
+    return LoadedImage(rgb=rgb, format=kind, original_size=(w, h), gps=gps, captured_at=captured_at)
+
+
+def _to_rgb(img: Image.Image) -> np.ndarray:
+    """Any mode (CMYK, 16-bit, grayscale, alpha, palette) to 8-bit RGB; alpha is composited on white."""
+    if img.mode in ("I;16", "I;16B", "I;16L", "I"):
+        arr = np.asarray(img, dtype=np.float64)
+        top = arr.max() or 1.0
+        img = Image.fromarray(np.clip(arr * (255.0 / top), 0, 255).astype(np.uint8), "L")
+    if img.mode == "F":
+        arr = np.asarray(img, dtype=np.float64)
+        top = arr.max() or 1.0
+        img = Image.fromarray(np.clip(arr * (255.0 / top), 0, 255).astype(np.uint8), "L")
+    if img.mode in ("RGBA", "LA", "PA") or (img.mode == "P" and "transparency" in img.info):
+        img = img.convert("RGBA")
+        background = Image.new("RGBA", img.size, (255, 255, 255, 255))
+        img = Image.alpha_composite(background, img)
+    rgb = np.asarray(img.convert("RGB"), dtype=np.uint8)
+    return np.ascontiguousarray(rgb)
+
+
+def _dms_to_deg(dms, ref) -> float:
+    d, m, s = (float(v) for v in dms)
+    deg = d + m / 60.0 + s / 3600.0
+    return -deg if ref in ("S", "W", b"S", b"W") else deg
+
+
+def read_exif_gps(img: Image.Image) -> tuple[tuple[float, float] | None, str | None]:
+    """(lat, lon) from the EXIF GPS block, or None; and DateTimeOriginal if present."""
+    try:
+        exif = img.getexif()
+    except Exception:  # a broken EXIF block must not make the photo unreadable
+        return None, None
+    captured_at = None
+    try:
+        raw = exif.get_ifd(EXIF_IFD).get(DATETIME_ORIGINAL)
+        if raw:
+            captured_at = str(raw).strip("\x00 ")
+    except Exception:
+        captured_at = None
+    try:
+        gps = exif.get_ifd(GPS_IFD)
+        if not gps or 2 not in gps or 4 not in gps:
+            return None, captured_at
+        lat = _dms_to_deg(gps[2], gps.get(1, "N"))
+        lon = _dms_to_deg(gps[4], gps.get(3, "E"))
+    except Exception:
+        return None, captured_at
+    if not (math.isfinite(lat) and math.isfinite(lon)) or abs(lat) > 90 or abs(lon) > 180:
+        return None, captured_at
+    if lat == 0.0 and lon == 0.0:  # "null island": cameras write zeros when they had no fix
+        return None, captured_at
+    return (lat, lon), captured_at

@@ -1,0 +1,213 @@
+"""FAISS indexes with stable ids: a float one (inner product) and a binary one (Hamming).
+
+Both are wrapped in an ``IDMap2`` so references keep their ids across deletions and rebuilds, and both
+give scores in [0, 1] (cosine mapped to (1 + cos) / 2; 1 - Hamming / bits) so callers can threshold one
+way whatever the mode. Flat is exact and right up to ~100k references; IVF and HNSW trade a little recall
+for speed beyond that. HNSW graphs cannot remove nodes (nor can IVF lists with the direct map we need to read
+codes back), so deletions there become tombstones that searches skip, and ``needs_rebuild`` says when
+the dead weight is worth a rebuild from the stored codes.
+"""
+
+from __future__ import annotations
+
+import math
+
+import faiss
+import numpy as np
+
+FLOAT_KINDS = ("flat", "ivf", "hnsw")
+BINARY_KINDS = ("flat", "ivf", "hnsw")
+
+
+class VectorIndex:
+    """One FAISS index (float or binary) plus the tombstones that HNSW needs."""
+
+    def __init__(self, dim: int, binary: bool, kind: str = "flat", hnsw_m: int = 32, nlist: int | None = None):
+        if kind not in FLOAT_KINDS:
+            raise ValueError(f"unknown index kind {kind!r}; choose one of {FLOAT_KINDS}")
+        if binary and dim % 8:
+            raise ValueError("binary codes need a multiple of 8 bits")
+        self.dim, self.binary, self.kind, self.hnsw_m, self.nlist = dim, binary, kind, hnsw_m, nlist
+        self.tombstones: set[int] = set()
+        self._index = None  # built lazily: IVF needs training data before its first add
+
+    # -- building -------------------------------------------------------------------------------------
+    def _make(self, train: np.ndarray):
+        n = len(train)
+        nlist = self.nlist or max(1, int(math.sqrt(max(n, 1))))
+        nlist = max(1, min(nlist, n // 39))  # FAISS wants ~39 training points per list
+        if self.binary:
+            if self.kind == "flat":
+                inner = faiss.IndexBinaryFlat(self.dim)
+            elif self.kind == "hnsw":
+                inner = faiss.IndexBinaryHNSW(self.dim, self.hnsw_m)
+            else:
+                quantizer = faiss.IndexBinaryFlat(self.dim)
+                inner = faiss.IndexBinaryIVF(quantizer, self.dim, nlist)
+                inner.own_fields = True
+                quantizer.this.disown()
+                inner.train(train)
+                inner.nprobe = max(1, nlist // 4)
+                inner.make_direct_map()
+            return faiss.IndexBinaryIDMap2(inner)
+        if self.kind == "flat":
+            inner = faiss.IndexFlatIP(self.dim)
+        elif self.kind == "hnsw":
+            inner = faiss.IndexHNSWFlat(self.dim, self.hnsw_m, faiss.METRIC_INNER_PRODUCT)
+            inner.hnsw.efSearch = 64
+        else:
+            quantizer = faiss.IndexFlatIP(self.dim)
+            inner = faiss.IndexIVFFlat(quantizer, self.dim, nlist, faiss.METRIC_INNER_PRODUCT)
+            inner.own_fields = True
+            quantizer.this.disown()
+            inner.train(train)
+            inner.nprobe = max(1, nlist // 4)
+            inner.make_direct_map()
+        return faiss.IndexIDMap2(inner)
+
+    def _prepare(self, x: np.ndarray) -> np.ndarray:
+        x = np.atleast_2d(x)
+        if self.binary:
+            x = np.ascontiguousarray(x, dtype=np.uint8)
+            if x.shape[1] * 8 != self.dim:
+                raise ValueError(f"binary codes of {x.shape[1] * 8} bits for an index of {self.dim}")
+        else:
+            x = np.ascontiguousarray(x, dtype=np.float32)
+            if x.shape[1] != self.dim:
+                raise ValueError(f"vectors of dimension {x.shape[1]} for an index of {self.dim}")
+        return x
+
+    def add(self, ids: np.ndarray, x: np.ndarray) -> None:
+        ids = np.ascontiguousarray(ids, dtype=np.int64)
+        x = self._prepare(x)
+        if self._index is None:
+            self._index = self._make(x)
+        self.tombstones.difference_update(int(i) for i in ids)
+        self._index.add_with_ids(x, ids)
+
+    def remove(self, ids) -> int:
+        """Remove ids; HNSW and IVF (whose direct map, needed to read codes back, cannot shrink) mark them
+        dead instead. Returns how many were live."""
+        ids = [int(i) for i in ids]
+        if self._index is None or not ids:
+            return 0
+        live = [i for i in ids if i in self._id_set() and i not in self.tombstones]
+        if self.kind != "flat":
+            self.tombstones.update(live)
+            return len(live)
+        self._index.remove_ids(faiss.IDSelectorBatch(np.array(ids, dtype=np.int64)))
+        return len(live)
+
+    def _id_set(self) -> set[int]:
+        return set(faiss.vector_to_array(self._index.id_map).tolist()) if self._index is not None else set()
+
+    @property
+    def ntotal(self) -> int:
+        """Live vectors (tombstones excluded)."""
+        return 0 if self._index is None else self._index.ntotal - len(self.tombstones)
+
+    @property
+    def needs_rebuild(self) -> bool:
+        return bool(self.tombstones) and len(self.tombstones) > 0.2 * max(self._index.ntotal, 1)
+
+    def ids(self) -> np.ndarray:
+        if self._index is None:
+            return np.zeros(0, np.int64)
+        all_ids = faiss.vector_to_array(self._index.id_map)
+        if not self.tombstones:
+            return all_ids
+        return all_ids[~np.isin(all_ids, list(self.tombstones))]
+
+    def reconstruct(self, ids) -> np.ndarray:
+        """Stored vectors (codes) of ``ids``, in order."""
+        return (
+            np.stack([self._index.reconstruct(int(i)) for i in ids])
+            if len(ids)
+            else (np.zeros((0, self.dim // 8), np.uint8) if self.binary else np.zeros((0, self.dim), np.float32))
+        )
+
+    # -- searching ------------------------------------------------------------------------------------
+    def _to_scores(self, d: np.ndarray) -> np.ndarray:
+        if self.binary:
+            return 1.0 - d.astype(np.float32) / self.dim
+        return np.clip((1.0 + d) / 2.0, 0.0, 1.0).astype(np.float32)
+
+    def search(self, q: np.ndarray, k: int, allowed: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Top ``k`` per query as (scores, ids), best first, ids -1 where fewer exist. ``allowed`` restricts
+        the search itself to those ids (a region), exactly, by scoring their stored codes."""
+        q = self._prepare(q)
+        nq = len(q)
+        scores = np.full((nq, k), -np.inf if not self.binary else 0.0, np.float32)
+        out_ids = np.full((nq, k), -1, np.int64)
+        if self._index is None or self.ntotal == 0 or k <= 0:
+            return np.zeros((nq, k), np.float32), out_ids
+        if allowed is not None:
+            return self._search_subset(q, k, np.asarray(allowed, np.int64))
+        kk = min(k + len(self.tombstones), self._index.ntotal)
+        d, ids = self._index.search(q, kk)
+        s = self._to_scores(d)
+        scores = np.zeros((nq, k), np.float32)
+        for r in range(nq):
+            keep = [(sc, i) for sc, i in zip(s[r], ids[r], strict=True) if i >= 0 and int(i) not in self.tombstones]
+            keep = keep[:k]
+            for c, (sc, i) in enumerate(keep):
+                scores[r, c], out_ids[r, c] = sc, i
+        return scores, out_ids
+
+    def _search_subset(self, q: np.ndarray, k: int, allowed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        live = self.ids()
+        allowed = allowed[np.isin(allowed, live)]
+        nq = len(q)
+        scores = np.zeros((nq, k), np.float32)
+        out_ids = np.full((nq, k), -1, np.int64)
+        if len(allowed) == 0:
+            return scores, out_ids
+        codes = self.reconstruct(allowed)
+        if self.binary:
+            sub = faiss.IndexBinaryFlat(self.dim)
+            sub.add(codes)
+            d, rows = sub.search(q, min(k, len(allowed)))
+        else:
+            sub = faiss.IndexFlatIP(self.dim)
+            sub.add(codes)
+            d, rows = sub.search(q, min(k, len(allowed)))
+        n = rows.shape[1]
+        scores[:, :n] = self._to_scores(d)
+        out_ids[:, :n] = np.where(rows >= 0, allowed[np.maximum(rows, 0)], -1)
+        return scores, out_ids
+
+    def score_ids(self, q: np.ndarray, ids: np.ndarray) -> np.ndarray:
+        """Exact scores of one query against given ids (the re-rank step of a two-stage search)."""
+        codes = self.reconstruct(ids)
+        if self.binary:
+            qb = np.unpackbits(self._prepare(q)[0])
+            d = (np.unpackbits(codes, axis=1) != qb).sum(axis=1)
+            return self._to_scores(d)
+        return self._to_scores(codes @ self._prepare(q)[0])
+
+    # -- persistence ----------------------------------------------------------------------------------
+    def to_bytes(self) -> bytes:
+        if self._index is None:
+            return b""
+        ser = faiss.serialize_index_binary if self.binary else faiss.serialize_index
+        return ser(self._index).tobytes()
+
+    def load_bytes(self, data: bytes, tombstones=()) -> None:
+        if not data:
+            self._index = None
+        else:
+            de = faiss.deserialize_index_binary if self.binary else faiss.deserialize_index
+            self._index = de(np.frombuffer(data, dtype=np.uint8))
+        self.tombstones = set(int(t) for t in tombstones)
+
+    def memory_bytes_per_vector(self) -> float:
+        """Bytes one reference costs in this index (serialised size / count): what bench reports."""
+        return len(self.to_bytes()) / max(self.ntotal, 1)
+
+    @classmethod
+    def rebuild(cls, template: VectorIndex, ids: np.ndarray, codes: np.ndarray) -> VectorIndex:
+        """A fresh index of the same kind from stored codes: drops tombstones, retrains IVF."""
+        fresh = cls(template.dim, template.binary, template.kind, template.hnsw_m, template.nlist)
+        if len(ids):
+            fresh.add(ids, codes)
+        return fresh

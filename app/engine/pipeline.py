@@ -1,0 +1,247 @@
+"""Compose the stages for one named configuration: image -> features -> aggregation -> codes.
+
+The pipeline is split where the evaluation needs it: ``extract`` needs only the built CNN, while
+``aggregate`` and ``encode`` need the fitted codebook, PCA and binariser. So an evaluation extracts every
+image once and refits per fold, and a service encodes a query in one call (``encode_image``).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from app.engine import cnn as cnn_mod
+from app.engine.artifacts import atomic_write_bytes, library_versions
+from app.engine.codes import Binariser
+from app.engine.configs import PipelineConfig, get_config
+from app.engine.errors import IncompatibleArtifact, ModelNotReady
+from app.engine.local_features import EXTRACTORS
+from app.engine.pca import PcaWhitening, l2_normalize
+from app.engine.vlad import Codebook, vlad
+
+PIPELINE_MANIFEST = "pipeline.json"
+PIPELINE_FORMAT = 1
+
+
+@dataclass
+class Features:
+    """What one image yields before aggregation."""
+
+    local: np.ndarray | None  # (N, D) descriptors to aggregate (RootSIFT/ORB bits, or hybrid)
+    xy: np.ndarray | None  # (N, 2) keypoint positions as fractions of width/height
+    global_: np.ndarray | None  # (512,) GeM of fire9, L2-normalised
+    timings_ms: dict[str, float] = field(default_factory=dict)
+    orb_raw: np.ndarray | None = None  # packed ORB bits, for geometric re-ranking
+
+    @property
+    def n_local(self) -> int:
+        return 0 if self.local is None else len(self.local)
+
+
+@dataclass
+class Codes:
+    float_: np.ndarray | None  # (dim,) float32, L2-normalised
+    binary: np.ndarray | None  # (bits/8,) uint8
+    features_extracted: int = 0
+    features_kept: int = 0
+    timings_ms: dict[str, float] = field(default_factory=dict)
+
+
+class _Timer:
+    def __init__(self, sink: dict[str, float], name: str):
+        self.sink, self.name = sink, name
+
+    def __enter__(self):
+        self.t = time.perf_counter()
+
+    def __exit__(self, *exc):
+        self.sink[self.name] = self.sink.get(self.name, 0.0) + (time.perf_counter() - self.t) * 1000
+
+
+def _unit(x: np.ndarray) -> np.ndarray:
+    return l2_normalize(np.asarray(x, np.float32))
+
+
+class Pipeline:
+    def __init__(
+        self,
+        config: PipelineConfig,
+        cnn: cnn_mod.SqueezeNet | None = None,
+        codebook: Codebook | None = None,
+        pca: PcaWhitening | None = None,
+        binariser: Binariser | None = None,
+        manifest: dict | None = None,
+    ):
+        self.config = config
+        self.cnn = cnn
+        self.codebook = codebook
+        self.pca = pca
+        self.binariser = binariser
+        self.manifest = manifest or {}
+        self._local = (
+            EXTRACTORS[config.local](max_keypoints=config.max_keypoints, long_side=config.local_long_side)
+            if config.local
+            else None
+        )
+        if config.uses_cnn and cnn is None:
+            raise ModelNotReady(f"configuration {config.name} needs the SqueezeNet model")
+
+    # -- stage 1: features ----------------------------------------------------------------------------
+    def extract(self, rgb: np.ndarray) -> Features:
+        c = self.config
+        t: dict[str, float] = {}
+        local = xy = gem = orb_raw = None
+        if self._local is not None:
+            with _Timer(t, "local_features"):
+                lf = self._local(rgb)
+            local, xy, orb_raw = lf.descriptors, lf.xy, lf.raw
+        if c.uses_cnn:
+            with _Timer(t, "cnn"):
+                out = self.cnn.features(rgb, c.cnn_short_side)
+            if c.cnn_global_weight > 0 or local is None:
+                gem = cnn_mod.gem_pool(out.fire9, c.gem_p)
+            if c.cnn_local_weight > 0 and local is not None:
+                with _Timer(t, "hybrid"):
+                    sampled = cnn_mod.sample_at(out.fire9, xy)
+                    local = np.hstack([_unit(local), c.cnn_local_weight * _unit(sampled)]).astype(np.float32)
+        return Features(local=local, xy=xy, global_=gem, timings_ms=t, orb_raw=orb_raw)
+
+    # -- stage 2: aggregation -------------------------------------------------------------------------
+    def aggregate(self, f: Features, keep: np.ndarray | None = None) -> np.ndarray:
+        """One L2-normalised vector per image; ``keep`` (bool mask) selects local features (SVM bank)."""
+        c = self.config
+        parts = []
+        if c.local is not None:
+            if self.codebook is None:
+                raise ModelNotReady(f"configuration {c.name} is not fitted (no codebook)")
+            local = f.local if keep is None else f.local[keep]
+            parts.append(vlad(local, self.codebook, c.power_law, c.intra_norm))
+        if f.global_ is not None:
+            w = c.cnn_global_weight if c.local is not None else 1.0
+            parts.append(w * f.global_)
+        return _unit(np.concatenate(parts)).astype(np.float32)
+
+    # -- stage 3: codes -------------------------------------------------------------------------------
+    def encode_vector(self, v: np.ndarray) -> tuple[np.ndarray | None, np.ndarray | None]:
+        reduced = self.pca.transform(v) if self.pca is not None else _unit(v)
+        f = reduced.astype(np.float32) if self.config.float_codes else None
+        b = self.binariser.encode(reduced) if self.binariser is not None else None
+        return f, b
+
+    def encode_features(self, f: Features, keep: np.ndarray | None = None) -> Codes:
+        t = dict(f.timings_ms)
+        with _Timer(t, "aggregate"):
+            v = self.aggregate(f, keep)
+        with _Timer(t, "codes"):
+            fc, bc = self.encode_vector(v)
+        kept = f.n_local if keep is None else int(np.sum(keep))
+        return Codes(fc, bc, f.n_local, kept, t)
+
+    def encode_image(self, rgb: np.ndarray) -> Codes:
+        return self.encode_features(self.extract(rgb))
+
+    @property
+    def float_dim(self) -> int | None:
+        if not self.config.float_codes:
+            return None
+        if self.pca is not None:
+            return self.pca.dim
+        d = self.codebook.k * self.codebook.dim if self.codebook is not None else 0
+        return d + (512 if self.config.cnn_global_weight > 0 or self.config.local is None else 0)
+
+    @property
+    def bits(self) -> int | None:
+        return self.binariser.bits if self.binariser is not None else None
+
+    # -- fitting --------------------------------------------------------------------------------------
+    def fit(self, features: list[Features], seed: int = 0, progress: Iterable | None = None) -> None:
+        """Fit codebook, then PCA-whitening, then the binariser, each on the previous stage's output."""
+        c = self.config
+        rng = np.random.default_rng(seed)
+        if c.local is not None:
+            sample = []
+            for f in features:
+                if f.n_local:
+                    n = min(c.codebook_samples_per_image, f.n_local)
+                    sample.append(f.local[rng.choice(f.n_local, n, replace=False)])
+            if not sample:
+                raise ModelNotReady("no local features in the training images: cannot fit a codebook")
+            self.codebook = Codebook.fit(np.vstack(sample), c.k, c.codebook, seed=seed)
+        vectors = np.stack([self.aggregate(f) for f in features])
+        self.pca = PcaWhitening.fit(vectors, c.pca_dim, c.whiten_power, seed) if c.pca_dim else None
+        reduced = self.pca.transform(vectors) if self.pca is not None else vectors
+        self.binariser = Binariser.fit(reduced, c.bits, c.binary, seed) if c.binary else None
+        self.manifest = {"n_train_images": len(features), "seed": seed}
+
+    # -- persistence ----------------------------------------------------------------------------------
+    def save(self, directory: Path, extra: dict | None = None) -> None:
+        directory.mkdir(parents=True, exist_ok=True)
+        if self.codebook is not None:
+            self.codebook.save(directory)
+        if self.pca is not None:
+            self.pca.save(directory)
+        if self.binariser is not None:
+            self.binariser.save(directory)
+        manifest = {
+            "format_version": PIPELINE_FORMAT,
+            "config": self.config.model_dump(),
+            "fitted_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+            "libraries": library_versions(),
+            "float_dim": self.float_dim,
+            "bits": self.bits,
+            **self.manifest,
+            **(extra or {}),
+        }
+        atomic_write_bytes(directory / PIPELINE_MANIFEST, json.dumps(manifest, indent=1).encode())
+
+    @classmethod
+    def load(cls, directory: Path, cnn: cnn_mod.SqueezeNet | None) -> Pipeline:
+        mpath = directory / PIPELINE_MANIFEST
+        if not mpath.exists():
+            raise ModelNotReady(f"no fitted pipeline in {directory}: run `geoloc fit` first")
+        manifest = json.loads(mpath.read_text())
+        if manifest.get("format_version") != PIPELINE_FORMAT:
+            raise IncompatibleArtifact(
+                f"{mpath} has format {manifest.get('format_version')}, expected {PIPELINE_FORMAT}"
+            )
+        saved = PipelineConfig(**manifest["config"])
+        known = get_config(saved.name)
+        if saved != known:
+            raise IncompatibleArtifact(
+                f"{directory} was fitted with an older definition of {saved.name!r}; refit it (`geoloc fit`)"
+            )
+        c = known
+        return cls(
+            c,
+            cnn=cnn if c.uses_cnn else None,
+            codebook=Codebook.load(directory) if c.local else None,
+            pca=PcaWhitening.load(directory) if c.pca_dim else None,
+            binariser=Binariser.load(directory) if c.binary else None,
+            manifest=manifest,
+        )
+
+    @property
+    def fingerprint(self) -> str:
+        """Identifies the fitted state; an index built with another fingerprint must be re-encoded."""
+        parts = [self.config.name]
+        for a in (self.codebook, self.pca, self.binariser):
+            if a is not None:
+                parts.append(str(a.manifest.get("data_hash")))
+        return ":".join(parts)
+
+
+def pipeline_dir(models_dir: Path, config_name: str) -> Path:
+    return models_dir / "pipelines" / config_name
+
+
+def load_pipeline(models_dir: Path, config_name: str) -> Pipeline:
+    config = get_config(config_name)
+    cnn = cnn_mod.SqueezeNet(models_dir / cnn_mod.MODEL_FILENAME) if config.uses_cnn else None
+    if cnn is not None:
+        cnn.load()
+    return Pipeline.load(pipeline_dir(models_dir, config_name), cnn)

@@ -1,0 +1,218 @@
+"""The evaluation protocol of METHOD.md: Recall@N within d metres, estimate error, time per stage, bytes.
+
+Every image is decoded and its features extracted once; each fold then fits the pipeline on its own db
+and train rows, indexes the db rows in memory and queries the query rows through the same ``Locator``
+the service uses. With ``folds`` > 1 the query role rotates over the non-train groups (a capture and its
+crops move together), because on a set this small one query moves Recall@1 by points.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import pickle
+import statistics
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from app.datasets import Row, read_manifest
+from app.engine.artifacts import atomic_write_bytes
+from app.engine.configs import PipelineConfig
+from app.engine.geo import haversine_m
+from app.engine.imageio import load_image
+from app.engine.locator import Locator
+from app.engine.pipeline import Features, Pipeline
+from app.engine.search import ReferenceIndex
+
+RECALL_AT = (1, 5, 10, 20)
+
+
+@dataclass
+class Extracted:
+    features: Features
+    decode_ms: float
+
+
+def extract_all(pipeline: Pipeline, rows: list[Row], workers: int = 2, desc: str = "extract") -> list[Extracted]:
+    """Decode and extract every row; threads help because OpenCV and onnxruntime release the GIL.
+    Stage times of work done in parallel are inflated; ``time_queries`` re-measures queries alone."""
+
+    def one(row: Row) -> Extracted:
+        t0 = time.perf_counter()
+        img = load_image(row.image.read_bytes())
+        decode_ms = (time.perf_counter() - t0) * 1000
+        return Extracted(pipeline.extract(img.rgb), decode_ms)
+
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        return list(tqdm(pool.map(one, rows), total=len(rows), desc=desc, unit="img"))
+
+
+def extract_cached(pipeline: Pipeline, rows: list[Row], cache_dir: Path | None, workers: int = 2) -> list[Extracted]:
+    """``extract_all`` with an optional on-disk cache keyed by the images and the extraction settings,
+    so parameter sweeps that change only aggregation or codes skip the expensive part."""
+    if cache_dir is None:
+        return extract_all(pipeline, rows, workers)
+    key = hashlib.sha256(pipeline.config.extraction_key().encode())
+    for r in rows:
+        st = r.image.stat()
+        key.update(f"{r.image}:{st.st_size}:{st.st_mtime_ns}".encode())
+    path = cache_dir / f"features-{key.hexdigest()[:20]}.pkl"
+    if path.exists():
+        with path.open("rb") as f:
+            return pickle.load(f)
+    extracted = extract_all(pipeline, rows, workers)
+    cache_dir.mkdir(parents=True, exist_ok=True)
+    atomic_write_bytes(path, pickle.dumps(extracted, protocol=pickle.HIGHEST_PROTOCOL))
+    return extracted
+
+
+def assign_folds(rows: list[Row], folds: int, seed: int = 0) -> list[list[str]]:
+    """Split the non-train groups into ``folds`` query sets (sorted, then shuffled with ``seed``)."""
+    groups = sorted({r.group for r in rows if r.split != "train"})
+    rng = np.random.default_rng(seed)
+    rng.shuffle(groups)
+    return [groups[f::folds] for f in range(folds)]
+
+
+def evaluate(
+    manifest: Path,
+    config: PipelineConfig,
+    cnn,
+    radius_m: float = 25.0,
+    folds: int = 1,
+    seed: int = 0,
+    workers: int = 2,
+    top_n: int = max(RECALL_AT),
+    mode: str | None = None,
+    cache_dir: Path | None = None,
+) -> dict:
+    rows = read_manifest(manifest)
+    base = Pipeline(config, cnn=cnn)
+    extracted = extract_cached(base, rows, cache_dir, workers)
+
+    query_sets = [[r.group for r in rows if r.split == "query"]] if folds <= 1 else assign_folds(rows, folds, seed)
+
+    lat = np.array([r.lat for r in rows])
+    lon = np.array([r.lon for r in rows])
+
+    def positions(ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return lat[ids], lon[ids]
+
+    per_fold, all_hits, est_err, est_conf, stage_times = [], [], [], [], []
+    n_db = n_query = 0
+    bytes_per_ref = 0.0
+    for f, qgroups in enumerate(query_sets):
+        qset = set(qgroups)
+        q_idx = [i for i, r in enumerate(rows) if r.group in qset and r.split != "train"]
+        db_idx = [i for i, r in enumerate(rows) if r.group not in qset and r.split != "train"]
+        fit_idx = db_idx + [i for i, r in enumerate(rows) if r.split == "train"]
+        pipe = Pipeline(config, cnn=cnn)
+        pipe.fit([extracted[i].features for i in fit_idx], seed=seed + f)
+        index = ReferenceIndex(config, pipe.float_dim, pipe.bits)
+        codes = [
+            pipe.encode_features(extracted[i].features)
+            for i in tqdm(db_idx, desc=f"fold {f + 1}/{len(query_sets)} encode db", unit="img", leave=False)
+        ]
+        ids = np.array(db_idx, np.int64)
+        index.add(
+            ids,
+            np.stack([c.float_ for c in codes]) if pipe.float_dim else None,
+            np.stack([c.binary for c in codes]) if pipe.bits else None,
+        )
+        locator = Locator(pipe, index, positions, cluster_radius_m=radius_m)
+        hits = []
+        for i in q_idx:
+            res = locator.locate_features(extracted[i].features, top_k=top_n, mode=mode)
+            ids_ = np.array([c.reference_id for c in res.candidates], np.int64)
+            d = haversine_m(rows[i].lat, rows[i].lon, lat[ids_], lon[ids_]) if len(ids_) else np.zeros(0)
+            hits.append([bool(np.any(d[:n] <= radius_m)) for n in range(1, top_n + 1)])
+            e = res.estimate
+            if e.lat is not None:
+                err = float(haversine_m(rows[i].lat, rows[i].lon, e.lat, e.lon))
+                est_err.append(err)
+                est_conf.append((e.confident, err <= radius_m))
+            stage_times.append({"decode": extracted[i].decode_ms, **res.timings_ms})
+        hits_arr = np.array(hits, bool)
+        all_hits.append(hits_arr)
+        per_fold.append({str(n): float(hits_arr[:, n - 1].mean()) for n in RECALL_AT})
+        n_db += len(db_idx)
+        n_query += len(q_idx)
+        bytes_per_ref = index.bytes_per_reference()
+
+    hits_all = np.vstack(all_hits)
+    recall_curve = hits_all.mean(axis=0)
+    stages = sorted({k for t in stage_times for k in t})
+    ms = {s: float(statistics.median([t.get(s, 0.0) for t in stage_times])) for s in stages}
+    ms["total"] = float(statistics.median([sum(t.values()) for t in stage_times]))
+    conf = [ok for c, ok in est_conf if c]
+    result = {
+        "config": config.name,
+        "manifest": str(manifest),
+        "folds": len(query_sets),
+        "n_db": n_db // len(query_sets),
+        "n_query": n_query,
+        "radius_m": radius_m,
+        "mode": mode or config.modes[0],
+        "recall_at": {str(n): float(np.mean([p[str(n)] for p in per_fold])) for n in RECALL_AT},
+        "recall_at_per_fold": per_fold,
+        "recall_curve": [float(x) for x in recall_curve],
+        "ms_per_query": ms,
+        "ms_per_query_note": "median over queries; extraction ran on a 2-thread pool, so per-stage times "
+        "include contention",
+        "bytes_per_reference": bytes_per_ref,
+        "estimate_error_m": {
+            "median": float(np.median(est_err)) if est_err else None,
+            "p90": float(np.percentile(est_err, 90)) if est_err else None,
+            "confident_fraction": len(conf) / max(len(est_conf), 1),
+            "confident_within_radius": float(np.mean(conf)) if conf else None,
+            "all_within_radius": float(np.mean([ok for _, ok in est_conf])) if est_conf else None,
+        },
+        "config_definition": config.model_dump(),
+    }
+    return result
+
+
+def write_report(result: dict, out: Path) -> Path:
+    """Write the JSON and a Recall@N plot beside it; return the plot's path."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(result, indent=1))
+    png = out.with_suffix(".png")
+    n = np.arange(1, len(result["recall_curve"]) + 1)
+    fig, ax = plt.subplots(figsize=(5, 3.5))
+    ax.plot(n, result["recall_curve"], marker="o", ms=3)
+    ax.set_xlabel("N")
+    ax.set_ylabel(f"Recall@N within {result['radius_m']:.0f} m")
+    ax.set_ylim(0, 1)
+    ax.grid(alpha=0.3)
+    ax.set_title(f"{result['config']} ({result['n_query']} queries, {result['folds']} fold(s))")
+    fig.tight_layout()
+    fig.savefig(png, dpi=100)
+    plt.close(fig)
+    return png
+
+
+def format_summary(result: dict) -> str:
+    r = result["recall_at"]
+    ms = result["ms_per_query"]
+    e = result["estimate_error_m"]
+    lines = [
+        f"config {result['config']}  db {result['n_db']}  queries {result['n_query']}  folds {result['folds']}  "
+        f"radius {result['radius_m']:.0f} m  mode {result['mode']}",
+        "Recall@1/5/10/20: " + " / ".join(f"{r[k]:.3f}" for k in ("1", "5", "10", "20")),
+        "ms per query (median): " + ", ".join(f"{k} {v:.1f}" for k, v in ms.items()),
+        f"bytes per reference: {result['bytes_per_reference']:.0f}",
+        f"estimate error: median {e['median']:.1f} m, p90 {e['p90']:.1f} m; confident "
+        f"{e['confident_fraction']:.0%} of the time, and then within the radius "
+        + (f"{e['confident_within_radius']:.0%}" if e["confident_within_radius"] is not None else "n/a"),
+    ]
+    return "\n".join(lines)

@@ -1,0 +1,50 @@
+"""Shared fixtures: real data read in place from ../shared, a model built once per session."""
+
+from __future__ import annotations
+
+import csv
+import os
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED = Path(os.environ.get("GEOLOC_SHARED_DIR", REPO.parent / "shared")).resolve()
+PENN = SHARED / "data" / "penn-campus-gps"
+SQUEEZENET_IR = SHARED / "models" / "squeezenet1.1" / "caffe-openvino-ir"
+CHECK_IMAGES = SHARED / "models" / "squeezenet1.1" / "check-images"
+
+
+def pytest_collection_modifyitems(config, items):
+    if not PENN.exists():
+        raise pytest.UsageError(f"the shared data is missing: expected {PENN} (../shared beside the repo)")
+
+
+@pytest.fixture(scope="session")
+def models_dir(tmp_path_factory) -> Path:
+    """A models dir holding the ONNX model built by our converter (built once for the session)."""
+    from app.engine.cnn import MODEL_FILENAME
+    from app.engine.squeezenet_onnx import build_squeezenet_onnx
+
+    d = tmp_path_factory.mktemp("models")
+    build_squeezenet_onnx(SQUEEZENET_IR, d / MODEL_FILENAME)
+    return d
+
+
+@pytest.fixture(scope="session")
+def squeezenet(models_dir):
+    from app.engine.cnn import MODEL_FILENAME, SqueezeNet
+
+    net = SqueezeNet(models_dir / MODEL_FILENAME)
+    net.load()
+    return net
+
+
+@pytest.fixture(scope="session")
+def penn_index() -> list[dict]:
+    with (PENN / "index.csv").open(newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def penn_photo(name: str) -> Path:
+    return PENN / "photos" / name
