@@ -183,6 +183,7 @@ def eval_cmd(
     seed: int = 0,
     overrides: Annotated[list[str] | None, typer.Option("--set", help="vary a field: --set k=32")] = None,
     cache: Annotated[Path | None, typer.Option(help="cache extracted features here across runs")] = None,
+    workers: Annotated[int, typer.Option(help="extraction threads; 1 keeps per-stage times honest")] = 1,
 ) -> None:
     """Fit, index the db rows in memory, query the query rows; print Recall@N, time, bytes."""
     from app.engine.configs import get_config
@@ -190,7 +191,15 @@ def eval_cmd(
 
     cfg = get_config(config).with_overrides(_parse_overrides(overrides or []))
     result = evaluate(
-        manifest, cfg, _load_cnn(models_dir, cfg), radius_m=radius_m, folds=folds, seed=seed, mode=mode, cache_dir=cache
+        manifest,
+        cfg,
+        _load_cnn(models_dir, cfg),
+        radius_m=radius_m,
+        folds=folds,
+        seed=seed,
+        mode=mode,
+        cache_dir=cache,
+        workers=workers,
     )
     typer.echo(format_summary(result))
     if json_out:

@@ -104,8 +104,8 @@ class ReferenceStore:
             self.set_meta("config", pipeline.config.name)
         elif fp != pipeline.fingerprint and self.count() > 0:
             raise IncompatibleArtifact(
-                f"{self.data_dir} holds codes from pipeline {fp}, not {pipeline.fingerprint}: use the same "
-                "--config and models dir, or re-encode the collection (`geoloc reindex`)"
+                f"{self.data_dir} holds codes from pipeline {fp}, not {pipeline.fingerprint}: use the models dir "
+                "and --config the collection was built with, or start a new --data-dir"
             )
         else:
             self.set_meta("fingerprint", pipeline.fingerprint)

@@ -48,3 +48,20 @@ def penn_index() -> list[dict]:
 
 def penn_photo(name: str) -> Path:
     return PENN / "photos" / name
+
+
+@pytest.fixture(scope="session")
+def mini_manifest(tmp_path_factory, penn_index) -> Path:
+    """A small real manifest from penn-campus-gps: 10 captures as db, 3 as queries, 3 as train.
+    Captures are picked in a fixed order so the test data never changes."""
+    from app.datasets import Row, write_manifest
+
+    captures = [r for r in penn_index if r["photo"]][:16]
+    rows = []
+    for n, r in enumerate(captures):
+        split = "query" if n in (1, 6, 11) else "train" if n in (3, 8, 13) else "db"
+        images = [r["photo"]] + r["crops"].split(";")[:2]
+        rows += [Row((PENN / img).resolve(), float(r["lat"]), float(r["lon"]), split, r["photo_id"]) for img in images]
+    path = tmp_path_factory.mktemp("manifest") / "mini.csv"
+    write_manifest(path, rows)
+    return path

@@ -22,4 +22,6 @@ def create_session(model_path: Path, intra_threads: int | None = None) -> ort.In
     # Input sizes vary per photo: the arena would keep the largest allocation forever.
     opts.enable_cpu_mem_arena = False
     opts.log_severity_level = 3
+    # Spinning worker threads would keep burning both cores after each run, slowing the stages after it.
+    opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
     return ort.InferenceSession(str(model_path), sess_options=opts, providers=["CPUExecutionProvider"])

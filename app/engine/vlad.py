@@ -8,6 +8,7 @@ against; ``minibatch`` is Sculley's algorithm, cheaper and more stable across re
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -41,15 +42,18 @@ class Codebook:
         algorithm: str = "minibatch",
         seed: int = 0,
         max_iter: int = 100,
-        batch_size: int = 4096,
+        batch_size: int = 10_000,
     ) -> Codebook:
+        """``max_iter`` counts mini-batch steps for ``minibatch`` (the thesis: 100 steps of large batches)
+        and Lloyd iterations for ``kmeans``."""
         x = np.ascontiguousarray(descriptors, dtype=np.float32)
         k = min(k, len(x))
         if algorithm == "minibatch":
+            epochs = max(1, math.ceil(max_iter * batch_size / len(x)))  # scikit-learn counts epochs
             km = MiniBatchKMeans(
                 n_clusters=k,
                 batch_size=batch_size,
-                max_iter=max_iter,
+                max_iter=epochs,
                 n_init=3,
                 random_state=seed,
                 reassignment_ratio=0.01,

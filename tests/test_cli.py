@@ -1,0 +1,92 @@
+"""The geoloc command end to end, as a user runs it (real subprocesses, real files)."""
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from tests.conftest import PENN, SQUEEZENET_IR
+
+
+def geoloc(*args: str, check: bool = True) -> subprocess.CompletedProcess:
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    p = subprocess.run([sys.executable, "-m", "app.cli", *args], capture_output=True, text=True, env=env, timeout=600)
+    if check and p.returncode != 0:
+        raise AssertionError(f"geoloc {' '.join(args)} failed ({p.returncode}):\n{p.stdout}\n{p.stderr}")
+    return p
+
+
+@pytest.fixture(scope="module")
+def workdir(tmp_path_factory) -> Path:
+    d = tmp_path_factory.mktemp("cli")
+    geoloc("models", "build", "--from", str(SQUEEZENET_IR), "--models-dir", str(d / "models"))
+    return d
+
+
+def test_build_fit_ingest_locate(workdir, mini_manifest):
+    m, data, models = str(mini_manifest), str(workdir / "index"), str(workdir / "models")
+    assert (workdir / "models" / "squeezenet1_1.onnx").exists()
+    out = geoloc("fit", "--manifest", m, "--config", "hybrid-bin", "--models-dir", models)
+    assert "saved" in out.stdout
+    manifest = json.loads((workdir / "models" / "pipelines" / "hybrid-bin" / "pipeline.json").read_text())
+    assert manifest["config"]["name"] == "hybrid-bin" and manifest["bits"] > 0
+
+    out = geoloc(
+        "ingest", "--manifest", m, "--split", "db", "--config", "hybrid-bin", "--data-dir", data, "--models-dir", models
+    )
+    assert "ingested 30 new references" in out.stdout
+    again = geoloc(
+        "ingest", "--manifest", m, "--split", "db", "--config", "hybrid-bin", "--data-dir", data, "--models-dir", models
+    )
+    assert "ingested 0 new references (30 already present)" in again.stdout
+
+    photo = PENN / "photos" / "img_00000.jpg"  # a db photo: must come back first
+    res = json.loads(geoloc("locate", str(photo), "--top-k", "3", "--data-dir", data, "--models-dir", models).stdout)
+    assert res["config"] == "hybrid-bin" and res["mode"] == "two-stage"
+    assert res["candidates"][0]["label"] == "img_00000.jpg" and res["candidates"][0]["score"] > 0.95
+    assert res["index"]["size"] == 30 and res["features"]["extracted"] > 100
+
+    res = json.loads(
+        geoloc("locate", str(photo), "--mode", "binary", "--data-dir", data, "--models-dir", models).stdout
+    )
+    assert res["mode"] == "binary"
+    bad = geoloc("locate", str(photo), "--mode", "float-ish", "--data-dir", data, "--models-dir", models, check=False)
+    assert bad.returncode == 2 and "supports two-stage" in bad.stderr
+    bad = geoloc(
+        "locate", str(SQUEEZENET_IR / "squeezenet1.1.labels"), "--data-dir", data, "--models-dir", models, check=False
+    )
+    assert bad.returncode == 2 and "not a JPEG" in bad.stderr
+
+
+def test_eval_writes_the_report(workdir, mini_manifest):
+    out_json = workdir / "eval" / "hybrid.json"
+    p = geoloc(
+        "eval",
+        "--manifest",
+        str(mini_manifest),
+        "--config",
+        "hybrid",
+        "--models-dir",
+        str(workdir / "models"),
+        "--json",
+        str(out_json),
+        "--folds",
+        "2",
+    )
+    assert "Recall@1/5/10/20" in p.stdout
+    r = json.loads(out_json.read_text())
+    assert r["config"] == "hybrid" and r["folds"] == 2 and r["radius_m"] == 25
+    assert set(r["recall_at"]) == {"1", "5", "10", "20"} and all(0 <= v <= 1 for v in r["recall_at"].values())
+    assert r["n_query"] == 39 and r["n_db"] > 0  # 13 non-train captures x 3 images, each a query once
+    assert {"total", "decode", "local_features", "cnn", "aggregate", "search"} <= set(r["ms_per_query"])
+    assert r["bytes_per_reference"] == 4 * 256 or r["bytes_per_reference"] < 4 * 256
+    assert {"median", "p90", "confident_within_radius"} <= set(r["estimate_error_m"])
+    assert out_json.with_suffix(".png").stat().st_size > 1000
+
+
+def test_unknown_config_is_a_clear_error(workdir, mini_manifest):
+    p = geoloc("eval", "--manifest", str(mini_manifest), "--config", "nope", check=False)
+    assert p.returncode == 2 and "unknown configuration 'nope'" in p.stderr
