@@ -56,4 +56,4 @@ results: $(MODEL) $(MANIFEST)
 	$(BIN)/python bench/results.py --manifest $(MANIFEST) --folds $(FOLDS) --out out/eval
 
 clean-index:
-	rm -rf index/*.sqlite* index/*.faiss index/index.json index/images
+	rm -rf index/*.sqlite* index/*.faiss index/index.json index/images index/*.lock

@@ -207,6 +207,51 @@ def eval_cmd(
         typer.echo(f"wrote {json_out} and {png}")
 
 
+@app.command()
+def serve(
+    host: str = "127.0.0.1",
+    port: int = 8000,
+    data_dir: DataDir = _S.data_dir,
+    models_dir: ModelsDir = _S.models_dir,
+    config: ConfigOpt = _S.config,
+    worker: Annotated[str, typer.Option(help="inprocess, or none when a `geoloc worker` runs")] = _S.worker,
+) -> None:
+    """Run the REST service with uvicorn."""
+    import uvicorn
+
+    from app.api.app import create_app
+
+    settings = Settings(data_dir=data_dir, models_dir=models_dir, config=config, worker=worker)
+    uvicorn.run(create_app(settings), host=host, port=port, log_level="info")
+
+
+@app.command("worker")
+def worker_cmd(
+    data_dir: DataDir = _S.data_dir,
+    models_dir: ModelsDir = _S.models_dir,
+    config: ConfigOpt = _S.config,
+    batch: int = _S.worker_batch,
+) -> None:
+    """Run the ingestion worker as its own process (one per data dir; a second one refuses to start)."""
+    import logging
+    import signal
+
+    from app.worker import IngestWorker, LiveCollection, WorkerLock
+
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
+    lock = WorkerLock(data_dir)
+    if not lock.acquire():
+        _fail(f"another worker already holds {lock.path}")
+    live = LiveCollection(data_dir, models_dir, config)
+    w = IngestWorker(live, batch)
+    signal.signal(signal.SIGTERM, lambda *_: w.stop_event.set())
+    typer.echo(f"worker: {data_dir} ({live.pipeline.config.name}), {live.store.count('pending')} pending")
+    try:
+        w.run_forever()
+    finally:
+        lock.release()
+
+
 def _parse_overrides(items: list[str]) -> dict:
     out = {}
     for item in items:

@@ -18,5 +18,18 @@ class Settings(BaseSettings):
     shared_dir: Path = Field(REPO_ROOT.parent / "shared", description="read-only data and weights")
     config: str = Field("hybrid", description="named pipeline configuration")
     api_key: str | None = Field(None, description="required in X-API-Key on writes when set")
-    max_upload_bytes: int = 30 * 1024 * 1024
-    max_image_pixels: int = 50_000_000
+    protect_reads: bool = Field(False, description="require the API key on reads too")
+    max_upload_bytes: int = Field(30 * 1024 * 1024, description="per image; 12 MP phone photos are 2-8 MB")
+    max_image_pixels: int = Field(50_000_000, description="declared pixels; refuses decompression bombs")
+    max_files_per_request: int = 50
+    keep_queries: bool = Field(False, description="store /locate uploads in DATA_DIR/queries")
+    worker: str = Field(
+        "inprocess", description="inprocess: this process encodes uploads; none: a separate `geoloc worker` does"
+    )
+    worker_batch: int = 8
+    thumbnail_px: int = 320
+
+    def image_limits(self):
+        from app.engine.imageio import ImageLimits
+
+        return ImageLimits(max_bytes=self.max_upload_bytes, max_pixels=self.max_image_pixels)

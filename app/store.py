@@ -13,6 +13,7 @@ import json
 import sqlite3
 import threading
 import time
+import uuid
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -38,10 +39,24 @@ CREATE TABLE IF NOT EXISTS refs (
     image_ext TEXT,
     created_at TEXT NOT NULL,
     float_code BLOB,
-    binary_code BLOB
+    binary_code BLOB,
+    status TEXT NOT NULL DEFAULT 'indexed',  -- pending (accepted, not encoded yet), indexed, failed
+    error TEXT
 );
 CREATE INDEX IF NOT EXISTS refs_lat_lon ON refs(lat, lon);
+CREATE INDEX IF NOT EXISTS refs_status ON refs(status);
 CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+CREATE TABLE IF NOT EXISTS jobs (
+    id TEXT PRIMARY KEY,
+    created_at TEXT NOT NULL
+);
+CREATE TABLE IF NOT EXISTS job_items (
+    job_id TEXT NOT NULL REFERENCES jobs(id),
+    position INTEGER NOT NULL,
+    ref_id INTEGER NOT NULL,
+    duplicate INTEGER NOT NULL DEFAULT 0,
+    PRIMARY KEY (job_id, position)
+);
 """
 
 
@@ -56,12 +71,14 @@ class Reference:
     label: str | None
     source: str | None
     created_at: str
+    status: str = "indexed"
+    error: str | None = None
 
     def as_dict(self) -> dict:
         return {k: getattr(self, k) for k in self.__dataclass_fields__}
 
 
-_COLS = "id, sha256, lat, lon, heading, captured_at, label, source, created_at"
+_COLS = "id, sha256, lat, lon, heading, captured_at, label, source, created_at, status, error"
 
 
 def sha256_of(data: bytes) -> str:
@@ -139,8 +156,10 @@ class ReferenceStore:
         captured_at: str | None = None,
         label: str | None = None,
         source: str | None = None,
+        pending: bool = False,
     ) -> tuple[int, bool]:
-        """Store one reference; returns (id, created). Identical bytes return the existing id."""
+        """Store one reference; returns (id, created). Identical bytes return the existing id.
+        ``pending``: accepted now, encoded later by the worker (the image is on disk, the row committed)."""
         sha = sha256_of(image_bytes)
         with self._lock:
             existing = self.find_by_sha(sha)
@@ -153,7 +172,7 @@ class ReferenceStore:
             try:
                 cur = self.db.execute(
                     "INSERT INTO refs(sha256, lat, lon, heading, captured_at, label, source, image_ext, created_at, "
-                    "float_code, binary_code) VALUES(?,?,?,?,?,?,?,?,?,?,?)",
+                    "float_code, binary_code, status) VALUES(?,?,?,?,?,?,?,?,?,?,?,?)",
                     (
                         sha,
                         lat,
@@ -166,6 +185,7 @@ class ReferenceStore:
                         time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
                         None if float_code is None else np.asarray(float_code, np.float32).tobytes(),
                         None if binary_code is None else np.asarray(binary_code, np.uint8).tobytes(),
+                        "pending" if pending else "indexed",
                     ),
                 )
                 self._bump()
@@ -216,8 +236,86 @@ class ReferenceStore:
         ).fetchall()
         return np.array([r[0] for r in rows], np.int64)
 
-    def count(self) -> int:
-        return self.db.execute("SELECT COUNT(*) FROM refs").fetchone()[0]
+    def count(self, status: str | None = "indexed") -> int:
+        """References in the index (by default), or of another status, or all (None)."""
+        if status is None:
+            return self.db.execute("SELECT COUNT(*) FROM refs").fetchone()[0]
+        return self.db.execute("SELECT COUNT(*) FROM refs WHERE status=?", (status,)).fetchone()[0]
+
+    # -- the ingestion queue: pending rows are the durable queue ---------------------------------------
+    def pending(self, limit: int) -> list[tuple[int, Path]]:
+        rows = self.db.execute(
+            "SELECT id, sha256, image_ext FROM refs WHERE status='pending' ORDER BY id LIMIT ?", (limit,)
+        ).fetchall()
+        return [(r[0], self.data_dir / "images" / f"{r[1]}.{r[2]}") for r in rows]
+
+    def complete(self, results: list[tuple[int, np.ndarray | None, np.ndarray | None, str | None]]) -> list[int]:
+        """Record encoded codes (or an error) for pending rows, in one transaction; return the ids that
+        became indexed. Rows deleted meanwhile are skipped, and re-running a batch changes nothing:
+        completing is idempotent, so a worker killed anywhere can simply start again."""
+        done = []
+        with self._lock:
+            self.db.execute("BEGIN IMMEDIATE")
+            try:
+                for ref_id, fcode, bcode, error in results:
+                    if error is not None:
+                        self.db.execute(
+                            "UPDATE refs SET status='failed', error=? WHERE id=? AND status='pending'", (error, ref_id)
+                        )
+                        continue
+                    cur = self.db.execute(
+                        "UPDATE refs SET float_code=?, binary_code=?, status='indexed' WHERE id=? AND status='pending'",
+                        (
+                            None if fcode is None else np.asarray(fcode, np.float32).tobytes(),
+                            None if bcode is None else np.asarray(bcode, np.uint8).tobytes(),
+                            ref_id,
+                        ),
+                    )
+                    if cur.rowcount:
+                        done.append(ref_id)
+                self._bump()
+                self.db.execute("COMMIT")
+            except BaseException:
+                self.db.execute("ROLLBACK")
+                raise
+        return done
+
+    def create_job(self, items: list[tuple[int, bool]]) -> str:
+        job_id = uuid.uuid4().hex
+        with self._lock:
+            self.db.execute("BEGIN IMMEDIATE")
+            self.db.execute(
+                "INSERT INTO jobs(id, created_at) VALUES(?, ?)",
+                (job_id, time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())),
+            )
+            self.db.executemany(
+                "INSERT INTO job_items(job_id, position, ref_id, duplicate) VALUES(?,?,?,?)",
+                [(job_id, n, ref_id, int(dup)) for n, (ref_id, dup) in enumerate(items)],
+            )
+            self.db.execute("COMMIT")
+        return job_id
+
+    def job(self, job_id: str) -> dict | None:
+        row = self.db.execute("SELECT created_at FROM jobs WHERE id=?", (job_id,)).fetchone()
+        if row is None:
+            return None
+        items = self.db.execute(
+            "SELECT j.position, j.ref_id, j.duplicate, r.status, r.error FROM job_items j "
+            "LEFT JOIN refs r ON r.id = j.ref_id WHERE j.job_id=? ORDER BY j.position",
+            (job_id,),
+        ).fetchall()
+        out = [
+            {"reference_id": i[1], "duplicate": bool(i[2]), "status": i[3] or "deleted", "error": i[4]} for i in items
+        ]
+        counts = {s: sum(1 for o in out if o["status"] == s) for s in ("pending", "indexed", "failed", "deleted")}
+        status = (
+            "queued"
+            if counts["pending"] == len(out)
+            else "running"
+            if counts["pending"]
+            else ("failed" if counts["failed"] == len(out) else "done")
+        )
+        return {"id": job_id, "created_at": row[0], "status": status, "total": len(out), **counts, "items": out}
 
     def positions(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         ids = [int(i) for i in ids]
@@ -229,7 +327,9 @@ class ReferenceStore:
         return pos[:, 0], pos[:, 1]
 
     def all_codes(self) -> tuple[np.ndarray, list[bytes | None], list[bytes | None]]:
-        rows = self.db.execute("SELECT id, float_code, binary_code FROM refs ORDER BY id").fetchall()
+        rows = self.db.execute(
+            "SELECT id, float_code, binary_code FROM refs WHERE status='indexed' ORDER BY id"
+        ).fetchall()
         return np.array([r[0] for r in rows], np.int64), [r[1] for r in rows], [r[2] for r in rows]
 
     # -- the FAISS cache ------------------------------------------------------------------------------
@@ -241,14 +341,15 @@ class ReferenceStore:
         if manifest_path.exists():
             m = json.loads(manifest_path.read_text())
             if m.get("version") == version and m.get("fingerprint") == pipeline.fingerprint:
-                if index.float is not None:
-                    index.float.load_bytes((self.data_dir / "float.faiss").read_bytes(), m.get("float_tombstones", []))
-                if index.binary is not None:
-                    index.binary.load_bytes(
-                        (self.data_dir / "binary.faiss").read_bytes(), m.get("binary_tombstones", [])
-                    )
-                if index.size == self.count():
-                    return index
+                try:
+                    if index.float is not None:
+                        index.float.load_bytes((self.data_dir / m["float_file"]).read_bytes(), m["float_tombstones"])
+                    if index.binary is not None:
+                        index.binary.load_bytes((self.data_dir / m["binary_file"]).read_bytes(), m["binary_tombstones"])
+                    if index.size == self.count():
+                        return index
+                except (OSError, KeyError, RuntimeError):
+                    pass  # another process replaced the snapshot meanwhile, or it is damaged: rebuild
                 index = ReferenceIndex(pipeline.config, pipeline.float_dim, pipeline.bits)
         ids, fcodes, bcodes = self.all_codes()
         if len(ids):
@@ -259,13 +360,17 @@ class ReferenceStore:
         return index
 
     def save_snapshot(self, index: ReferenceIndex, pipeline: Pipeline, version: int) -> None:
-        """Index files first, manifest last: a crash in between leaves a manifest naming an older version,
-        which the next open detects and rebuilds."""
-        if index.float is not None:
-            atomic_write_bytes(self.data_dir / "float.faiss", index.float.to_bytes())
-        if index.binary is not None:
-            atomic_write_bytes(self.data_dir / "binary.faiss", index.binary.to_bytes())
+        """Index files first (named by version, so a reader never pairs a manifest with files of another
+        version), manifest last: a crash in between leaves a manifest naming an older version, which the next
+        open detects and rebuilds. Files of older versions are removed afterwards."""
+        files = {}
+        for kind, idx in (("float", index.float), ("binary", index.binary)):
+            if idx is not None:
+                files[kind] = f"{kind}-v{version}.faiss"
+                atomic_write_bytes(self.data_dir / files[kind], idx.to_bytes())
         manifest = {
+            "float_file": files.get("float"),
+            "binary_file": files.get("binary"),
             "version": version,
             "size": index.size,
             "config": pipeline.config.name,
@@ -277,3 +382,10 @@ class ReferenceStore:
             "written_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         }
         atomic_write_bytes(self.data_dir / SNAPSHOT_MANIFEST, json.dumps(manifest, indent=1).encode())
+        for old in self.data_dir.glob("*-v*.faiss"):
+            if old.name not in files.values():
+                try:
+                    if int(old.stem.rsplit("-v", 1)[1]) < version:
+                        old.unlink(missing_ok=True)
+                except ValueError:
+                    pass

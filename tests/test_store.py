@@ -42,6 +42,7 @@ def test_add_dedup_delete_and_snapshot(tmp_path, fitted):
     index = store.build_index(pipe)
     assert index.size == 5 == store.count()
     assert json.loads((tmp_path / "index.json").read_text())["version"] == store.version
+    assert (tmp_path / f"float-v{store.version}.faiss").exists()
 
     assert store.delete(ids[1]) and not store.delete(ids[1])
     assert not store.image_path(ids[1]) and store.get(ids[1]) is None

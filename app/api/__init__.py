@@ -1,0 +1,1 @@
+"""The HTTP layer: FastAPI app factory, routes, error mapping, metrics. No recognition logic here."""

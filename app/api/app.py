@@ -1,0 +1,78 @@
+"""The FastAPI app factory. Loading (model, fitted pipeline, index) runs in a background thread started by
+the lifespan, so /health answers at once and /ready says 503 until everything is loaded."""
+
+from __future__ import annotations
+
+import logging
+import threading
+from contextlib import asynccontextmanager
+
+from fastapi import FastAPI
+
+from app import __version__
+from app.api import errors
+from app.api.metrics import Metrics, MetricsMiddleware
+from app.api.routes import router
+from app.settings import Settings
+from app.worker import IngestWorker, LiveCollection, WorkerLock
+
+log = logging.getLogger("geoloc.api")
+
+
+def _load(app: FastAPI) -> None:
+    state = app.state
+    s: Settings = state.settings
+    try:
+        live = LiveCollection(s.data_dir, s.models_dir, s.config, s.image_limits())
+        if s.worker == "inprocess":
+            lock = WorkerLock(s.data_dir)
+            if lock.acquire():
+                state.worker_lock = lock
+                m = state.metrics
+
+                def count(indexed: int, failed: int) -> None:
+                    m.ingested.labels("indexed").inc(indexed)
+                    m.ingested.labels("failed").inc(failed)
+
+                state.worker = IngestWorker(live, s.worker_batch, on_batch=count)
+                state.worker.start()
+            else:
+                log.warning("another worker holds %s: this process serves searches and accepts uploads only", lock.path)
+        state.live = live
+        log.info("ready: config %s, %d references", live.pipeline.config.name, live.index.size)
+    except Exception as e:  # keep /health up and say what is wrong on /ready
+        log.exception("loading failed")
+        state.load_error = f"loading failed: {e}"
+
+
+def create_app(settings: Settings | None = None) -> FastAPI:
+    settings = settings or Settings()
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI):
+        loader = threading.Thread(target=_load, args=(app,), name="geoloc-load", daemon=True)
+        loader.start()
+        yield
+        loader.join(timeout=60)
+        if app.state.worker is not None:
+            app.state.worker.stop()
+        if app.state.worker_lock is not None:
+            app.state.worker_lock.release()
+
+    app = FastAPI(
+        title="geoloc",
+        version=__version__,
+        description="Visual geolocation: find where a photo was taken by recognising the place in geotagged "
+        'reference images. Errors are JSON: {"error": code, "message": text}.',
+        lifespan=lifespan,
+    )
+    app.state.settings = settings
+    app.state.metrics = Metrics()
+    app.state.live = None
+    app.state.worker = None
+    app.state.worker_lock = None
+    app.state.load_error = None
+    app.add_middleware(MetricsMiddleware, metrics=app.state.metrics)
+    errors.install(app)
+    app.include_router(router)
+    return app

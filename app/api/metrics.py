@@ -1,0 +1,67 @@
+"""Prometheus metrics (prometheus-client): requests, latencies, /locate stages, index, queue, memory."""
+
+from __future__ import annotations
+
+import time
+
+from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, PlatformCollector, ProcessCollector
+from starlette.middleware.base import BaseHTTPMiddleware
+from starlette.requests import Request
+
+BUCKETS = (0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1, 2.5, 5, 10, 30)
+
+
+class Metrics:
+    """One registry per app, so tests can build several apps in one process."""
+
+    def __init__(self):
+        self.registry = CollectorRegistry()
+        ProcessCollector(registry=self.registry)  # process memory, CPU, open files
+        PlatformCollector(registry=self.registry)
+        self.requests = Counter(
+            "geoloc_http_requests_total", "HTTP requests", ["route", "method", "status"], registry=self.registry
+        )
+        self.latency = Histogram(
+            "geoloc_http_request_seconds",
+            "HTTP request latency",
+            ["route", "method", "status"],
+            buckets=BUCKETS,
+            registry=self.registry,
+        )
+        self.stage = Histogram(
+            "geoloc_locate_stage_seconds",
+            "/locate latency by stage",
+            ["stage"],
+            buckets=BUCKETS,
+            registry=self.registry,
+        )
+        self.index_size = Gauge("geoloc_index_size", "references in the index", ["kind"], registry=self.registry)
+        self.queue_depth = Gauge(
+            "geoloc_queue_depth", "references accepted and waiting to be encoded", registry=self.registry
+        )
+        self.ingested = Counter(
+            "geoloc_ingested_images_total",
+            "references encoded by this process's worker",
+            ["result"],
+            registry=self.registry,
+        )
+
+
+class MetricsMiddleware(BaseHTTPMiddleware):
+    def __init__(self, app, metrics: Metrics):
+        super().__init__(app)
+        self.metrics = metrics
+
+    async def dispatch(self, request: Request, call_next):
+        start = time.perf_counter()
+        status = 500
+        try:
+            response = await call_next(request)
+            status = response.status_code
+            return response
+        finally:
+            route = request.scope.get("route")
+            path = getattr(route, "path", "unmatched")
+            labels = (path, request.method, str(status))
+            self.metrics.requests.labels(*labels).inc()
+            self.metrics.latency.labels(*labels).observe(time.perf_counter() - start)

@@ -1,0 +1,103 @@
+"""Response models: they are the API's documentation (/openapi.json) as much as its validation."""
+
+from __future__ import annotations
+
+from pydantic import BaseModel, Field
+
+
+class CandidateOut(BaseModel):
+    reference_id: int
+    lat: float
+    lon: float
+    score: float = Field(description="similarity in [0, 1], whatever the search mode")
+    distance_m: float | None = Field(None, description="distance from the fused estimate")
+    label: str | None = None
+    captured_at: str | None = None
+    heading: float | None = None
+    inliers: int | None = Field(None, description="geometric verification inliers, when rerank=true")
+
+
+class EstimateOut(BaseModel):
+    lat: float
+    lon: float
+    radius_m: float
+    confidence: float = Field(ge=0, le=1)
+
+
+class FeaturesOut(BaseModel):
+    extracted: int
+    kept: int
+
+
+class IndexOut(BaseModel):
+    size: int
+    version: int
+
+
+class LocateOut(BaseModel):
+    candidates: list[CandidateOut]
+    estimate: EstimateOut | None
+    reason: str | None = Field(None, description="why there is no confident estimate")
+    mode: str
+    config: str
+    features: FeaturesOut
+    timings_ms: dict[str, float]
+    index: IndexOut
+
+
+class ReferenceOut(BaseModel):
+    id: int
+    lat: float
+    lon: float
+    heading: float | None
+    captured_at: str | None
+    label: str | None
+    source: str | None
+    created_at: str
+    status: str = Field(description="pending (accepted, being encoded), indexed, or failed")
+    error: str | None = None
+    sha256: str
+
+
+class ReferenceList(BaseModel):
+    items: list[ReferenceOut]
+    total: int
+    offset: int
+    limit: int
+
+
+class AcceptedOut(BaseModel):
+    job_id: str
+    reference_ids: list[int]
+    duplicates: list[bool] = Field(description="true where identical bytes were already stored")
+
+
+class JobItem(BaseModel):
+    reference_id: int
+    duplicate: bool
+    status: str
+    error: str | None
+
+
+class JobOut(BaseModel):
+    id: str
+    created_at: str
+    status: str = Field(description="queued, running, done or failed")
+    total: int
+    pending: int
+    indexed: int
+    failed: int
+    deleted: int
+    items: list[JobItem]
+
+
+class HealthOut(BaseModel):
+    status: str
+
+
+class ReadyOut(BaseModel):
+    status: str
+    config: str | None = None
+    index_size: int | None = None
+    version: int | None = None
+    worker: str | None = None
