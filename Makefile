@@ -11,7 +11,7 @@ MODEL := models/squeezenet1_1.onnx
 FOLDS ?= 5
 DEMO_QUERY ?= $(SHARED)/data/penn-campus-gps/photos/img_00008.jpg
 
-.PHONY: setup model manifests fit demo run test lint eval results clean-index
+.PHONY: setup model manifests fit demo run serve test lint eval results clean-index
 
 setup: $(VENV)/.installed
 
@@ -37,9 +37,18 @@ models/pipelines/$(CONFIG)/pipeline.json: $(MODEL) $(MANIFEST)
 demo: fit
 	$(GEOLOC) ingest --manifest $(MANIFEST) --split db --config $(CONFIG)
 
+HOST ?= 127.0.0.1
+PORT ?= 8000
+
+# Set up, ingest the demo collection, show a located demo query, then serve on $(HOST):$(PORT).
 run: demo
 	@echo "--- demo query: $(DEMO_QUERY) (a query-side photo, not in the collection)"
 	$(GEOLOC) locate $(DEMO_QUERY) --top-k 5
+	@echo "--- serving on http://$(HOST):$(PORT) (API docs at /docs); Ctrl-C stops"
+	$(GEOLOC) serve --host $(HOST) --port $(PORT) --config $(CONFIG)
+
+serve: fit
+	$(GEOLOC) serve --host $(HOST) --port $(PORT) --config $(CONFIG)
 
 test: setup
 	$(BIN)/python -m pytest -q

@@ -1,0 +1,35 @@
+# syntax=docker/dockerfile:1.6
+# The SqueezeNet weights live outside this build context (../shared), so they come in as a named
+# build context and the model is built (converted to ONNX by our own code) at image build time:
+#   docker build --build-context weights=../shared/models/squeezenet1.1/caffe-openvino-ir -t geoloc .
+# docker-compose.yml passes the same context. The fitted pipeline (codebook, PCA, binariser) is mounted
+# from the host's models/pipelines after `make fit`, and the data dir is a named volume.
+FROM python:3.11-slim
+
+ENV PYTHONDONTWRITEBYTECODE=1 \
+    PYTHONUNBUFFERED=1 \
+    PIP_NO_CACHE_DIR=1 \
+    PIP_DISABLE_PIP_VERSION_CHECK=1 \
+    GEOLOC_DATA_DIR=/data \
+    GEOLOC_MODELS_DIR=/app/models
+
+RUN apt-get update \
+    && apt-get install -y --no-install-recommends libgomp1 \
+    && rm -rf /var/lib/apt/lists/* \
+    && useradd --create-home --uid 10001 geoloc
+
+WORKDIR /app
+COPY pyproject.toml README.md ./
+COPY app ./app
+RUN pip install .
+
+COPY --from=weights . /tmp/weights
+RUN geoloc models build --from /tmp/weights --models-dir /app/models && rm -rf /tmp/weights \
+    && mkdir -p /data /app/models/pipelines && chown -R geoloc:geoloc /data
+
+USER geoloc
+VOLUME ["/data"]
+EXPOSE 8000
+HEALTHCHECK --interval=10s --timeout=3s --start-period=60s --retries=3 \
+    CMD python -c "import sys, urllib.request; sys.exit(urllib.request.urlopen('http://127.0.0.1:8000/ready').status != 200)"
+CMD ["geoloc", "serve", "--host", "0.0.0.0", "--port", "8000"]

@@ -1,0 +1,52 @@
+"""There is no Docker engine on our machines: the Dockerfile and compose file are checked statically."""
+
+import re
+import shlex
+
+import yaml
+
+from tests.conftest import REPO
+
+DOCKERFILE = (REPO / "Dockerfile").read_text()
+
+
+def _instructions() -> list[tuple[str, str]]:
+    text = re.sub(r"\\\n", " ", DOCKERFILE)
+    out = []
+    for line in text.splitlines():
+        line = line.strip()
+        if line and not line.startswith("#"):
+            op, _, rest = line.partition(" ")
+            out.append((op.upper(), rest.strip()))
+    return out
+
+
+def test_dockerfile_shape():
+    ins = _instructions()
+    ops = [op for op, _ in ins]
+    assert ins[0][0] == "FROM" and re.match(r"python:3\.1[1-9]-slim", ins[0][1])
+    user = [rest for op, rest in ins if op == "USER"]
+    assert user and user[-1] not in ("root", "0")
+    assert ops.index("USER") > max(i for i, op in enumerate(ops) if op == "RUN")  # nothing runs as root after
+    assert any(op == "COPY" and rest.startswith("--from=weights") for op, rest in ins)
+    assert any(op == "RUN" and "geoloc models build --from /tmp/weights" in rest for op, rest in ins)
+    assert "HEALTHCHECK" in ops and "/ready" in DOCKERFILE
+    cmd = next(rest for op, rest in ins if op == "CMD")
+    assert "serve" in cmd and "0.0.0.0" in cmd
+    for op, rest in ins:  # everything copied from the context exists
+        if op == "COPY" and not rest.startswith("--from"):
+            for src in shlex.split(rest)[:-1]:
+                assert (REPO / src).exists(), src
+
+
+def test_compose_shares_one_volume_and_checks_readiness():
+    compose = yaml.safe_load((REPO / "docker-compose.yml").read_text())
+    api, worker = compose["services"]["api"], compose["services"]["worker"]
+    assert "weights" in api["build"]["additional_contexts"]
+    assert "/ready" in " ".join(api["healthcheck"]["test"])
+    assert "--worker" in api["command"] and "none" in api["command"]  # the worker service encodes uploads
+    assert worker["command"][:2] == ["geoloc", "worker"]
+    vol = "geoloc-data"
+    assert vol in compose["volumes"]
+    assert f"{vol}:/data" in api["volumes"] and f"{vol}:/data" in worker["volumes"]
+    assert worker["depends_on"]["api"]["condition"] == "service_healthy"
