@@ -78,8 +78,10 @@ def fit(
     config: ConfigOpt = _S.config,
     models_dir: ModelsDir = _S.models_dir,
     seed: int = 0,
+    svm_bank: Annotated[bool, typer.Option("--svm-bank", help="also train the SVM bank on the train rows")] = False,
+    svm_bank_kind: Annotated[str, typer.Option("--svm-bank-kind", help="contrastive or confusers")] = "contrastive",
 ) -> None:
-    """Fit codebook, PCA-whitening and binariser on the manifest's db and train rows."""
+    """Fit codebook, PCA-whitening and binariser on the manifest's db and train rows (and the SVM bank)."""
     from app.datasets import read_manifest
     from app.engine.configs import get_config
     from app.engine.pipeline import Pipeline, pipeline_dir
@@ -91,8 +93,46 @@ def fit(
     feats = [e.features for e in extract_all(pipe, rows, desc="extract")]
     typer.echo(f"fitting {cfg.name} on {len(feats)} images ...")
     pipe.fit(feats, seed=seed)
+    if svm_bank:
+        pipe.bank = _train_bank(pipe, rows, feats, svm_bank_kind, seed)
     pipe.save(pipeline_dir(models_dir, cfg.name), {"manifest": str(manifest.resolve())})
-    typer.echo(f"saved {pipeline_dir(models_dir, cfg.name)} (float dim {pipe.float_dim}, bits {pipe.bits})")
+    typer.echo(
+        f"saved {pipeline_dir(models_dir, cfg.name)} (float dim {pipe.float_dim}, bits {pipe.bits}"
+        + (f", SVM bank of {len(pipe.bank.centers)} clusters" if pipe.bank is not None else "")
+        + ")"
+    )
+
+
+def _train_bank(pipe, rows, feats, kind: str, seed: int):
+    import numpy as np
+
+    from app.engine.search import ReferenceIndex
+    from app.engine.svm_bank import KINDS, BankParams
+    from app.engine.svm_training import Geotagged, fit_bank
+
+    if kind not in KINDS:
+        _fail(f"--svm-bank-kind must be one of {', '.join(KINDS)}")
+    db = [i for i, r in enumerate(rows) if r.split == "db"]
+    train = [Geotagged(feats[i], r.lat, r.lon, r.group) for i, r in enumerate(rows) if r.split == "train"]
+    if not train:
+        _fail("the manifest has no train rows: the SVM bank learns from geotagged photos that are not references")
+    index = ReferenceIndex(pipe.config, pipe.float_dim, pipe.bits)
+    codes = [pipe.encode_features(feats[i]) for i in db]
+    index.add(
+        np.array(db, np.int64),
+        np.stack([c.float_ for c in codes]) if pipe.float_dim else None,
+        np.stack([c.binary for c in codes]) if pipe.bits else None,
+    )
+    refs = {i: Geotagged(feats[i], rows[i].lat, rows[i].lon, rows[i].group) for i in db}
+    bank = fit_bank(pipe, index, refs, train, BankParams(kind=kind, seed=seed))
+    t = bank.manifest["training"]
+    typer.echo(
+        f"SVM bank ({kind}): {t['labelled_positive']} positive / {t['labelled_negative']} negative features "
+        f"from {t['training_photos']} photos, negative radius {t['negative_radius_m']} m, keep fraction "
+        f"{bank.manifest['chosen_keep_fraction']} chosen on {bank.manifest['heldout_photos']} held-out photos, "
+        f"{bank.manifest['train_seconds']} s"
+    )
+    return bank
 
 
 @app.command()
@@ -184,6 +224,8 @@ def eval_cmd(
     overrides: Annotated[list[str] | None, typer.Option("--set", help="vary a field: --set k=32")] = None,
     cache: Annotated[Path | None, typer.Option(help="cache extracted features here across runs")] = None,
     workers: Annotated[int, typer.Option(help="extraction threads; 1 keeps per-stage times honest")] = 1,
+    svm_bank: Annotated[str, typer.Option("--svm-bank", help="off, positive or negative (thesis ablation)")] = "off",
+    svm_bank_kind: Annotated[str, typer.Option("--svm-bank-kind", help="contrastive or confusers")] = "contrastive",
 ) -> None:
     """Fit, index the db rows in memory, query the query rows; print Recall@N, time, bytes."""
     from app.engine.configs import get_config
@@ -200,6 +242,8 @@ def eval_cmd(
         mode=mode,
         cache_dir=cache,
         workers=workers,
+        svm_bank=svm_bank,
+        bank_kind=svm_bank_kind,
     )
     typer.echo(format_summary(result))
     if json_out:

@@ -28,6 +28,8 @@ from app.engine.imageio import load_image
 from app.engine.locator import Locator
 from app.engine.pipeline import Features, Pipeline
 from app.engine.search import ReferenceIndex
+from app.engine.svm_bank import BankParams
+from app.engine.svm_training import Geotagged, fit_bank
 
 RECALL_AT = (1, 5, 10, 20)
 
@@ -90,7 +92,13 @@ def evaluate(
     top_n: int = max(RECALL_AT),
     mode: str | None = None,
     cache_dir: Path | None = None,
+    svm_bank: str = "off",
+    bank_kind: str = "contrastive",
 ) -> dict:
+    """``svm_bank``: off (all features), positive (features the bank predicts useful) or negative (only
+    the ones it predicts confusing): the thesis ablation. The bank is trained per fold on the train rows."""
+    if svm_bank not in ("off", "positive", "negative"):
+        raise ValueError(f"svm_bank must be off, positive or negative, not {svm_bank!r}")
     rows = read_manifest(manifest)
     base = Pipeline(config, cnn=cnn)
     extracted = extract_cached(base, rows, cache_dir, workers)
@@ -104,6 +112,7 @@ def evaluate(
         return lat[ids], lon[ids]
 
     per_fold, all_hits, est_err, est_conf, stage_times = [], [], [], [], []
+    bank_reports, kept_fractions = [], []
     n_db = n_query = 0
     bytes_per_ref = 0.0
     for f, qgroups in enumerate(query_sets):
@@ -124,6 +133,23 @@ def evaluate(
             np.stack([c.float_ for c in codes]) if pipe.float_dim else None,
             np.stack([c.binary for c in codes]) if pipe.bits else None,
         )
+        if svm_bank != "off":
+            refs = {i: Geotagged(extracted[i].features, rows[i].lat, rows[i].lon, rows[i].group) for i in db_idx}
+            train = [
+                Geotagged(extracted[i].features, r.lat, r.lon, r.group)
+                for i, r in enumerate(rows)
+                if r.split == "train"
+            ]
+            pipe.bank = fit_bank(
+                pipe, index, refs, train, BankParams(kind=bank_kind, seed=seed + f), pos_radius_m=radius_m
+            )
+            pipe.bank_select = svm_bank
+            bank_reports.append(
+                {
+                    k: pipe.bank.manifest[k]
+                    for k in ("training", "chosen_keep_fraction", "threshold_trials", "train_seconds")
+                }
+            )
         locator = Locator(pipe, index, positions, cluster_radius_m=radius_m)
         hits = []
         for i in q_idx:
@@ -137,6 +163,8 @@ def evaluate(
                 est_err.append(err)
                 est_conf.append((e.confident, err <= radius_m))
             stage_times.append({"decode": extracted[i].decode_ms, **res.timings_ms})
+            if res.features_extracted:
+                kept_fractions.append(res.features_kept / res.features_extracted)
         hits_arr = np.array(hits, bool)
         all_hits.append(hits_arr)
         per_fold.append({str(n): float(hits_arr[:, n - 1].mean()) for n in RECALL_AT})
@@ -171,6 +199,12 @@ def evaluate(
             "confident_fraction": len(conf) / max(len(est_conf), 1),
             "confident_within_radius": float(np.mean(conf)) if conf else None,
             "all_within_radius": float(np.mean([ok for _, ok in est_conf])) if est_conf else None,
+        },
+        "svm_bank": {
+            "selection": svm_bank,
+            "kind": bank_kind if svm_bank != "off" else None,
+            "kept_fraction_median": float(np.median(kept_fractions)) if kept_fractions else None,
+            "folds": bank_reports,
         },
         "config_definition": config.model_dump(),
     }
@@ -211,6 +245,14 @@ def format_summary(result: dict) -> str:
         "Recall@1/5/10/20: " + " / ".join(f"{r[k]:.3f}" for k in ("1", "5", "10", "20")),
         "ms per query (median): " + ", ".join(f"{k} {v:.1f}" for k, v in ms.items()),
         f"bytes per reference: {result['bytes_per_reference']:.0f}",
+        *(
+            [
+                f"SVM bank ({result['svm_bank']['kind']}): {result['svm_bank']['selection']} features, median kept "
+                f"fraction {result['svm_bank']['kept_fraction_median']:.2f}"
+            ]
+            if result["svm_bank"]["selection"] != "off"
+            else []
+        ),
         f"estimate error: median {e['median']:.1f} m, p90 {e['p90']:.1f} m; confident "
         f"{e['confident_fraction']:.0%} of the time, and then within the radius "
         + (f"{e['confident_within_radius']:.0%}" if e["confident_within_radius"] is not None else "n/a"),

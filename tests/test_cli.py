@@ -90,3 +90,43 @@ def test_eval_writes_the_report(workdir, mini_manifest):
 def test_unknown_config_is_a_clear_error(workdir, mini_manifest):
     p = geoloc("eval", "--manifest", str(mini_manifest), "--config", "nope", check=False)
     assert p.returncode == 2 and "unknown configuration 'nope'" in p.stderr
+
+
+def test_fit_with_svm_bank_and_the_ablation(workdir, mini_manifest):
+    models = str(workdir / "models")
+    out = geoloc(
+        "fit",
+        "--manifest",
+        str(mini_manifest),
+        "--config",
+        "hybrid",
+        "--models-dir",
+        models,
+        "--svm-bank",
+        "--svm-bank-kind",
+        "confusers",
+    )
+    assert "SVM bank (confusers)" in out.stdout
+    bank_dir = workdir / "models" / "pipelines" / "hybrid"
+    manifest = json.loads((bank_dir / "svm_bank.json").read_text())
+    assert manifest["params"]["kind"] == "confusers" and manifest["fit"]["clusters"]
+    assert {"numpy", "scikit-learn"} <= set(manifest["libraries"]) and manifest["fit"]["data_hash"]
+
+    out_json = workdir / "eval" / "neg.json"
+    geoloc(
+        "eval",
+        "--manifest",
+        str(mini_manifest),
+        "--config",
+        "hybrid",
+        "--models-dir",
+        models,
+        "--svm-bank",
+        "negative",
+        "--json",
+        str(out_json),
+    )
+    r = json.loads(out_json.read_text())
+    assert r["svm_bank"]["selection"] == "negative" and r["svm_bank"]["kind"] == "contrastive"
+    assert 0 < r["svm_bank"]["kept_fraction_median"] <= 1 and "svm" in r["ms_per_query"]
+    assert r["svm_bank"]["folds"][0]["training"]["negative_radius_m"] >= 75

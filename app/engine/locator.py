@@ -51,6 +51,8 @@ class Locator:
         keep: np.ndarray | None = None,
     ) -> LocateResult:
         mode = self.index.check_mode(mode)
+        if keep is None:
+            keep = self.pipeline.select(features)
         codes = self.pipeline.encode_features(features, keep)
         t = codes.timings_ms
         t0 = time.perf_counter()

@@ -22,6 +22,7 @@ from app.engine.configs import PipelineConfig, get_config
 from app.engine.errors import IncompatibleArtifact, ModelNotReady
 from app.engine.local_features import EXTRACTORS
 from app.engine.pca import PcaWhitening, l2_normalize
+from app.engine.svm_bank import SvmBank
 from app.engine.vlad import Codebook, vlad
 
 PIPELINE_MANIFEST = "pipeline.json"
@@ -76,6 +77,7 @@ class Pipeline:
         pca: PcaWhitening | None = None,
         binariser: Binariser | None = None,
         manifest: dict | None = None,
+        bank: SvmBank | None = None,
     ):
         self.config = config
         self.cnn = cnn
@@ -83,6 +85,8 @@ class Pipeline:
         self.pca = pca
         self.binariser = binariser
         self.manifest = manifest or {}
+        self.bank = bank  # SVM bank: which local features to aggregate (None = all)
+        self.bank_select = "positive"  # or "negative" (the thesis ablation)
         self._local = (
             EXTRACTORS[config.local](max_keypoints=config.max_keypoints, long_side=config.local_long_side)
             if config.local
@@ -110,6 +114,16 @@ class Pipeline:
                     sampled = cnn_mod.sample_at(out.fire9, xy)
                     local = np.hstack([_unit(local), c.cnn_local_weight * _unit(sampled)]).astype(np.float32)
         return Features(local=local, xy=xy, global_=gem, timings_ms=t, orb_raw=orb_raw)
+
+    # -- stage 1b: feature selection (SVM bank) -------------------------------------------------------
+    def select(self, f: Features) -> np.ndarray | None:
+        """Keep-mask from the SVM bank, or None when there is no bank (keep all)."""
+        if self.bank is None or f.local is None or f.n_local == 0:
+            return None
+        t0 = time.perf_counter()
+        keep = self.bank.keep(f.local, self.bank_select)
+        f.timings_ms["svm"] = (time.perf_counter() - t0) * 1000  # set, not added: features may be reused
+        return keep
 
     # -- stage 2: aggregation -------------------------------------------------------------------------
     def aggregate(self, f: Features, keep: np.ndarray | None = None) -> np.ndarray:
@@ -142,8 +156,10 @@ class Pipeline:
         kept = f.n_local if keep is None else int(np.sum(keep))
         return Codes(fc, bc, f.n_local, kept, t)
 
-    def encode_image(self, rgb: np.ndarray) -> Codes:
-        return self.encode_features(self.extract(rgb))
+    def encode_image(self, rgb: np.ndarray, use_bank: bool = False) -> Codes:
+        """References are encoded from all their features; queries may go through the bank first."""
+        f = self.extract(rgb)
+        return self.encode_features(f, self.select(f) if use_bank else None)
 
     @property
     def float_dim(self) -> int | None:
@@ -187,6 +203,8 @@ class Pipeline:
             self.pca.save(directory)
         if self.binariser is not None:
             self.binariser.save(directory)
+        if self.bank is not None:
+            self.bank.save(directory)
         manifest = {
             "format_version": PIPELINE_FORMAT,
             "config": self.config.model_dump(),
@@ -223,6 +241,7 @@ class Pipeline:
             pca=PcaWhitening.load(directory) if c.pca_dim else None,
             binariser=Binariser.load(directory) if c.binary else None,
             manifest=manifest,
+            bank=SvmBank.load(directory) if SvmBank.exists(directory) else None,
         )
 
     @property
