@@ -112,7 +112,7 @@ def evaluate(
         return lat[ids], lon[ids]
 
     per_fold, all_hits, est_err, est_conf, stage_times = [], [], [], [], []
-    bank_reports, kept_fractions = [], []
+    bank_reports, kept_fractions, per_query = [], [], []
     n_db = n_query = 0
     bytes_per_ref = 0.0
     for f, qgroups in enumerate(query_sets):
@@ -163,6 +163,19 @@ def evaluate(
                 est_err.append(err)
                 est_conf.append((e.confident, err <= radius_m))
             stage_times.append({"decode": extracted[i].decode_ms, **res.timings_ms})
+            per_query.append(
+                {
+                    "image": rows[i].image.name,
+                    "group": rows[i].group,
+                    "fold": f,
+                    "lat": rows[i].lat,
+                    "lon": rows[i].lon,
+                    "candidates": [[round(c.lat, 7), round(c.lon, 7), round(c.score, 5)] for c in res.candidates],
+                    "estimate": None
+                    if e.lat is None
+                    else {"lat": e.lat, "lon": e.lon, "confidence": round(e.confidence, 4), "confident": e.confident},
+                }
+            )
             if res.features_extracted:
                 kept_fractions.append(res.features_kept / res.features_extracted)
         hits_arr = np.array(hits, bool)
@@ -207,6 +220,7 @@ def evaluate(
             "folds": bank_reports,
         },
         "config_definition": config.model_dump(),
+        "queries": per_query,
     }
     return result
 
