@@ -4,6 +4,11 @@
 #   docker build --build-context weights=../shared/models/squeezenet1.1/caffe-openvino-ir -t geoloc .
 # docker-compose.yml passes the same context. The fitted pipeline (codebook, PCA, binariser) is mounted
 # from the host's models/pipelines after `make fit`, and the data dir is a named volume.
+FROM node:20-slim AS web
+WORKDIR /web
+COPY web/package.json web/package-lock.json ./
+RUN npm ci --no-audit --no-fund
+
 FROM python:3.11-slim
 
 ENV PYTHONDONTWRITEBYTECODE=1 \
@@ -21,6 +26,7 @@ RUN apt-get update \
 WORKDIR /app
 COPY pyproject.toml README.md ./
 COPY app ./app
+COPY --from=web /web/node_modules/leaflet/dist ./app/web/static/vendor/leaflet
 RUN pip install .
 
 COPY --from=weights . /tmp/weights

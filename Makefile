@@ -8,18 +8,32 @@ SHARED ?= ../shared
 CONFIG ?= hybrid
 MANIFEST := data/manifests/penn-campus-gps.csv
 MODEL := models/squeezenet1_1.onnx
+LEAFLET := app/web/static/vendor/leaflet/leaflet.js
 FOLDS ?= 5
 DEMO_QUERY ?= $(SHARED)/data/penn-campus-gps/photos/img_00008.jpg
 
-.PHONY: setup model manifests fit demo run serve test lint eval results clean-index
+.PHONY: setup browser model manifests fit demo run serve test lint eval results clean-index
 
-setup: $(VENV)/.installed
+setup: $(VENV)/.installed $(LEAFLET)
 
 $(VENV)/.installed: pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
 	$(BIN)/python -m pip install -q -e '.[dev]'
 	touch $@
+
+# Leaflet from the npm registry, served by the app itself (never from a CDN).
+$(LEAFLET): web/package.json web/package-lock.json
+	cd web && npm ci --no-audit --no-fund --silent
+	mkdir -p app/web/static/vendor/leaflet
+	cp -r web/node_modules/leaflet/dist/. app/web/static/vendor/leaflet/
+	touch $@
+
+# The browser test drives Debian's Chromium (no browser download): install it when it is missing.
+browser:
+	@test -x /usr/bin/chromium || { echo "installing chromium (Debian package) for the browser test"; \
+	  (apt-get update -q && DEBIAN_FRONTEND=noninteractive apt-get install -y -q chromium) > /tmp/geoloc-apt.log 2>&1 \
+	  || { echo "could not install chromium: see /tmp/geoloc-apt.log"; exit 1; }; }
 
 model: $(MODEL)
 $(MODEL): | setup
@@ -50,7 +64,7 @@ run: demo
 serve: fit
 	$(GEOLOC) serve --host $(HOST) --port $(PORT) --config $(CONFIG)
 
-test: setup
+test: setup browser
 	$(BIN)/python -m pytest -q
 
 lint: setup

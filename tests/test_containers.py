@@ -24,7 +24,9 @@ def _instructions() -> list[tuple[str, str]]:
 def test_dockerfile_shape():
     ins = _instructions()
     ops = [op for op, _ in ins]
-    assert ins[0][0] == "FROM" and re.match(r"python:3\.1[1-9]-slim", ins[0][1])
+    final_from = [rest for op, rest in ins if op == "FROM"][-1]
+    assert re.match(r"python:3\.1[1-9]-slim", final_from)
+    assert any(op == "COPY" and rest.startswith("--from=web") and "leaflet" in rest for op, rest in ins)
     user = [rest for op, rest in ins if op == "USER"]
     assert user and user[-1] not in ("root", "0")
     assert ops.index("USER") > max(i for i, op in enumerate(ops) if op == "RUN")  # nothing runs as root after

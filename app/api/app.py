@@ -6,8 +6,11 @@ from __future__ import annotations
 import logging
 import threading
 from contextlib import asynccontextmanager
+from pathlib import Path
 
 from fastapi import FastAPI
+from fastapi.responses import FileResponse
+from fastapi.staticfiles import StaticFiles
 
 from app import __version__
 from app.api import errors
@@ -17,6 +20,9 @@ from app.settings import Settings
 from app.worker import IngestWorker, LiveCollection, WorkerLock
 
 log = logging.getLogger("geoloc.api")
+#: The page (issue: drop a photo, see where it was taken). Leaflet is copied into vendor/ by `make setup`
+#: from the npm registry, never loaded from a CDN.
+WEB_DIR = Path(__file__).resolve().parents[1] / "web" / "static"
 
 
 def _load(app: FastAPI) -> None:
@@ -75,4 +81,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_middleware(MetricsMiddleware, metrics=app.state.metrics)
     errors.install(app)
     app.include_router(router)
+    app.mount("/static", StaticFiles(directory=WEB_DIR), name="static")
+
+    @app.get("/", include_in_schema=False)
+    def page() -> FileResponse:
+        return FileResponse(WEB_DIR / "index.html")
+
     return app
