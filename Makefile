@@ -80,3 +80,11 @@ results: $(MODEL) $(MANIFEST)
 
 clean-index:
 	rm -rf index/*.sqlite* index/*.faiss index/index.json index/images index/*.lock
+
+# At least 1,000 generated requests against a ready server (CI runs a small budget).
+fuzz: setup
+	GEOLOC_FUZZ_EXAMPLES=150 $(BIN)/python -m pytest -q -s tests/service/test_fuzz.py
+
+# The crash tests with 1600 px photos instead of 224 px crops.
+crash-full: setup
+	GEOLOC_CRASH_FULL=1 $(BIN)/python -m pytest -q tests/service/test_crash.py

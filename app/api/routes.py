@@ -11,7 +11,7 @@ from pathlib import PurePosixPath
 from typing import Annotated
 
 import numpy as np
-from fastapi import APIRouter, Depends, File, Form, Header, Query, Request, UploadFile
+from fastapi import APIRouter, Depends, File, Form, Header, Path, Query, Request, UploadFile
 from fastapi.responses import JSONResponse, Response
 from PIL import Image, ImageOps
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
@@ -62,6 +62,8 @@ def read_access(request: Request, x_api_key: Annotated[str | None, Header()] = N
 
 
 Live = Annotated[LiveCollection, Depends(live)]
+#: SQLite integers are 64-bit: a larger id is a 422, not an overflow deep in the store.
+RefId = Annotated[int, Path(ge=1, le=2**63 - 1, description="reference id")]
 
 
 def _read_upload(request: Request, upload: UploadFile) -> bytes:
@@ -348,7 +350,7 @@ def list_references(
     dependencies=[Depends(read_access)],
     summary="One reference's metadata and status",
 )
-def get_reference(ref_id: int, col: Live) -> ReferenceOut:
+def get_reference(ref_id: RefId, col: Live) -> ReferenceOut:
     ref = col.store.get(ref_id)
     if ref is None:
         raise ApiError(404, "not_found", f"no reference {ref_id}")
@@ -365,7 +367,7 @@ def get_reference(ref_id: int, col: Live) -> ReferenceOut:
     dependencies=[Depends(read_access)],
     summary="A thumbnail of the reference image (no EXIF)",
 )
-def reference_image(request: Request, ref_id: int, col: Live) -> Response:
+def reference_image(request: Request, ref_id: RefId, col: Live) -> Response:
     path = col.store.image_path(ref_id)
     if path is None or not path.exists():
         raise ApiError(404, "not_found", f"no reference {ref_id}")
@@ -385,7 +387,7 @@ def reference_image(request: Request, ref_id: int, col: Live) -> Response:
     dependencies=[Depends(write_access)],
     summary="Delete a reference: image, codes and metadata",
 )
-def delete_reference(ref_id: int, col: Live) -> dict:
+def delete_reference(ref_id: RefId, col: Live) -> dict:
     if not col.delete(ref_id):
         raise ApiError(404, "not_found", f"no reference {ref_id}")
     return {"deleted": ref_id}

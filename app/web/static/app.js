@@ -196,6 +196,7 @@ async function deleteRef(id) {
   if (!confirm(`Delete reference ${id}? Its image, codes and metadata are removed.`)) return;
   try {
     await api(`/references/${id}`, { method: "DELETE", headers: keyHeaders() });
+    showError("");
     status(`Reference ${id} deleted.`);
     loadRefs();
   } catch (e) {
