@@ -12,7 +12,7 @@ LEAFLET := app/web/static/vendor/leaflet/leaflet.js
 FOLDS ?= 5
 DEMO_QUERY ?= $(SHARED)/data/penn-campus-gps/photos/img_00008.jpg
 
-.PHONY: setup browser model manifests fit demo run serve test lint eval results clean-index
+.PHONY: setup browser model manifests fit demo run serve test lint eval results bench load fuzz crash-full clean-index
 
 setup: $(VENV)/.installed $(LEAFLET)
 
@@ -78,12 +78,22 @@ eval: $(MODEL) $(MANIFEST)
 results: $(MODEL) $(MANIFEST)
 	$(BIN)/python bench/results.py --manifest $(MANIFEST) --folds $(FOLDS) --out out/eval
 
+# Regenerate docs/BENCHMARKS.md: server stage latencies vs the floor, ingestion, load, baseline, search scaling.
+bench: fit
+	$(BIN)/python -m bench.benchmarks
+
+# N concurrent clients mixing /locate and /references against a server started on a temporary data dir.
+CLIENTS ?= 8
+LOAD_SECONDS ?= 60
+load: fit
+	$(BIN)/python -m bench.load --clients $(CLIENTS) --seconds $(LOAD_SECONDS)
+
 clean-index:
 	rm -rf index/*.sqlite* index/*.faiss index/index.json index/images index/*.lock
 
 # At least 1,000 generated requests against a ready server (CI runs a small budget).
 fuzz: setup
-	GEOLOC_FUZZ_EXAMPLES=150 $(BIN)/python -m pytest -q -s tests/service/test_fuzz.py
+	GEOLOC_FUZZ_EXAMPLES=200 GEOLOC_FUZZ_MIN_REQUESTS=1000 $(BIN)/python -m pytest -q -s tests/service/test_fuzz.py
 
 # The crash tests with 1600 px photos instead of 224 px crops.
 crash-full: setup

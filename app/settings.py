@@ -27,6 +27,9 @@ class Settings(BaseSettings):
         "inprocess", description="inprocess: this process encodes uploads; none: a separate `geoloc worker` does"
     )
     worker_batch: int = 8
+    locate_concurrency: int = Field(
+        0, ge=0, description="/locate requests decoding and extracting at once (0: no limit); more wait"
+    )
     thumbnail_px: int = 320
 
     def image_limits(self):

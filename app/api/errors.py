@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import logging
+
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
@@ -11,6 +13,8 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from app.engine import errors as e
 from app.engine.configs import UnknownConfig
 from app.engine.search import UnsupportedMode
+
+log = logging.getLogger("geoloc.api")
 
 STATUS = {
     e.UnreadableImage: 400,
@@ -70,6 +74,12 @@ def install(app: FastAPI) -> None:
             loc = ".".join(str(x) for x in err.get("loc", []) if x not in ("body", "query", "path", "form"))
             parts.append(f"{loc or 'request'}: {err.get('msg')}")
         return _json(422, "invalid_request", "; ".join(parts) or "invalid request")
+
+    @app.exception_handler(Exception)
+    async def _unexpected(_: Request, exc: Exception):
+        """A bug still answers in the API's JSON shape; the traceback goes to the server log."""
+        log.exception("unhandled error", exc_info=exc)
+        return _json(500, "internal_error", f"internal error ({type(exc).__name__}); see the server log")
 
     @app.exception_handler(StarletteHTTPException)
     async def _http(_: Request, exc: StarletteHTTPException):

@@ -32,6 +32,7 @@ from app.engine import rerank as rerank_mod
 from app.engine.errors import InvalidPosition, NoGpsInImage
 from app.engine.geo import haversine_m, valid_position
 from app.engine.imageio import LoadedImage, load_image
+from app.engine.locator import Locator
 from app.store import sha256_of
 from app.worker import LiveCollection
 
@@ -138,21 +139,22 @@ def locate(
     settings = request.app.state.settings
     metrics = request.app.state.metrics
     t0 = time.perf_counter()
-    data = _read_upload(request, image)
-    img = load_image(data, settings.image_limits())
-    decode_ms = (time.perf_counter() - t0) * 1000
     index = col.current()
     mode = index.check_mode(mode)
     allowed = _region_ids(col, lat, lon, radius_m, bbox)
-    features = col.pipeline.extract(img.rgb)
-    from app.engine.locator import Locator
-
+    with request.app.state.extract_slots:
+        t_start = time.perf_counter()
+        data = _read_upload(request, image)
+        img = load_image(data, settings.image_limits())
+        decode_ms = (time.perf_counter() - t_start) * 1000
+        features = col.pipeline.extract(img.rgb)
+    queue_ms = (t_start - t0) * 1000
     with col.lock:
         res = Locator(col.pipeline, index, col.store.positions).locate_features(
             features, top_k=top_k, mode=mode, allowed=allowed
         )
         version = col.version
-    timings = {"decode": decode_ms, **res.timings_ms}
+    timings = {"queue": queue_ms, "decode": decode_ms, **res.timings_ms}
     cands = [c for c in res.candidates if c.score >= min_score]
     inliers: dict[int, int] = {}
     if rerank and cands:
@@ -335,7 +337,7 @@ def _ref_out(ref) -> ReferenceOut:
 )
 def list_references(
     col: Live,
-    offset: Annotated[int, Query(ge=0)] = 0,
+    offset: Annotated[int, Query(ge=0, le=2**63 - 1)] = 0,
     limit: Annotated[int, Query(ge=1, le=500)] = 50,
     bbox: Annotated[str | None, Query(description="min_lon,min_lat,max_lon,max_lat")] = None,
 ) -> ReferenceList:

@@ -77,6 +77,7 @@ def test_keys_ids_modes_and_formats(server):
     assert c.get("/references/999999").status_code == 404
     assert c.get("/references/abc").status_code == 422
     assert c.get("/jobs/nope").status_code == 404
+    assert c.get("/references", params={"offset": 10**30}).status_code == 422  # found by the fuzzer: was a 500
     assert c.delete("/references/999999", headers={"X-API-Key": KEY}).status_code == 404
     r = c.post("/locate", files=[("image", ("q.jpg", CROP))], data={"mode": "sideways"})
     assert r.status_code == 422 and "supports" in r.json()["message"]

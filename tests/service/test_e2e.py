@@ -59,7 +59,7 @@ def test_full_cycle_and_restart(server, mini_manifest, tmp_path):
     assert top["label"] == query.image.name and top["score"] > 0.95
     assert res["mode"] == "two-stage" and res["index"]["size"] == len(rows) + 1
     assert res["features"]["extracted"] > 100
-    assert {"decode", "cnn", "local_features", "search", "total"} <= set(res["timings_ms"])
+    assert {"queue", "decode", "cnn", "local_features", "search", "total"} <= set(res["timings_ms"])
 
     # Binary mode, a region that excludes the answer, a thumbnail without EXIF.
     assert (

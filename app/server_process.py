@@ -1,0 +1,110 @@
+"""``geoloc serve`` as a child process on a free loopback port.
+
+The end-to-end tests and the benchmarks both need a real uvicorn server they can start, wait for, kill
+and restart; one helper keeps them measuring and testing the same thing users run."""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import httpx
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class ServerProcess:
+    """stop() is SIGTERM (then SIGKILL after 30 s), kill() is SIGKILL; the log goes beside the data dir."""
+
+    def __init__(
+        self,
+        data_dir: Path,
+        models_dir: Path,
+        config: str,
+        *,
+        api_key: str | None = None,
+        worker: str = "inprocess",
+        extra_env: dict | None = None,
+    ):
+        self.data_dir, self.models_dir, self.config = data_dir, models_dir, config
+        data_dir.parent.mkdir(parents=True, exist_ok=True)
+        self.port = free_port()
+        self.url = f"http://127.0.0.1:{self.port}"
+        env = {**os.environ, "PYTHONUNBUFFERED": "1", **(extra_env or {})}
+        if api_key:
+            env["GEOLOC_API_KEY"] = api_key
+        self.log = open(data_dir.parent / f"server-{self.port}.log", "w")  # noqa: SIM115
+        self.proc = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "app.cli",
+                "serve",
+                "--port",
+                str(self.port),
+                "--data-dir",
+                str(data_dir),
+                "--models-dir",
+                str(models_dir),
+                "--config",
+                config,
+                "--worker",
+                worker,
+            ],
+            stdout=self.log,
+            stderr=subprocess.STDOUT,
+            env=env,
+        )
+        self.client = httpx.Client(base_url=self.url, timeout=60)
+
+    def wait_ready(self, timeout: float = 120) -> dict:
+        deadline = time.time() + timeout
+        while time.time() < deadline:
+            if self.proc.poll() is not None:
+                raise RuntimeError(f"server exited with {self.proc.returncode}: {self.read_log()}")
+            try:
+                r = self.client.get("/ready")
+                if r.status_code == 200:
+                    return r.json()
+            except httpx.TransportError:
+                pass
+            time.sleep(0.2)
+        raise TimeoutError(f"server not ready: {self.read_log()}")
+
+    def read_log(self) -> str:
+        self.log.flush()
+        return Path(self.log.name).read_text()[-3000:]
+
+    def kill(self) -> None:
+        self.proc.send_signal(signal.SIGKILL)
+        self.proc.wait()
+
+    def stop(self) -> None:
+        self.client.close()
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+            try:
+                self.proc.wait(30)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+        self.log.close()
+
+
+def wait_job(client: httpx.Client, job_id: str, timeout: float = 180) -> dict:
+    deadline = time.time() + timeout
+    while time.time() < deadline:
+        job = client.get(f"/jobs/{job_id}").json()
+        if job["status"] in ("done", "failed"):
+            return job
+        time.sleep(0.2)
+    raise TimeoutError(f"job {job_id} still {job}")
