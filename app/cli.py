@@ -11,6 +11,7 @@ import typer
 from tqdm import tqdm
 
 from app.engine.errors import GeolocError
+from app.runtime import tune_malloc
 from app.settings import Settings
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, help=__doc__, pretty_exceptions_enable=False)
@@ -310,6 +311,7 @@ def _parse_overrides(items: list[str]) -> dict:
 
 
 def main() -> None:
+    tune_malloc()
     try:
         app()
     except GeolocError as e:
