@@ -23,6 +23,7 @@ from app.settings import Settings
 from bench.common import is_photo, median_ms, percentiles, post_references
 
 FULL_SIZE_DIR = "photos-full"
+FLOOR_STAGES = ("decode", "local_features", "cnn")
 
 
 @dataclass
@@ -91,9 +92,15 @@ class LocateFigures:
     top1_within_25m: float
     samples: list[dict]  # per request: client ms, server total ms, floor total ms
 
+    server_floor_ms: float = 0.0  # median of decode + local features + cnn as the server timed them
+
     @property
     def ratio_to_floor(self) -> float:
         return self.client_ms["p50"] / self.floor_stages_ms["total"]
+
+    @property
+    def ratio_to_server_floor(self) -> float:
+        return self.client_ms["p50"] / self.server_floor_ms
 
 
 def measure_locate(client: httpx.Client, floor: Floor, queries: list[Row], label: str, reps: int) -> LocateFigures:
@@ -125,10 +132,15 @@ def measure_locate(client: httpx.Client, floor: Floor, queries: list[Row], label
         floor_stages_ms={k: median_ms(f[k] for f in floors) for k in floors[0]},
         top1_within_25m=sum(hits) / len(hits),
         samples=[
-            {"client": w, "server": s["total"], "floor": f["total"]}
+            {"client": w, "server": s["total"], "floor": f["total"], "server_floor": _floor_part(s)}
             for w, s, f in zip(wall, stages, floors, strict=True)
         ],
+        server_floor_ms=median_ms(_floor_part(s) for s in stages),
     )
+
+
+def _floor_part(server_timings: dict[str, float]) -> float:
+    return sum(server_timings.get(k, 0.0) for k in FLOOR_STAGES)
 
 
 def full_size_queries(rows: list[Row], shared_photos_full: Path) -> list[Row]:
