@@ -1,85 +1,90 @@
-"""Choose the fused estimate's temperature and confidence threshold on the *train* rows (never on queries).
+"""Choose the fused estimate's temperature and confidence threshold, cross-validated over evaluation folds.
 
-    .venv/bin/python bench/calibrate_estimate.py --manifest data/manifests/penn-campus-gps.csv --config hybrid
+    .venv/bin/python bench/calibrate_estimate.py --eval out/eval/hybrid.json
 
-The pipeline is fitted on db + train rows, each train row is located against the db rows, and for a grid
-of (temperature, min_confidence) we measure how often a confident estimate lies within the radius
-(precision) and how often the estimate is confident at all (coverage). We keep the setting with the best
-coverage among those whose precision reaches the target; the evaluation then reports the same figures on
-the query rows, which the choice never saw.
+Input: the per-query records (candidates with scores, true position, fold) that ``geoloc eval --json``
+writes. For every (temperature, min_confidence) on a grid we know, per query, whether the estimate is
+confident and whether it lies within the radius. Cross-validation keeps the choice honest: for each fold,
+the setting with the best coverage among those reaching the target precision is chosen on the *other*
+folds and measured on this one; the pooled held-out figures are what users can expect. The setting to
+ship is then chosen the same way on all folds.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 from pathlib import Path
 
 import numpy as np
 
-from app.datasets import read_manifest
-from app.engine.cnn import MODEL_FILENAME, SqueezeNet
-from app.engine.configs import get_config
 from app.engine.estimate import fuse_position
 from app.engine.geo import haversine_m
-from app.engine.pipeline import Pipeline
-from app.engine.search import ReferenceIndex
-from app.evaluate import extract_cached
 
 REPO = Path(__file__).resolve().parents[1]
+TEMPERATURES = (0.005, 0.01, 0.02, 0.04, 0.06, 0.08, 0.16)
+THRESHOLDS = (0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9)
+
+
+def outcomes(queries: list[dict], temperature: float, radius_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """(confidence, estimate within radius) per query."""
+    conf, ok = [], []
+    for q in queries:
+        c = np.asarray(q["candidates"], float).reshape(-1, 3)
+        e = fuse_position(c[:, 0], c[:, 1], c[:, 2], radius_m, temperature=temperature, min_confidence=0.0)
+        conf.append(e.confidence)
+        ok.append(e.lat is not None and bool(haversine_m(q["lat"], q["lon"], e.lat, e.lon) <= radius_m))
+    return np.array(conf), np.array(ok)
+
+
+def choose(table: dict, train: np.ndarray, target: float, min_selected: int = 10):
+    """Best coverage on ``train`` among settings whose precision there reaches ``target``."""
+    best = None
+    for (temp, thr), (conf, ok) in table.items():
+        sel = train & (conf >= thr)
+        if sel.sum() < min_selected:
+            continue
+        precision, coverage = ok[sel].mean(), sel.sum() / train.sum()
+        if precision >= target and (best is None or coverage > best[2]):
+            best = (temp, thr, coverage, precision)
+    return best
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--manifest", type=Path, default=REPO / "data/manifests/penn-campus-gps.csv")
-    ap.add_argument("--config", default="hybrid")
-    ap.add_argument("--models-dir", type=Path, default=REPO / "models")
-    ap.add_argument("--cache", type=Path, default=REPO / "out/eval/cache")
-    ap.add_argument("--radius-m", type=float, default=25.0)
-    ap.add_argument("--target-precision", type=float, default=0.6)
+    ap.add_argument("--eval", type=Path, default=REPO / "out/eval/hybrid.json", help="geoloc eval --json output")
+    ap.add_argument("--target-precision", type=float, default=0.7)
     args = ap.parse_args()
-
-    rows = read_manifest(args.manifest)
-    cfg = get_config(args.config)
-    cnn = SqueezeNet(args.models_dir / MODEL_FILENAME) if cfg.uses_cnn else None
-    ex = extract_cached(Pipeline(cfg, cnn), rows, args.cache, workers=1)
-    db = [i for i, r in enumerate(rows) if r.split == "db"]
-    train = [i for i, r in enumerate(rows) if r.split == "train"]
-    pipe = Pipeline(cfg, cnn)
-    pipe.fit([ex[i].features for i in db + train])
-    index = ReferenceIndex(cfg, pipe.float_dim, pipe.bits)
-    codes = [pipe.encode_features(ex[i].features) for i in db]
-    index.add(
-        np.array(db),
-        np.stack([c.float_ for c in codes]) if pipe.float_dim else None,
-        np.stack([c.binary for c in codes]) if pipe.bits else None,
-    )
-    lat = np.array([r.lat for r in rows])
-    lon = np.array([r.lon for r in rows])
-    cands = []
-    for i in train:
-        c = pipe.encode_features(ex[i].features)
-        s, ids = index.search(c.float_, c.binary, 20)
-        cands.append((i, lat[ids], lon[ids], s))
-
-    print(f"{len(train)} train queries against {len(db)} references; radius {args.radius_m} m")
+    result = json.loads(args.eval.read_text())
+    queries, radius = result["queries"], result["radius_m"]
+    folds = np.array([q["fold"] for q in queries])
+    table = {}
+    print(f"{result['config']}: {len(queries)} queries, {result['folds']} folds, radius {radius} m")
     print("temperature  min_conf  coverage  precision")
-    best = None
-    for temp in (0.005, 0.01, 0.02, 0.04):
-        confs, oks = [], []
-        for i, la, lo, s in cands:
-            e = fuse_position(la, lo, s, args.radius_m, temperature=temp, min_confidence=0.0)
-            confs.append(e.confidence)
-            oks.append(haversine_m(lat[i], lon[i], e.lat, e.lon) <= args.radius_m)
-        confs, oks = np.array(confs), np.array(oks)
-        for thr in (0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9):
-            sel = confs >= thr
-            cov = sel.mean()
-            prec = oks[sel].mean() if sel.any() else float("nan")
-            print(f"{temp:11.3f}  {thr:8.2f}  {cov:8.2f}  {prec:9.2f}")
-            if sel.sum() >= 5 and prec >= args.target_precision and (best is None or cov > best[2]):
-                best = (temp, thr, cov, prec)
-    print("all estimates within radius:", f"{np.mean(oks):.2f}")
-    print("chosen (best coverage at precision >= target):", best)
+    for temp in TEMPERATURES:
+        conf, ok = outcomes(queries, temp, radius)
+        for thr in THRESHOLDS:
+            table[(temp, thr)] = (conf, ok)
+            sel = conf >= thr
+            prec = f"{ok[sel].mean():9.2f}" if sel.any() else "      n/a"
+            print(f"{temp:11.3f}  {thr:8.2f}  {sel.mean():8.2f}  {prec}")
+    held_sel = held_ok = 0
+    for k in sorted(set(folds)):
+        best = choose(table, folds != k, args.target_precision)
+        if best is None:
+            print(f"fold {k}: no setting reaches the target on the other folds")
+            continue
+        conf, ok = table[best[:2]]
+        sel = (folds == k) & (conf >= best[1])
+        held_sel += sel.sum()
+        held_ok += ok[sel].sum()
+        print(f"fold {k}: chose temperature {best[0]}, min_confidence {best[1]} on the other folds")
+    print(
+        f"cross-validated: confident on {held_sel / len(queries):.1%} of queries, "
+        f"within {radius} m on {held_ok / max(held_sel, 1):.1%} of those"
+    )
+    final = choose(table, np.ones(len(queries), bool), args.target_precision)
+    print("setting to ship (chosen on all folds):", final)
 
 
 if __name__ == "__main__":
