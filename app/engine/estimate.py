@@ -43,8 +43,9 @@ def fuse_position(
     0.06 a candidate 0.06 below the best weighs 37 % as much. The defaults come from
     ``bench/calibrate_estimate.py --eval out/eval/hybrid.json`` (the 5-fold penn-campus-gps evaluation of
     the default configuration, target 70 % within 25 m), cross-validated (chosen on four folds' queries,
-    measured on the fifth): confident on 27 % of queries and within 25 m on 70 % of those. The previous defaults (0.005, 0.8), chosen on 16 training
-    captures, were confident on 62 % and right on only 45 % of those."""
+    measured on the fifth): confident on 27 % of queries and within 25 m on 70 % of those. The previous
+    defaults (0.005, 0.8), chosen on 16 training captures, were confident on 62 % and right on only 45 %
+    of those."""
     lats, lons, scores = (np.asarray(a, np.float64)[:top_n] for a in (lats, lons, scores))
     if len(scores) == 0:
         return Estimate(None, None, None, 0.0, "no candidates: the index is empty or the region holds none")
