@@ -80,6 +80,18 @@ class ServerProcess:
             time.sleep(0.2)
         raise TimeoutError(f"server not ready: {self.read_log()}")
 
+    def __enter__(self) -> ServerProcess:
+        """``with ServerProcess(...) as s``: started, ready, and stopped on the way out."""
+        try:
+            self.wait_ready()
+        except BaseException:
+            self.stop()
+            raise
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
     def read_log(self) -> str:
         self.log.flush()
         return Path(self.log.name).read_text()[-3000:]

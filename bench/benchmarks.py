@@ -56,25 +56,23 @@ def service_figures(rows, models_dir: Path, config: str, reps_full: int, reps_16
         raise SystemExit("no 12 MP originals found in ../shared/data/penn-campus-gps/photos-full")
     photos_1600 = [r for r in rows if r.split == "query" and is_photo(r)]
     collection = collection_rows(rows, {r.group for r in full})
-    with tempfile.TemporaryDirectory(prefix="geoloc-bench-") as tmp:
-        server = ServerProcess(Path(tmp) / "data", models_dir, config)
-        try:
-            server.wait_ready()
-            print(f"ingesting {len(collection)} references through POST /references ...")
-            ingestion = [
-                ingest(server.client, [r for r in collection if is_photo(r)], "1600 px photos"),
-                ingest(server.client, [r for r in collection if not is_photo(r)], "224 px crops"),
-            ]
-            floor = Floor(models_dir, get_config(config))
-            print(f"/locate: {len(full)} 12 MP x {reps_full}, {len(photos_1600)} 1600 px x {reps_1600}")
-            locate = [
-                measure_locate(server.client, floor, full, "12 MP originals (photos-full)", reps_full),
-                measure_locate(server.client, floor, photos_1600, "1600 px photos (query split)", reps_1600),
-            ]
-            print(f"load: 4 clients for {load_seconds:.0f} s ...")
-            load = run_load(server.url, clients=4, seconds=load_seconds, locate_share=0.8, max_requests=3000, rows=rows)
-        finally:
-            server.stop()
+    with (
+        tempfile.TemporaryDirectory(prefix="geoloc-bench-") as tmp,
+        ServerProcess(Path(tmp) / "data", models_dir, config) as server,
+    ):
+        print(f"ingesting {len(collection)} references through POST /references ...")
+        ingestion = [
+            ingest(server.client, [r for r in collection if is_photo(r)], "1600 px photos"),
+            ingest(server.client, [r for r in collection if not is_photo(r)], "224 px crops"),
+        ]
+        floor = Floor(models_dir, get_config(config))
+        print(f"/locate: {len(full)} 12 MP x {reps_full}, {len(photos_1600)} 1600 px x {reps_1600}")
+        locate = [
+            measure_locate(server.client, floor, full, "12 MP originals (photos-full)", reps_full),
+            measure_locate(server.client, floor, photos_1600, "1600 px photos (query split)", reps_1600),
+        ]
+        print(f"load: 4 clients for {load_seconds:.0f} s ...")
+        load = run_load(server.url, clients=4, seconds=load_seconds, locate_share=0.8, max_requests=3000, rows=rows)
     return {
         "collection_size": len(collection),
         "ingestion": [{**asdict(i), "images_per_s": i.images_per_s} for i in ingestion],

@@ -188,9 +188,13 @@ def run_load(
 def seeded_server(data_dir: Path, config: str, rows, n_seed: int = 40) -> ServerProcess:
     """A server on a fresh data dir with ``n_seed`` db photos already indexed."""
     server = ServerProcess(data_dir, REPO / "models", config)
-    server.wait_ready()
-    seed = [r for r in rows if r.split == "db" and is_photo(r)][:n_seed]
-    post_references(server.client, [(r.image.name, r.image.read_bytes(), r.lat, r.lon) for r in seed])
+    try:
+        server.wait_ready()
+        seed = [r for r in rows if r.split == "db" and is_photo(r)][:n_seed]
+        post_references(server.client, [(r.image.name, r.image.read_bytes(), r.lat, r.lon) for r in seed])
+    except BaseException:
+        server.stop()
+        raise
     return server
 
 

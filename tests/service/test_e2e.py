@@ -13,11 +13,8 @@ API_KEY = "test-key-123"
 
 @pytest.fixture(scope="module")
 def server(tmp_path_factory, fitted_models):
-    data = tmp_path_factory.mktemp("svc") / "data"
-    s = Server(data, fitted_models, api_key=API_KEY)
-    s.wait_ready()
-    yield s
-    s.stop()
+    with Server(tmp_path_factory.mktemp("svc") / "data", fitted_models, api_key=API_KEY) as s:
+        yield s
 
 
 def _files(rows):

@@ -18,10 +18,8 @@ MIN_REQUESTS = int(os.environ.get("GEOLOC_FUZZ_MIN_REQUESTS", "0"))
 
 @pytest.fixture(scope="module")
 def server(tmp_path_factory, fitted_models):
-    s = Server(tmp_path_factory.mktemp("fuzz") / "data", fitted_models)
-    s.wait_ready()
-    yield s
-    s.stop()
+    with Server(tmp_path_factory.mktemp("fuzz") / "data", fitted_models) as s:
+        yield s
 
 
 def test_no_server_errors(server):

@@ -10,10 +10,8 @@ from tests.service.conftest import Server
 
 @pytest.fixture(scope="module")
 def server(tmp_path_factory, fitted_models):
-    s = Server(tmp_path_factory.mktemp("load") / "data", fitted_models)
-    s.wait_ready()
-    yield s
-    s.stop()
+    with Server(tmp_path_factory.mktemp("load") / "data", fitted_models) as s:
+        yield s
 
 
 def test_mixed_load_is_served_without_errors(server, mini_manifest):
