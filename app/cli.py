@@ -143,39 +143,84 @@ def ingest(
     config: ConfigOpt = _S.config,
     data_dir: DataDir = _S.data_dir,
     models_dir: ModelsDir = _S.models_dir,
-    batch: int = 32,
+    batch: Annotated[int, typer.Option(help="rows accepted and encoded per transaction")] = 32,
+    workers: Annotated[int, typer.Option(help="encoding threads")] = 1,
 ) -> None:
-    """Encode the manifest's rows into the data dir's index (identical images are stored once)."""
-    from app.collection import open_collection
+    """Add the manifest's rows through the same path as POST /references: accepted in bulk as pending rows
+    with a job, then encoded here (when no other worker runs on the data dir) or by the running server's
+    worker, which this command then follows. Identical images are stored once; a re-run resumes."""
+    from app.core import GeolocService, Upload, prepare_upload
     from app.datasets import read_manifest
+    from app.worker import IngestWorker, WorkerLock
 
     rows = [r for r in read_manifest(manifest) if r.split == split]
-    col = open_collection(data_dir, models_dir, config)
-    added = 0
-    pending = []
-    for r in tqdm(rows, desc="ingest", unit="img"):
-        data = r.image.read_bytes()
-        img = col.decode(data)
-        codes = col.pipeline.encode_image(img.rgb)
-        pending.append(
-            (
-                data,
-                img.format.lower(),
-                r.lat,
-                r.lon,
-                {"label": r.image.name, "source": "manifest", "captured_at": img.captured_at},
-                codes.float_,
-                codes.binary,
-            )
-        )
-        if len(pending) >= batch:
-            added += sum(c for _, c in col.add_encoded(pending))
-            pending = []
-    added += sum(c for _, c in col.add_encoded(pending))
+    service = GeolocService.open(data_dir, models_dir, config)
+    prepared, skipped = [], 0
+    for r in tqdm(rows, desc="validate", unit="img", disable=None):
+        try:
+            data = r.image.read_bytes()
+            upload = Upload(data, r.image.name, r.lat, r.lon, label=r.image.name)
+            prepared.append(prepare_upload(upload, service.limits, len(prepared), source="manifest"))
+        except (OSError, GeolocError) as e:
+            skipped += 1
+            typer.secho(f"skipped {r.image}: {e}", fg=typer.colors.YELLOW, err=True)
+    jobs, created = [], 0
+    for start in range(0, len(prepared), batch):
+        accepted = service.accept_prepared(prepared[start : start + batch])
+        jobs.append(accepted.job_id)
+        created += sum(not d for d in accepted.duplicates)
+    lock = WorkerLock(data_dir)
+    if lock.acquire():
+        try:
+            todo = service.store.count("pending")
+            with tqdm(total=todo, desc="encode", unit="img", disable=None) as bar:
+                worker = IngestWorker(service, batch, workers=workers, on_batch=lambda d, f: bar.update(d + f))
+                while worker.run_once():
+                    pass
+            service.collection.write_snapshot()
+        finally:
+            lock.release()
+    else:
+        typer.echo("another worker runs on this data dir: following its progress")
+        _follow_jobs(service, jobs)
+    failed = sum(service.job(j)["failed"] for j in jobs)
     typer.echo(
-        f"ingested {added} new references ({len(rows) - added} already present); "
-        f"index size {col.index.size}, config {col.pipeline.config.name}"
+        f"ingested {created} new references ({len(prepared) - created} already present"
+        + (f", {failed} failed" if failed else "")
+        + (f", {skipped} skipped" if skipped else "")
+        + f"); index size {service.collection.size}, config {service.pipeline.config.name}"
     )
+
+
+def _follow_jobs(service, jobs: list[str], poll: float = 0.5) -> None:
+    import time
+
+    total = sum(service.job(j)["total"] for j in jobs)
+    with tqdm(total=total, desc="encode (by the server)", unit="img", disable=None) as bar:
+        while True:
+            states = [service.job(j) for j in jobs]
+            done = sum(s["total"] - s["pending"] for s in states)
+            bar.update(done - bar.n)
+            if done >= total:
+                break
+            time.sleep(poll)
+    service.collection.catch_up()
+
+
+def _region_option(lat: float | None, lon: float | None, radius_m: float | None, bbox: str | None):
+    from app.core import Region
+
+    if bbox:
+        try:
+            box = tuple(float(x) for x in bbox.split(","))
+        except ValueError:
+            _fail("--bbox takes min_lon,min_lat,max_lon,max_lat")
+        if len(box) != 4:
+            _fail("--bbox takes min_lon,min_lat,max_lon,max_lat")
+        return Region(lat=lat, lon=lon, radius_m=radius_m, bbox=box)
+    if lat is None and lon is None and radius_m is None:
+        return None
+    return Region(lat=lat, lon=lon, radius_m=radius_m)
 
 
 @app.command()
@@ -183,33 +228,25 @@ def locate(
     image: Annotated[Path, typer.Argument(help="the photo to geolocate")],
     top_k: Annotated[int, typer.Option("--top-k", "-k")] = 10,
     mode: Annotated[str | None, typer.Option(help="float, binary or two-stage")] = None,
+    rerank: Annotated[bool, typer.Option("--rerank", help="geometric verification of the top candidates")] = False,
+    lat: Annotated[float | None, typer.Option(help="region centre (with --lon and --radius-m)")] = None,
+    lon: Annotated[float | None, typer.Option()] = None,
+    radius_m: Annotated[float | None, typer.Option("--radius-m")] = None,
+    bbox: Annotated[str | None, typer.Option(help="region as min_lon,min_lat,max_lon,max_lat")] = None,
+    min_score: Annotated[float, typer.Option("--min-score")] = 0.0,
     data_dir: DataDir = _S.data_dir,
     models_dir: ModelsDir = _S.models_dir,
     config: ConfigOpt = _S.config,
 ) -> None:
-    """Print ranked candidates and the fused estimate as JSON."""
-    from app.collection import open_collection
+    """Print ranked candidates and the fused estimate as JSON (the same answer as POST /locate)."""
+    from app.core import GeolocService, LocateOptions
 
-    col = open_collection(data_dir, models_dir, config)
-    img = col.decode(image.read_bytes())
-    res = col.locator.locate_rgb(img.rgb, top_k=top_k, mode=mode)
-    e = res.estimate
-    out = {
-        "config": col.pipeline.config.name,
-        "mode": res.mode,
-        "candidates": [
-            {**c.__dict__, "label": (ref.label if (ref := col.store.get(c.reference_id)) else None)}
-            for c in res.candidates
-        ],
-        "estimate": {"lat": e.lat, "lon": e.lon, "radius_m": e.radius_m, "confidence": e.confidence}
-        if e.confident
-        else None,
-        "reason": e.reason,
-        "features": {"extracted": res.features_extracted, "kept": res.features_kept},
-        "timings_ms": {k: round(v, 2) for k, v in res.timings_ms.items()},
-        "index": {"size": col.index.size, "version": col.store.version},
-    }
-    typer.echo(json.dumps(out, indent=1))
+    service = GeolocService.open(data_dir, models_dir, config)
+    options = LocateOptions(
+        top_k=top_k, mode=mode, rerank=rerank, region=_region_option(lat, lon, radius_m, bbox), min_score=min_score
+    )
+    answer = service.locate(image.read_bytes(), options)
+    typer.echo(json.dumps(answer.as_dict(), indent=1))
 
 
 @app.command("eval")
@@ -227,8 +264,12 @@ def eval_cmd(
     workers: Annotated[int, typer.Option(help="extraction threads; 1 keeps per-stage times honest")] = 1,
     svm_bank: Annotated[str, typer.Option("--svm-bank", help="off, positive or negative (thesis ablation)")] = "off",
     svm_bank_kind: Annotated[str, typer.Option("--svm-bank-kind", help="contrastive or confusers")] = "contrastive",
+    rerank: Annotated[bool, typer.Option("--rerank", help="geometric verification, as /locate rerank=true")] = False,
+    region_radius_m: Annotated[
+        float | None, typer.Option("--region-radius-m", help="search a circle of R m around each query's truth")
+    ] = None,
 ) -> None:
-    """Fit, index the db rows in memory, query the query rows; print Recall@N, time, bytes."""
+    """Fit, index the db rows in memory, query the query rows through the core; print Recall@N, time, bytes."""
     from app.engine.configs import get_config
     from app.evaluate import evaluate, format_summary, write_report
 
@@ -245,6 +286,8 @@ def eval_cmd(
         workers=workers,
         svm_bank=svm_bank,
         bank_kind=svm_bank_kind,
+        rerank=rerank,
+        region_radius_m=region_radius_m,
     )
     typer.echo(format_summary(result))
     if json_out:
@@ -277,24 +320,78 @@ def worker_cmd(
     config: ConfigOpt = _S.config,
     batch: int = _S.worker_batch,
 ) -> None:
-    """Run the ingestion worker as its own process (one per data dir; a second one refuses to start)."""
+    """Run the ingestion worker as its own process (one per data dir; a second one refuses to start). It also
+    writes the index snapshots, and a last one when stopped with SIGTERM or Ctrl-C."""
     import logging
     import signal
 
-    from app.worker import IngestWorker, LiveCollection, WorkerLock
+    from app.collection import SnapshotWriter
+    from app.core import GeolocService
+    from app.worker import IngestWorker, WorkerLock
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     lock = WorkerLock(data_dir)
     if not lock.acquire():
         _fail(f"another worker already holds {lock.path}")
-    live = LiveCollection(data_dir, models_dir, config)
-    w = IngestWorker(live, batch)
+    service = GeolocService.open(data_dir, models_dir, config)
+    w = IngestWorker(service, batch)
+    snapshots = SnapshotWriter(service.collection)
     signal.signal(signal.SIGTERM, lambda *_: w.stop_event.set())
-    typer.echo(f"worker: {data_dir} ({live.pipeline.config.name}), {live.store.count('pending')} pending")
+    typer.echo(f"worker: {data_dir} ({service.pipeline.config.name}), {service.store.count('pending')} pending")
+    snapshots.start()
     try:
         w.run_forever()
+    except KeyboardInterrupt:
+        pass
     finally:
+        snapshots.stop(final=True)
         lock.release()
+
+
+@app.command()
+def check(
+    data_dir: DataDir = _S.data_dir, models_dir: ModelsDir = _S.models_dir, config: ConfigOpt = _S.config
+) -> None:
+    """Check that rows, image files, codes and the index snapshot agree; say what does not (exit 1)."""
+    from app.operations import check_data_dir
+
+    report = check_data_dir(data_dir, models_dir, config)
+    for line in report.lines:
+        typer.echo(line)
+    if report.problems:
+        typer.secho(f"{len(report.problems)} problem(s):", fg=typer.colors.RED, err=True)
+        for p in report.problems:
+            typer.secho(f"  - {p}", fg=typer.colors.RED, err=True)
+        raise typer.Exit(1)
+    typer.echo("ok: rows, images, codes and index agree")
+
+
+@app.command()
+def backup(
+    dest: Annotated[Path, typer.Argument(help="an empty or new folder")], data_dir: DataDir = _S.data_dir
+) -> None:
+    """Copy the data dir while it is in use: SQLite through its online backup API, then the images and the
+    newest index snapshot."""
+    from app.operations import backup_data_dir
+
+    summary = backup_data_dir(data_dir, dest)
+    typer.echo(
+        f"backed up {summary['references']} references ({summary['images']} images, snapshot "
+        f"{summary['snapshot_version']}) to {dest}"
+        + (f"; {summary['missing_images']} images were missing" if summary["missing_images"] else "")
+    )
+
+
+@app.command()
+def restore(
+    source: Annotated[Path, typer.Argument(help="a folder written by `geoloc backup`")],
+    data_dir: DataDir = _S.data_dir,
+) -> None:
+    """Restore a backup into an empty or new data dir (stop the services using it first)."""
+    from app.operations import restore_data_dir
+
+    summary = restore_data_dir(source, data_dir)
+    typer.echo(f"restored {summary['references']} references into {data_dir}")
 
 
 def _parse_overrides(items: list[str]) -> dict:

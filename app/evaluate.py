@@ -1,8 +1,8 @@
 """The evaluation protocol of METHOD.md: Recall@N within d metres, estimate error, time per stage, bytes.
 
 Every image is decoded and its features extracted once; each fold then fits the pipeline on its own db
-and train rows, indexes the db rows in memory and queries the query rows through the same ``Locator``
-the service uses. With ``folds`` > 1 the query role rotates over the non-train groups (a capture and its
+and train rows, indexes the db rows in memory and queries the query rows through ``core.locate_features``,
+the function /locate calls. With ``folds`` > 1 the query role rotates over the non-train groups (a capture and its
 crops move together), because on a set this small one query moves Recall@1 by points.
 """
 
@@ -20,12 +20,12 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from app.core import LocateOptions, RefInfo, Region, locate_features
 from app.datasets import Row, read_manifest
 from app.engine.artifacts import atomic_write_bytes
 from app.engine.configs import PipelineConfig
 from app.engine.geo import haversine_m
 from app.engine.imageio import load_image
-from app.engine.locator import Locator
 from app.engine.pipeline import Features, Pipeline
 from app.engine.search import ReferenceIndex
 from app.engine.svm_bank import BankParams
@@ -73,6 +73,25 @@ def extract_cached(pipeline: Pipeline, rows: list[Row], cache_dir: Path | None, 
     return extracted
 
 
+class RowReferences:
+    """The evaluation's references (one fold's database rows) as the core's ``ReferenceSource``."""
+
+    def __init__(self, rows: list[Row], db_idx: list[int]):
+        self.rows = rows
+        self.db = np.array(db_idx, np.int64)
+        self.lat = np.array([rows[i].lat for i in db_idx])
+        self.lon = np.array([rows[i].lon for i in db_idx])
+
+    def info(self, ids) -> dict[int, RefInfo]:
+        return {int(i): RefInfo(self.rows[i].lat, self.rows[i].lon, self.rows[i].image.name) for i in ids}
+
+    def in_region(self, region: Region) -> np.ndarray:
+        return self.db[region.contains(self.lat, self.lon)]
+
+    def image_bytes(self, ref_id: int) -> bytes | None:
+        return self.rows[ref_id].image.read_bytes()
+
+
 def assign_folds(rows: list[Row], folds: int, seed: int = 0) -> list[list[str]]:
     """Split the non-train groups into ``folds`` query sets (sorted, then shuffled with ``seed``)."""
     groups = sorted({r.group for r in rows if r.split != "train"})
@@ -94,9 +113,13 @@ def evaluate(
     cache_dir: Path | None = None,
     svm_bank: str = "off",
     bank_kind: str = "contrastive",
+    rerank: bool = False,
+    region_radius_m: float | None = None,
 ) -> dict:
     """``svm_bank``: off (all features), positive (features the bank predicts useful) or negative (only
-    the ones it predicts confusing): the thesis ablation. The bank is trained per fold on the train rows."""
+    the ones it predicts confusing): the thesis ablation. The bank is trained per fold on the train rows.
+    ``rerank`` and ``region_radius_m`` (a circle of that radius around each query's true position) ask the
+    same of the core as /locate's ``rerank`` and region do: queries go through ``core.locate_features``."""
     if svm_bank not in ("off", "positive", "negative"):
         raise ValueError(f"svm_bank must be off, positive or negative, not {svm_bank!r}")
     rows = read_manifest(manifest)
@@ -107,10 +130,6 @@ def evaluate(
 
     lat = np.array([r.lat for r in rows])
     lon = np.array([r.lon for r in rows])
-
-    def positions(ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        return lat[ids], lon[ids]
-
     per_fold, all_hits, est_err, est_conf, stage_times = [], [], [], [], []
     bank_reports, kept_fractions, per_query = [], [], []
     n_db = n_query = 0
@@ -150,10 +169,13 @@ def evaluate(
                     for k in ("training", "chosen_keep_fraction", "threshold_trials", "train_seconds")
                 }
             )
-        locator = Locator(pipe, index, positions, cluster_radius_m=radius_m)
+        refs = RowReferences(rows, db_idx)
         hits = []
         for i in q_idx:
-            res = locator.locate_features(extracted[i].features, top_k=top_n, mode=mode)
+            region = Region(rows[i].lat, rows[i].lon, region_radius_m) if region_radius_m else None
+            options = LocateOptions(top_k=top_n, mode=mode, rerank=rerank, region=region)
+            rgb = load_image(rows[i].image.read_bytes()).rgb if rerank else None
+            res = locate_features(pipe, index, refs, extracted[i].features, options, rgb, cluster_radius_m=radius_m)
             ids_ = np.array([c.reference_id for c in res.candidates], np.int64)
             d = haversine_m(rows[i].lat, rows[i].lon, lat[ids_], lon[ids_]) if len(ids_) else np.zeros(0)
             hits.append([bool(np.any(d[:n] <= radius_m)) for n in range(1, top_n + 1)])
@@ -161,7 +183,7 @@ def evaluate(
             if e.lat is not None:
                 err = float(haversine_m(rows[i].lat, rows[i].lon, e.lat, e.lon))
                 est_err.append(err)
-                est_conf.append((e.confident, err <= radius_m))
+                est_conf.append((res.reason is None, err <= radius_m))
             stage_times.append({"decode": extracted[i].decode_ms, **res.timings_ms})
             per_query.append(
                 {
@@ -173,7 +195,12 @@ def evaluate(
                     "candidates": [[round(c.lat, 7), round(c.lon, 7), round(c.score, 5)] for c in res.candidates],
                     "estimate": None
                     if e.lat is None
-                    else {"lat": e.lat, "lon": e.lon, "confidence": round(e.confidence, 4), "confident": e.confident},
+                    else {
+                        "lat": e.lat,
+                        "lon": e.lon,
+                        "confidence": round(e.confidence, 4),
+                        "confident": res.reason is None,
+                    },
                 }
             )
             if res.features_extracted:
@@ -199,6 +226,8 @@ def evaluate(
         "n_query": n_query,
         "radius_m": radius_m,
         "mode": mode or config.modes[0],
+        "rerank": rerank,
+        "region_radius_m": region_radius_m,
         "recall_at": {str(n): float(np.mean([p[str(n)] for p in per_fold])) for n in RECALL_AT},
         "recall_at_per_fold": per_fold,
         "recall_curve": [float(x) for x in recall_curve],
@@ -255,7 +284,9 @@ def format_summary(result: dict) -> str:
     e = result["estimate_error_m"]
     lines = [
         f"config {result['config']}  db {result['n_db']}  queries {result['n_query']}  folds {result['folds']}  "
-        f"radius {result['radius_m']:.0f} m  mode {result['mode']}",
+        f"radius {result['radius_m']:.0f} m  mode {result['mode']}"
+        + ("  rerank" if result.get("rerank") else "")
+        + (f"  region {result['region_radius_m']:.0f} m" if result.get("region_radius_m") else ""),
         "Recall@1/5/10/20: " + " / ".join(f"{r[k]:.3f}" for k in ("1", "5", "10", "20")),
         "ms per query (median): " + ", ".join(f"{k} {v:.1f}" for k, v in ms.items()),
         f"bytes per reference: {result['bytes_per_reference']:.0f}",

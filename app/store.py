@@ -1,31 +1,40 @@
-"""The data directory: SQLite metadata and codes (the source of truth), stored images, FAISS snapshots.
+"""The data directory: SQLite rows with their codes (the source of truth), stored images, a change log.
 
-Why this split: SQLite in WAL mode gives durable, atomic commits, so a reference accepted is a row that
-survives a crash; the codes live in that same row, so the FAISS indexes are only a cache that can always
-be rebuilt from them. Snapshots of the indexes are written atomically with a manifest naming the version
-of the metadata they reflect; a stale or missing snapshot is rebuilt on open, never trusted.
+Why this shape: SQLite in WAL mode gives durable, atomic commits, so an accepted reference is a row that
+survives a crash, and the codes live in that same row, so the FAISS indexes are only a cache. What keeps
+that cache cheap to maintain is the change log: every change *of the index* (a reference encoded and
+added, an indexed reference deleted) appends one row ``(version, ref_id, op)`` in the same transaction as
+the change itself. The index version is the log's last version. A process holding the index at version
+``v`` catches up by reading exactly the changes after ``v`` (with their codes, in one query), so the cost
+of a change never depends on the collection's size. Accepting an upload (a ``pending`` row) is a change of
+rows, not of the index, and appends nothing.
+
+Every storage failure (unwritable folder, full disk, read-only database) surfaces as ``StorageUnavailable``
+so callers answer "try again later" without losing what is already stored.
 """
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import json
+import os
 import sqlite3
 import threading
 import time
 import uuid
-from dataclasses import dataclass
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from app.engine.artifacts import atomic_write_bytes
-from app.engine.errors import IncompatibleArtifact
+from app.engine.errors import GeolocError, IncompatibleArtifact
 from app.engine.pipeline import Pipeline
-from app.engine.search import ReferenceIndex
 
 DB_NAME = "references.sqlite"
-SNAPSHOT_MANIFEST = "index.json"
+IMAGES = "images"
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS refs (
     id INTEGER PRIMARY KEY AUTOINCREMENT,
@@ -57,7 +66,18 @@ CREATE TABLE IF NOT EXISTS job_items (
     duplicate INTEGER NOT NULL DEFAULT 0,
     PRIMARY KEY (job_id, position)
 );
+-- The index's change log: one row per reference added to or deleted from the index.
+CREATE TABLE IF NOT EXISTS changes (
+    version INTEGER PRIMARY KEY AUTOINCREMENT,
+    ref_id INTEGER NOT NULL,
+    op TEXT NOT NULL CHECK (op IN ('add', 'delete'))
+);
 """
+
+
+class StorageUnavailable(GeolocError):
+    """The data dir cannot be written or read right now (permissions, full disk, read-only database).
+    Nothing already stored is lost; the same request can be retried once the storage is back."""
 
 
 @dataclass(frozen=True)
@@ -81,26 +101,160 @@ class Reference:
 _COLS = "id, sha256, lat, lon, heading, captured_at, label, source, created_at, status, error"
 
 
+@dataclass
+class NewReference:
+    """One reference to store. With codes it is stored indexed (bulk loads of pre-encoded references);
+    without, it is stored ``pending`` for the ingestion worker."""
+
+    image: bytes
+    ext: str
+    lat: float
+    lon: float
+    heading: float | None = None
+    captured_at: str | None = None
+    label: str | None = None
+    source: str | None = None
+    float_code: np.ndarray | None = None
+    binary_code: np.ndarray | None = None
+    sha256: str = field(default="")
+
+    def __post_init__(self):
+        if not self.sha256:
+            self.sha256 = sha256_of(self.image)
+
+    @property
+    def encoded(self) -> bool:
+        return self.float_code is not None or self.binary_code is not None
+
+
+@dataclass(frozen=True)
+class Change:
+    version: int
+    ref_id: int
+    op: str  # add | delete
+    float_code: bytes | None
+    binary_code: bytes | None
+
+
 def sha256_of(data: bytes) -> str:
     return hashlib.sha256(data).hexdigest()
+
+
+def _now() -> str:
+    return time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
+
+
+def _blob(code: np.ndarray | None, dtype) -> bytes | None:
+    return None if code is None else np.asarray(code, dtype).tobytes()
+
+
+def _ids_json(ids) -> str:
+    """Id lists of any length bind as one JSON parameter (``json_each``): SQLite caps bound variables."""
+    return json.dumps([int(i) for i in ids])
+
+
+_STORAGE_ERRNOS = {errno.EACCES, errno.EPERM, errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EFBIG, errno.EIO}
+
+
+def is_storage_error(exc: BaseException) -> bool:
+    if isinstance(exc, StorageUnavailable):
+        return True
+    if isinstance(exc, sqlite3.OperationalError):
+        text = str(exc).lower()
+        return any(
+            s in text for s in ("readonly", "read-only", "disk", "full", "unable to open", "i/o", "locked", "busy")
+        )
+    if isinstance(exc, OSError):
+        return exc.errno in _STORAGE_ERRNOS or isinstance(exc, NotADirectoryError | IsADirectoryError)
+    return False
+
+
+@contextmanager
+def storage_guard(what: str) -> Iterator[None]:
+    """Turn the storage's own failures into ``StorageUnavailable``; anything else passes through."""
+    try:
+        yield
+    except (OSError, sqlite3.OperationalError, sqlite3.DatabaseError) as e:
+        if isinstance(e, sqlite3.IntegrityError) or not (is_storage_error(e) or isinstance(e, sqlite3.DatabaseError)):
+            raise
+        raise StorageUnavailable(f"{what}: the data dir cannot be written right now ({e})") from e
+
+
+def write_image_file(path: Path, data: bytes) -> None:
+    """Write to a temporary name then rename, so a reader never sees half a file. No fsync here: the
+    caller syncs the batch (files and their folder) once before committing the rows that name them."""
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.{threading.get_ident()}.tmp")
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fdatasync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+def fsync_dir(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
 
 
 class ReferenceStore:
     """One data directory bound to one fitted pipeline (its fingerprint is recorded on first use)."""
 
-    def __init__(self, data_dir: Path):
+    def __init__(self, data_dir: Path, read_only: bool = False):
         self.data_dir = Path(data_dir)
-        self.data_dir.mkdir(parents=True, exist_ok=True)
-        (self.data_dir / "images").mkdir(exist_ok=True)
+        self.read_only = read_only
         self._lock = threading.RLock()
-        self.db = sqlite3.connect(self.data_dir / DB_NAME, check_same_thread=False, isolation_level=None)
-        self.db.execute("PRAGMA journal_mode=WAL")
-        self.db.execute("PRAGMA synchronous=FULL")
-        self.db.execute("PRAGMA busy_timeout=10000")
-        self.db.executescript(SCHEMA)
+        with storage_guard("opening the data dir"):
+            if read_only:
+                uri = f"file:{self.data_dir / DB_NAME}?mode=ro"
+                self.db = sqlite3.connect(uri, uri=True, check_same_thread=False, isolation_level=None)
+            else:
+                self.data_dir.mkdir(parents=True, exist_ok=True)
+                (self.data_dir / IMAGES).mkdir(exist_ok=True)
+                self.db = sqlite3.connect(self.data_dir / DB_NAME, check_same_thread=False, isolation_level=None)
+                self.db.execute("PRAGMA journal_mode=WAL")
+            self.db.execute("PRAGMA synchronous=FULL")
+            self.db.execute("PRAGMA busy_timeout=10000")
+            if not read_only:
+                self.db.executescript(SCHEMA)
 
     def close(self) -> None:
         self.db.close()
+
+    @property
+    def images_dir(self) -> Path:
+        return self.data_dir / IMAGES
+
+    @contextmanager
+    def transaction(self) -> Iterator[sqlite3.Connection]:
+        """One write transaction (BEGIN IMMEDIATE: the write lock is taken up front, so two processes never
+        both read-then-write on stale data); storage failures come out as ``StorageUnavailable``."""
+        with self._lock, storage_guard("writing the database"):
+            self.db.execute("BEGIN IMMEDIATE")
+            try:
+                yield self.db
+                self.db.execute("COMMIT")
+            except BaseException:
+                if self.db.in_transaction:
+                    self.db.execute("ROLLBACK")
+                raise
+
+    @contextmanager
+    def read_snapshot(self) -> Iterator[sqlite3.Connection]:
+        """Several reads that must see one consistent state (WAL readers keep their snapshot until COMMIT)."""
+        with self._lock:
+            self.db.execute("BEGIN")
+            try:
+                yield self.db
+            finally:
+                self.db.execute("COMMIT")
 
     # -- meta -----------------------------------------------------------------------------------------
     def get_meta(self, key: str) -> str | None:
@@ -108,112 +262,144 @@ class ReferenceStore:
         return row[0] if row else None
 
     def set_meta(self, key: str, value: str) -> None:
-        self.db.execute(
-            "INSERT INTO meta(key, value) VALUES(?, ?) ON CONFLICT(key) DO UPDATE SET value=excluded.value",
-            (key, value),
-        )
+        with storage_guard("writing the database"):
+            self.db.execute(
+                "INSERT INTO meta(key, value) VALUES(?, ?) ON CONFLICT(key) DO UPDATE SET value=excluded.value",
+                (key, value),
+            )
 
     def bind(self, pipeline: Pipeline) -> None:
         """Record which fitted pipeline encoded this collection; refuse a different one."""
         fp = self.get_meta("fingerprint")
-        if fp is None:
-            self.set_meta("fingerprint", pipeline.fingerprint)
-            self.set_meta("config", pipeline.config.name)
-        elif fp != pipeline.fingerprint and self.count() > 0:
+        if fp is not None and fp != pipeline.fingerprint and self.count(None) > 0:
             raise IncompatibleArtifact(
                 f"{self.data_dir} holds codes from pipeline {fp}, not {pipeline.fingerprint}: use the models dir "
                 "and --config the collection was built with, or start a new --data-dir"
             )
-        else:
+        if not self.read_only and fp != pipeline.fingerprint:
             self.set_meta("fingerprint", pipeline.fingerprint)
             self.set_meta("config", pipeline.config.name)
 
     @property
     def version(self) -> int:
-        """Bumped on every change of the collection: snapshots and readers compare against it."""
-        return int(self.get_meta("version") or 0)
+        """The index version: the change log's last entry. Pending uploads do not move it."""
+        return int(self.db.execute("SELECT COALESCE(MAX(version), 0) FROM changes").fetchone()[0])
 
-    def _bump(self) -> None:
-        self.db.execute(
-            "INSERT INTO meta(key, value) VALUES('version', '1') ON CONFLICT(key) DO UPDATE SET "
-            "value=CAST(value AS INTEGER) + 1"
-        )
+    # -- adding ---------------------------------------------------------------------------------------
+    def image_path_for(self, sha: str, ext: str) -> Path:
+        return self.images_dir / f"{sha}.{ext}"
 
-    # -- references -----------------------------------------------------------------------------------
-    def find_by_sha(self, sha: str) -> int | None:
-        row = self.db.execute("SELECT id FROM refs WHERE sha256=?", (sha,)).fetchone()
-        return row[0] if row else None
+    def existing_ids(self, shas: Sequence[str]) -> dict[str, int]:
+        rows = self.db.execute(
+            "SELECT sha256, id FROM refs WHERE sha256 IN (SELECT value FROM json_each(?))", (json.dumps(list(shas)),)
+        ).fetchall()
+        return {s: i for s, i in rows}
 
-    def add(
-        self,
-        image_bytes: bytes,
-        ext: str,
-        lat: float,
-        lon: float,
-        float_code: np.ndarray | None,
-        binary_code: np.ndarray | None,
-        heading: float | None = None,
-        captured_at: str | None = None,
-        label: str | None = None,
-        source: str | None = None,
-        pending: bool = False,
-    ) -> tuple[int, bool]:
-        """Store one reference; returns (id, created). Identical bytes return the existing id.
-        ``pending``: accepted now, encoded later by the worker (the image is on disk, the row committed)."""
-        sha = sha256_of(image_bytes)
-        with self._lock:
-            existing = self.find_by_sha(sha)
-            if existing is not None:
-                return existing, False
-            image_path = self.data_dir / "images" / f"{sha}.{ext}"
-            if not image_path.exists():
-                atomic_write_bytes(image_path, image_bytes)
-            self.db.execute("BEGIN IMMEDIATE")
-            try:
-                cur = self.db.execute(
+    def write_images(self, items: Sequence[NewReference], skip: set[str] = frozenset()) -> None:
+        """Images first, each durable, then one fsync of the folder: a row is committed only after the file
+        it names (and the folder entry) is on disk."""
+        with storage_guard("writing images"):
+            written = False
+            for it in items:
+                if it.sha256 in skip:
+                    continue
+                path = self.image_path_for(it.sha256, it.ext)
+                if not path.exists():
+                    write_image_file(path, it.image)
+                    written = True
+            if written:
+                fsync_dir(self.images_dir)
+
+    def insert_rows(
+        self, items: Sequence[NewReference], job: bool = False
+    ) -> tuple[list[tuple[int, bool]], str | None]:
+        """Insert rows in one transaction; identical bytes (already stored, or racing in from another process
+        at this very moment) come back as the existing id with ``created`` False. Encoded items are stored
+        indexed and logged as index changes in the same transaction."""
+        out: list[tuple[int, bool]] = []
+        job_id = uuid.uuid4().hex if job else None
+        now = _now()
+        with self.transaction() as db:
+            for it in items:
+                row = db.execute(
                     "INSERT INTO refs(sha256, lat, lon, heading, captured_at, label, source, image_ext, created_at, "
-                    "float_code, binary_code, status) VALUES(?,?,?,?,?,?,?,?,?,?,?,?)",
+                    "float_code, binary_code, status) VALUES(?,?,?,?,?,?,?,?,?,?,?,?) "
+                    "ON CONFLICT(sha256) DO NOTHING RETURNING id",
                     (
-                        sha,
-                        lat,
-                        lon,
-                        heading,
-                        captured_at,
-                        label,
-                        source,
-                        ext,
-                        time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-                        None if float_code is None else np.asarray(float_code, np.float32).tobytes(),
-                        None if binary_code is None else np.asarray(binary_code, np.uint8).tobytes(),
-                        "pending" if pending else "indexed",
+                        it.sha256,
+                        it.lat,
+                        it.lon,
+                        it.heading,
+                        it.captured_at,
+                        it.label,
+                        it.source,
+                        it.ext,
+                        now,
+                        _blob(it.float_code, np.float32),
+                        _blob(it.binary_code, np.uint8),
+                        "indexed" if it.encoded else "pending",
                     ),
+                ).fetchone()
+                if row is not None:
+                    out.append((int(row[0]), True))
+                    if it.encoded:
+                        db.execute("INSERT INTO changes(ref_id, op) VALUES(?, 'add')", (int(row[0]),))
+                else:
+                    existing = db.execute("SELECT id FROM refs WHERE sha256=?", (it.sha256,)).fetchone()
+                    out.append((int(existing[0]), False))
+            if job_id is not None:
+                db.execute("INSERT INTO jobs(id, created_at) VALUES(?, ?)", (job_id, now))
+                db.executemany(
+                    "INSERT INTO job_items(job_id, position, ref_id, duplicate) VALUES(?,?,?,?)",
+                    [(job_id, n, ref_id, int(not created)) for n, (ref_id, created) in enumerate(out)],
                 )
-                self._bump()
-                self.db.execute("COMMIT")
-            except BaseException:
-                self.db.execute("ROLLBACK")
-                raise
-            return int(cur.lastrowid), True
+        return out, job_id
 
+    def add_many(self, items: Sequence[NewReference], job: bool = False) -> tuple[list[tuple[int, bool]], str | None]:
+        """The bulk path: images written and synced, then every row in one transaction (with its job).
+        Returns ``[(id, created)]`` in order, and the job id when ``job``."""
+        known = self.existing_ids([it.sha256 for it in items])
+        self.write_images(items, skip=set(known))
+        return self.insert_rows(items, job)
+
+    def add(self, image: bytes, ext: str, lat: float, lon: float, float_code=None, binary_code=None, **meta):
+        """One reference (tests and small tools); see ``add_many``."""
+        ((ref_id, created),), _ = self.add_many(
+            [NewReference(image, ext, lat, lon, float_code=float_code, binary_code=binary_code, **meta)]
+        )
+        return ref_id, created
+
+    # -- deleting -------------------------------------------------------------------------------------
     def delete(self, ref_id: int) -> bool:
-        with self._lock:
-            row = self.db.execute("SELECT sha256, image_ext FROM refs WHERE id=?", (ref_id,)).fetchone()
+        """Delete the row; an indexed one is logged so every process drops it from its index."""
+        with self.transaction() as db:
+            row = db.execute("SELECT sha256, image_ext, status FROM refs WHERE id=?", (ref_id,)).fetchone()
             if row is None:
                 return False
-            self.db.execute("BEGIN IMMEDIATE")
-            self.db.execute("DELETE FROM refs WHERE id=?", (ref_id,))
-            self._bump()
-            self.db.execute("COMMIT")
-            (self.data_dir / "images" / f"{row[0]}.{row[1]}").unlink(missing_ok=True)
-            return True
+            db.execute("DELETE FROM refs WHERE id=?", (ref_id,))
+            if row[2] == "indexed":
+                db.execute("INSERT INTO changes(ref_id, op) VALUES(?, 'delete')", (ref_id,))
+        self.image_path_for(row[0], row[1]).unlink(missing_ok=True)
+        return True
 
+    # -- reading --------------------------------------------------------------------------------------
     def get(self, ref_id: int) -> Reference | None:
         row = self.db.execute(f"SELECT {_COLS} FROM refs WHERE id=?", (ref_id,)).fetchone()
         return Reference(*row) if row else None
 
+    def get_many(self, ids: Sequence[int]) -> dict[int, Reference]:
+        """Rows of many ids in one read (the candidates of a search)."""
+        if len(ids) == 0:
+            return {}
+        rows = self.db.execute(
+            f"SELECT {_COLS} FROM refs WHERE id IN (SELECT value FROM json_each(?))", (_ids_json(ids),)
+        ).fetchall()
+        return {r[0]: Reference(*r) for r in rows}
+
     def image_path(self, ref_id: int) -> Path | None:
+        """Where the reference's image is (or should be); None when there is no such reference."""
         row = self.db.execute("SELECT sha256, image_ext FROM refs WHERE id=?", (ref_id,)).fetchone()
-        return self.data_dir / "images" / f"{row[0]}.{row[1]}" if row else None
+        return self.image_path_for(row[0], row[1]) if row else None
 
     def list(
         self, offset: int = 0, limit: int = 50, bbox: tuple[float, float, float, float] | None = None
@@ -228,13 +414,20 @@ class ReferenceStore:
         ).fetchall()
         return [Reference(*r) for r in rows], total
 
-    def ids_in_bbox(self, bbox: tuple[float, float, float, float]) -> np.ndarray:
+    def in_bbox(self, bbox: tuple[float, float, float, float]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(ids, lats, lons) of indexed references inside a bbox, in one read."""
         min_lon, min_lat, max_lon, max_lat = bbox
         rows = self.db.execute(
-            "SELECT id FROM refs WHERE lat BETWEEN ? AND ? AND lon BETWEEN ? AND ?",
+            "SELECT id, lat, lon FROM refs WHERE lat BETWEEN ? AND ? AND lon BETWEEN ? AND ? AND status='indexed'",
             (min_lat, max_lat, min_lon, max_lon),
         ).fetchall()
-        return np.array([r[0] for r in rows], np.int64)
+        if not rows:
+            return np.zeros(0, np.int64), np.zeros(0), np.zeros(0)
+        a = np.array(rows, np.float64)
+        return a[:, 0].astype(np.int64), a[:, 1], a[:, 2]
+
+    def ids_in_bbox(self, bbox: tuple[float, float, float, float]) -> np.ndarray:
+        return self.in_bbox(bbox)[0]
 
     def count(self, status: str | None = "indexed") -> int:
         """References in the index (by default), or of another status, or all (None)."""
@@ -242,58 +435,48 @@ class ReferenceStore:
             return self.db.execute("SELECT COUNT(*) FROM refs").fetchone()[0]
         return self.db.execute("SELECT COUNT(*) FROM refs WHERE status=?", (status,)).fetchone()[0]
 
-    # -- the ingestion queue: pending rows are the durable queue ---------------------------------------
-    def pending(self, limit: int) -> list[tuple[int, Path]]:
-        rows = self.db.execute(
-            "SELECT id, sha256, image_ext FROM refs WHERE status='pending' ORDER BY id LIMIT ?", (limit,)
-        ).fetchall()
-        return [(r[0], self.data_dir / "images" / f"{r[1]}.{r[2]}") for r in rows]
+    def positions(self, ids) -> tuple[np.ndarray, np.ndarray]:
+        """(lats, lons) in the order of ``ids`` (NaN where unknown), for id lists of any length."""
+        ids = [int(i) for i in ids]
+        if not ids:
+            return np.zeros(0), np.zeros(0)
+        found = {
+            r[0]: (r[1], r[2])
+            for r in self.db.execute(
+                "SELECT id, lat, lon FROM refs WHERE id IN (SELECT value FROM json_each(?))", (_ids_json(ids),)
+            )
+        }
+        pos = np.array([found.get(i, (np.nan, np.nan)) for i in ids], np.float64)
+        return pos[:, 0], pos[:, 1]
 
-    def complete(self, results: list[tuple[int, np.ndarray | None, np.ndarray | None, str | None]]) -> list[int]:
-        """Record encoded codes (or an error) for pending rows, in one transaction; return the ids that
-        became indexed. Rows deleted meanwhile are skipped, and re-running a batch changes nothing:
+    # -- the ingestion queue: pending rows are the durable queue ---------------------------------------
+    def pending(self, limit: int, after: int = 0) -> list[tuple[int, Path]]:
+        rows = self.db.execute(
+            "SELECT id, sha256, image_ext FROM refs WHERE status='pending' AND id > ? ORDER BY id LIMIT ?",
+            (after, limit),
+        ).fetchall()
+        return [(r[0], self.image_path_for(r[1], r[2])) for r in rows]
+
+    def complete(self, results: Sequence[tuple[int, np.ndarray | None, np.ndarray | None, str | None]]) -> list[int]:
+        """Record encoded codes (or an error) for pending rows, in one transaction, logging each newly indexed
+        row; return those ids. Rows deleted meanwhile are skipped, and re-running a batch changes nothing:
         completing is idempotent, so a worker killed anywhere can simply start again."""
         done = []
-        with self._lock:
-            self.db.execute("BEGIN IMMEDIATE")
-            try:
-                for ref_id, fcode, bcode, error in results:
-                    if error is not None:
-                        self.db.execute(
-                            "UPDATE refs SET status='failed', error=? WHERE id=? AND status='pending'", (error, ref_id)
-                        )
-                        continue
-                    cur = self.db.execute(
-                        "UPDATE refs SET float_code=?, binary_code=?, status='indexed' WHERE id=? AND status='pending'",
-                        (
-                            None if fcode is None else np.asarray(fcode, np.float32).tobytes(),
-                            None if bcode is None else np.asarray(bcode, np.uint8).tobytes(),
-                            ref_id,
-                        ),
+        with self.transaction() as db:
+            for ref_id, fcode, bcode, error in results:
+                if error is not None:
+                    db.execute(
+                        "UPDATE refs SET status='failed', error=? WHERE id=? AND status='pending'", (error, ref_id)
                     )
-                    if cur.rowcount:
-                        done.append(ref_id)
-                self._bump()
-                self.db.execute("COMMIT")
-            except BaseException:
-                self.db.execute("ROLLBACK")
-                raise
+                    continue
+                cur = db.execute(
+                    "UPDATE refs SET float_code=?, binary_code=?, status='indexed' WHERE id=? AND status='pending'",
+                    (_blob(fcode, np.float32), _blob(bcode, np.uint8), ref_id),
+                )
+                if cur.rowcount:
+                    db.execute("INSERT INTO changes(ref_id, op) VALUES(?, 'add')", (ref_id,))
+                    done.append(ref_id)
         return done
-
-    def create_job(self, items: list[tuple[int, bool]]) -> str:
-        job_id = uuid.uuid4().hex
-        with self._lock:
-            self.db.execute("BEGIN IMMEDIATE")
-            self.db.execute(
-                "INSERT INTO jobs(id, created_at) VALUES(?, ?)",
-                (job_id, time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())),
-            )
-            self.db.executemany(
-                "INSERT INTO job_items(job_id, position, ref_id, duplicate) VALUES(?,?,?,?)",
-                [(job_id, n, ref_id, int(dup)) for n, (ref_id, dup) in enumerate(items)],
-            )
-            self.db.execute("COMMIT")
-        return job_id
 
     def job(self, job_id: str) -> dict | None:
         row = self.db.execute("SELECT created_at FROM jobs WHERE id=?", (job_id,)).fetchone()
@@ -317,75 +500,27 @@ class ReferenceStore:
         )
         return {"id": job_id, "created_at": row[0], "status": status, "total": len(out), **counts, "items": out}
 
-    def positions(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        ids = [int(i) for i in ids]
-        if not ids:
-            return np.zeros(0), np.zeros(0)
-        q = ",".join("?" * len(ids))
-        found = {r[0]: (r[1], r[2]) for r in self.db.execute(f"SELECT id, lat, lon FROM refs WHERE id IN ({q})", ids)}
-        pos = np.array([found.get(i, (np.nan, np.nan)) for i in ids], np.float64)
-        return pos[:, 0], pos[:, 1]
-
-    def all_codes(self) -> tuple[np.ndarray, list[bytes | None], list[bytes | None]]:
+    # -- what the index is built from -----------------------------------------------------------------
+    def changes_since(self, version: int) -> list[Change]:
+        """The index changes after ``version``, oldest first, each add with its codes (NULL when the row was
+        deleted since: a later delete entry follows)."""
         rows = self.db.execute(
-            "SELECT id, float_code, binary_code FROM refs WHERE status='indexed' ORDER BY id"
+            "SELECT c.version, c.ref_id, c.op, r.float_code, r.binary_code FROM changes c "
+            "LEFT JOIN refs r ON r.id = c.ref_id AND r.status = 'indexed' AND c.op = 'add' "
+            "WHERE c.version > ? ORDER BY c.version",
+            (version,),
         ).fetchall()
-        return np.array([r[0] for r in rows], np.int64), [r[1] for r in rows], [r[2] for r in rows]
+        return [Change(*r) for r in rows]
 
-    # -- the FAISS cache ------------------------------------------------------------------------------
-    def build_index(self, pipeline: Pipeline) -> ReferenceIndex:
-        """The index for the current version: from the snapshot when it matches, else rebuilt from codes."""
-        index = ReferenceIndex(pipeline.config, pipeline.float_dim, pipeline.bits)
-        manifest_path = self.data_dir / SNAPSHOT_MANIFEST
-        version = self.version
-        if manifest_path.exists():
-            m = json.loads(manifest_path.read_text())
-            if m.get("version") == version and m.get("fingerprint") == pipeline.fingerprint:
-                try:
-                    if index.float is not None:
-                        index.float.load_bytes((self.data_dir / m["float_file"]).read_bytes(), m["float_tombstones"])
-                    if index.binary is not None:
-                        index.binary.load_bytes((self.data_dir / m["binary_file"]).read_bytes(), m["binary_tombstones"])
-                    if index.size == self.count():
-                        return index
-                except (OSError, KeyError, RuntimeError):
-                    pass  # another process replaced the snapshot meanwhile, or it is damaged: rebuild
-                index = ReferenceIndex(pipeline.config, pipeline.float_dim, pipeline.bits)
-        ids, fcodes, bcodes = self.all_codes()
-        if len(ids):
-            f = np.stack([np.frombuffer(c, np.float32) for c in fcodes]) if index.float is not None else None
-            b = np.stack([np.frombuffer(c, np.uint8) for c in bcodes]) if index.binary is not None else None
-            index.add(ids, f, b)
-        self.save_snapshot(index, pipeline, version)
-        return index
+    def all_codes(self) -> tuple[int, np.ndarray, list[bytes | None], list[bytes | None]]:
+        """Every indexed row's codes and the index version they make up, read in one consistent snapshot."""
+        with self.read_snapshot() as db:
+            version = int(db.execute("SELECT COALESCE(MAX(version), 0) FROM changes").fetchone()[0])
+            rows = db.execute(
+                "SELECT id, float_code, binary_code FROM refs WHERE status='indexed' ORDER BY id"
+            ).fetchall()
+        return version, np.array([r[0] for r in rows], np.int64), [r[1] for r in rows], [r[2] for r in rows]
 
-    def save_snapshot(self, index: ReferenceIndex, pipeline: Pipeline, version: int) -> None:
-        """Index files first (named by version, so a reader never pairs a manifest with files of another
-        version), manifest last: a crash in between leaves a manifest naming an older version, which the next
-        open detects and rebuilds. Files of older versions are removed afterwards."""
-        files = {}
-        for kind, idx in (("float", index.float), ("binary", index.binary)):
-            if idx is not None:
-                files[kind] = f"{kind}-v{version}.faiss"
-                atomic_write_bytes(self.data_dir / files[kind], idx.to_bytes())
-        manifest = {
-            "float_file": files.get("float"),
-            "binary_file": files.get("binary"),
-            "version": version,
-            "size": index.size,
-            "config": pipeline.config.name,
-            "fingerprint": pipeline.fingerprint,
-            "float_dim": pipeline.float_dim,
-            "bits": pipeline.bits,
-            "float_tombstones": sorted(index.float.tombstones) if index.float is not None else [],
-            "binary_tombstones": sorted(index.binary.tombstones) if index.binary is not None else [],
-            "written_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-        }
-        atomic_write_bytes(self.data_dir / SNAPSHOT_MANIFEST, json.dumps(manifest, indent=1).encode())
-        for old in self.data_dir.glob("*-v*.faiss"):
-            if old.name not in files.values():
-                try:
-                    if int(old.stem.rsplit("-v", 1)[1]) < version:
-                        old.unlink(missing_ok=True)
-                except ValueError:
-                    pass
+    def indexed_ids(self) -> np.ndarray:
+        rows = self.db.execute("SELECT id FROM refs WHERE status='indexed' ORDER BY id").fetchall()
+        return np.array([r[0] for r in rows], np.int64)

@@ -1,10 +1,10 @@
-"""The live collection (an index kept current across processes) and the ingestion worker.
+"""The ingestion worker: encodes pending references in batches through the core.
 
 Accepted uploads are committed as ``pending`` rows with their image on disk before the API answers 202:
-those rows are the durable queue. The worker encodes pending rows in batches and completes them in one
-transaction; completing is idempotent, so a worker killed at any moment loses nothing and duplicates
-nothing, and the next worker picks up the same rows. Only one worker runs per data dir (a file lock);
-every process notices changes made by others through the collection's version number and reloads.
+those rows are the durable queue. The worker encodes a batch and completes it in one transaction (which
+also appends the index changes to the log); completing is idempotent, so a worker killed at any moment
+loses nothing and duplicates nothing. Only one worker runs per data dir (a file lock), and the process that
+holds it is also the one that writes index snapshots.
 """
 
 from __future__ import annotations
@@ -16,60 +16,10 @@ import threading
 from collections.abc import Callable
 from pathlib import Path
 
-import numpy as np
-
-from app.engine.errors import GeolocError
-from app.engine.imageio import ImageLimits, load_image
-from app.engine.pipeline import Pipeline, load_pipeline
-from app.engine.search import ReferenceIndex
-from app.store import ReferenceStore
+from app.core import GeolocService
+from app.store import is_storage_error
 
 log = logging.getLogger("geoloc.worker")
-
-
-class LiveCollection:
-    """The data dir as one process sees it: store, fitted pipeline, and the index of the current version.
-    Searches and in-place changes of the index take ``lock``; a reload swaps in a new index object."""
-
-    def __init__(self, data_dir: Path, models_dir: Path, config: str, limits: ImageLimits | None = None):
-        self.store = ReferenceStore(data_dir)
-        name = self.store.get_meta("config") or config
-        self.pipeline: Pipeline = load_pipeline(models_dir, name)
-        self.store.bind(self.pipeline)
-        self.limits = limits or ImageLimits()
-        self.lock = threading.RLock()
-        self.version = self.store.version
-        self.index: ReferenceIndex = self.store.build_index(self.pipeline)
-
-    def current(self) -> ReferenceIndex:
-        """The index, reloaded first if another process (or thread) changed the collection."""
-        if self.store.version != self.version:
-            with self.lock:
-                v = self.store.version
-                if v != self.version:
-                    self.index = self.store.build_index(self.pipeline)
-                    self.version = v
-        return self.index
-
-    def apply(self, change: Callable[[ReferenceIndex], None], version_before: int) -> None:
-        """Apply our own committed change to the live index in place and snapshot it. If somebody else
-        changed the collection in between, skip: the next ``current()`` reloads everything."""
-        with self.lock:
-            if version_before != self.version:
-                return
-            change(self.index)
-            v = self.store.version
-            self.store.save_snapshot(self.index, self.pipeline, v)
-            self.version = v
-
-    def delete(self, ref_id: int) -> bool:
-        self.current()
-        before = self.version
-        if not self.store.delete(ref_id):
-            return False
-        if self.store.version == before + 1:
-            self.apply(lambda idx: idx.remove([ref_id]), before)
-        return True
 
 
 class WorkerLock:
@@ -91,6 +41,10 @@ class WorkerLock:
         self._fd = fd
         return True
 
+    @property
+    def held(self) -> bool:
+        return self._fd is not None
+
     def release(self) -> None:
         if self._fd is not None:
             fcntl.flock(self._fd, fcntl.LOCK_UN)
@@ -101,61 +55,52 @@ class WorkerLock:
 class IngestWorker:
     def __init__(
         self,
-        live: LiveCollection,
+        service: GeolocService,
         batch_size: int = 8,
         poll_seconds: float = 0.3,
         on_batch: Callable[[int, int], None] | None = None,
+        workers: int = 1,
     ):
-        self.live = live
+        self.service = service
         self.batch_size = batch_size
         self.poll_seconds = poll_seconds
-        self.on_batch = on_batch  # (indexed, failed) -> None, for metrics
+        self.on_batch = on_batch  # (indexed, failed) -> None, for metrics and progress
+        self.workers = workers
         self.wake = threading.Event()
         self.stop_event = threading.Event()
         self._thread: threading.Thread | None = None
-
-    def _encode(self, ref_id: int, path: Path) -> tuple[int, np.ndarray | None, np.ndarray | None, str | None]:
-        try:
-            img = load_image(path.read_bytes(), self.live.limits)
-            codes = self.live.pipeline.encode_image(img.rgb)
-            return ref_id, codes.float_, codes.binary, None
-        except FileNotFoundError:
-            return ref_id, None, None, "the stored image is missing"
-        except GeolocError as e:
-            return ref_id, None, None, str(e)
+        self.retrying = False  # the last batch could not be read (storage): back off before the next try
 
     def run_once(self) -> int:
-        """Encode one batch of pending references; returns how many rows it handled."""
-        store = self.live.store
-        batch = store.pending(self.batch_size)
+        """Encode one batch of pending references; returns how many rows it completed (0: idle or retrying)."""
+        batch = self.service.store.pending(self.batch_size)
         if not batch:
             return 0
-        results = [self._encode(ref_id, path) for ref_id, path in batch]
-        self.live.current()
-        before = self.live.version
-        done = store.complete(results)
-        if done:
-            by_id = {r[0]: r for r in results}
-            ids = np.array(done, np.int64)
-            f = np.stack([by_id[i][1] for i in done]) if self.live.index.float is not None else None
-            b = np.stack([by_id[i][2] for i in done]) if self.live.index.binary is not None else None
-            if store.version == before + 1:
-                self.live.apply(lambda idx: idx.add(ids, f, b), before)
-        failed = sum(1 for r in results if r[3] is not None)
+        results = self.service.encode(batch, self.workers)
+        done = self.service.complete(results)
+        failed = sum(1 for r in results if r.error is not None)
+        retry = sum(1 for r in results if r.retry)
         if self.on_batch:
             self.on_batch(len(done), failed)
-        log.info("encoded %d references (%d failed)", len(done), failed)
-        return len(batch)
+        log.info("encoded %d references (%d failed, %d left queued for a storage retry)", len(done), failed, retry)
+        self.retrying = retry == len(results)
+        return len(results) - retry
 
     def run_forever(self) -> None:
+        backoff = self.poll_seconds
         while not self.stop_event.is_set():
             try:
                 handled = self.run_once()
-            except Exception:  # keep serving: a bad batch is retried after a pause
-                log.exception("ingestion batch failed")
+                backoff = min(max(backoff * 2, 1.0), 30.0) if self.retrying else self.poll_seconds
+            except Exception as e:  # keep serving: a batch that failed is retried after a pause
+                if is_storage_error(e):
+                    log.warning("ingestion paused: %s", e)
+                else:
+                    log.exception("ingestion batch failed")
                 handled = 0
+                backoff = min(max(backoff * 2, 1.0), 30.0)
             if not handled:
-                self.wake.wait(self.poll_seconds)
+                self.wake.wait(backoff)
                 self.wake.clear()
 
     def start(self) -> None:

@@ -16,8 +16,10 @@ from app import __version__
 from app.api import errors
 from app.api.metrics import Metrics, MetricsMiddleware
 from app.api.routes import router
+from app.collection import SnapshotWriter
+from app.core import GeolocService
 from app.settings import Settings
-from app.worker import IngestWorker, LiveCollection, WorkerLock
+from app.worker import IngestWorker, WorkerLock
 
 log = logging.getLogger("geoloc.api")
 #: The page (issue: drop a photo, see where it was taken). Leaflet is copied into vendor/ by `make setup`
@@ -25,30 +27,48 @@ log = logging.getLogger("geoloc.api")
 WEB_DIR = Path(__file__).resolve().parents[1] / "web" / "static"
 
 
-def _load(app: FastAPI) -> None:
+def _start_worker(app: FastAPI, service: GeolocService) -> None:
     state = app.state
     s: Settings = state.settings
-    try:
-        live = LiveCollection(s.data_dir, s.models_dir, s.config, s.image_limits())
-        if s.worker == "inprocess":
-            lock = WorkerLock(s.data_dir)
-            if lock.acquire():
-                state.worker_lock = lock
-                m = state.metrics
+    lock = WorkerLock(s.data_dir)
+    if not lock.acquire():
+        log.warning("another worker holds %s: this process serves searches and accepts uploads only", lock.path)
+        return
+    state.worker_lock = lock
+    m = state.metrics
 
-                def count(indexed: int, failed: int) -> None:
-                    m.ingested.labels("indexed").inc(indexed)
-                    m.ingested.labels("failed").inc(failed)
+    def count(indexed: int, failed: int) -> None:
+        m.ingested.labels("indexed").inc(indexed)
+        m.ingested.labels("failed").inc(failed)
 
-                state.worker = IngestWorker(live, s.worker_batch, on_batch=count)
-                state.worker.start()
-            else:
-                log.warning("another worker holds %s: this process serves searches and accepts uploads only", lock.path)
-        state.live = live
-        log.info("ready: config %s, %d references", live.pipeline.config.name, live.index.size)
-    except Exception as e:  # keep /health up and say what is wrong on /ready
-        log.exception("loading failed")
-        state.load_error = f"loading failed: {e}"
+    state.worker = IngestWorker(service, s.worker_batch, on_batch=count)
+    state.worker.start()
+    state.snapshots = SnapshotWriter(service.collection)
+    state.snapshots.start()
+
+
+def _load(app: FastAPI, stop: threading.Event) -> None:
+    """Load until it works: a missing model or an unreadable data dir may be fixed while we wait, so
+    loading retries with backoff and /ready says why meanwhile (never a permanent 503)."""
+    state = app.state
+    s: Settings = state.settings
+    delay = 1.0
+    while not stop.is_set():
+        try:
+            service = GeolocService.open(
+                s.data_dir, s.models_dir, s.config, s.image_limits(), keep_queries=s.keep_queries
+            )
+            if s.worker == "inprocess":
+                _start_worker(app, service)
+            state.service = service
+            state.load_error = None
+            log.info("ready: config %s, %d references", service.pipeline.config.name, service.collection.size)
+            return
+        except Exception as e:  # keep /health up and say what is wrong on /ready
+            log.exception("loading failed; retrying in %.0f s", delay)
+            state.load_error = f"loading failed: {e} (retrying in {delay:.0f} s)"
+            stop.wait(delay)
+            delay = min(delay * 2, 30.0)
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:
@@ -56,12 +76,16 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     @asynccontextmanager
     async def lifespan(app: FastAPI):
-        loader = threading.Thread(target=_load, args=(app,), name="geoloc-load", daemon=True)
+        stop = threading.Event()
+        loader = threading.Thread(target=_load, args=(app, stop), name="geoloc-load", daemon=True)
         loader.start()
         yield
+        stop.set()
         loader.join(timeout=60)
         if app.state.worker is not None:
             app.state.worker.stop()
+        if app.state.snapshots is not None:
+            app.state.snapshots.stop(final=True)  # a clean stop leaves nothing to replay at the next start
         if app.state.worker_lock is not None:
             app.state.worker_lock.release()
 
@@ -74,8 +98,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     )
     app.state.settings = settings
     app.state.metrics = Metrics()
-    app.state.live = None
+    app.state.service = None
     app.state.worker = None
+    app.state.snapshots = None
     app.state.worker_lock = None
     app.state.load_error = None
     # Each /locate holds a decoded photo and its feature maps while it extracts; a limit bounds that memory.

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import sqlite3
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
@@ -10,9 +11,11 @@ from fastapi.responses import JSONResponse
 from pydantic import BaseModel
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
+from app.core import InvalidRequest
 from app.engine import errors as e
 from app.engine.configs import UnknownConfig
 from app.engine.search import UnsupportedMode
+from app.store import StorageUnavailable, is_storage_error
 
 log = logging.getLogger("geoloc.api")
 
@@ -26,7 +29,11 @@ STATUS = {
     UnsupportedMode: 422,
     UnknownConfig: 422,
     e.ModelNotReady: 503,
+    InvalidRequest: 422,
+    StorageUnavailable: 503,
 }
+#: Errors whose code is not their class name.
+CODES = {InvalidRequest: "invalid_request", StorageUnavailable: "storage_unavailable"}
 
 
 class ErrorBody(BaseModel):
@@ -48,7 +55,7 @@ def error_responses(*codes: int) -> dict:
         413: "too large",
         415: "unsupported image format",
         422: "invalid parameters",
-        503: "not ready",
+        503: "not ready, or the storage is unavailable (retry later)",
     }
     return {c: {"model": ErrorBody, "description": text.get(c, "error")} for c in codes}
 
@@ -65,7 +72,10 @@ def install(app: FastAPI) -> None:
     @app.exception_handler(e.GeolocError)
     async def _domain(_: Request, exc: e.GeolocError):
         status = next((s for t, s in STATUS.items() if isinstance(exc, t)), 400)
-        return _json(status, type(exc).__name__, str(exc))
+        code = next((c for t, c in CODES.items() if isinstance(exc, t)), type(exc).__name__)
+        if isinstance(exc, StorageUnavailable):
+            log.warning("storage unavailable: %s", exc)
+        return _json(status, code, str(exc))
 
     @app.exception_handler(RequestValidationError)
     async def _validation(_: Request, exc: RequestValidationError):
@@ -74,6 +84,18 @@ def install(app: FastAPI) -> None:
             loc = ".".join(str(x) for x in err.get("loc", []) if x not in ("body", "query", "path", "form"))
             parts.append(f"{loc or 'request'}: {err.get('msg')}")
         return _json(422, "invalid_request", "; ".join(parts) or "invalid request")
+
+    async def _storage(_: Request, exc: Exception):
+        """Raw storage failures from any path: a 503 the client can retry, answered like any other error
+        (a handler for ``Exception`` itself would answer and then drop the keep-alive connection)."""
+        if is_storage_error(exc):
+            log.warning("storage unavailable: %s", exc)
+            return _json(503, "storage_unavailable", f"the data dir cannot be used right now ({exc}); retry later")
+        log.exception("unhandled error", exc_info=exc)
+        return _json(500, "internal_error", f"internal error ({type(exc).__name__}); see the server log")
+
+    app.add_exception_handler(OSError, _storage)
+    app.add_exception_handler(sqlite3.Error, _storage)
 
     @app.exception_handler(Exception)
     async def _unexpected(_: Request, exc: Exception):

@@ -39,12 +39,47 @@ class Metrics:
         self.queue_depth = Gauge(
             "geoloc_queue_depth", "references accepted and waiting to be encoded", registry=self.registry
         )
+        self.index_version = Gauge(
+            "geoloc_index_version", "index version (change log position)", registry=self.registry
+        )
+        self.snapshot_age = Gauge(
+            "geoloc_snapshot_age_seconds", "age of the newest index snapshot (-1: none yet)", registry=self.registry
+        )
+        self.snapshot_writes = Gauge(
+            "geoloc_snapshot_writes", "index snapshots this process wrote since it started", registry=self.registry
+        )
+        self.replayed_at_start = Gauge(
+            "geoloc_index_replayed_at_start", "changes replayed over the snapshot when loading", registry=self.registry
+        )
+        self.full_rebuilds = Gauge(
+            "geoloc_index_full_rebuilds", "full index rebuilds from SQLite since start", registry=self.registry
+        )
+        self.tombstones = Gauge(
+            "geoloc_index_tombstones", "deleted references not compacted yet", registry=self.registry
+        )
         self.ingested = Counter(
             "geoloc_ingested_images_total",
             "references encoded by this process's worker",
             ["result"],
             registry=self.registry,
         )
+
+    def observe_collection(self, col) -> None:
+        """Gauges read from the live collection at scrape time."""
+        col.catch_up()
+        idx = col.index
+        if idx.float is not None:
+            self.index_size.labels("float").set(idx.float.ntotal)
+        if idx.binary is not None:
+            self.index_size.labels("binary").set(idx.binary.ntotal)
+        self.queue_depth.set(col.store.count("pending"))
+        st = col.stats
+        self.index_version.set(col.version)
+        self.snapshot_age.set(time.time() - st.snapshot_written_at if st.snapshot_written_at else -1)
+        self.snapshot_writes.set(st.snapshot_writes)
+        self.replayed_at_start.set(st.replayed_at_start)
+        self.full_rebuilds.set(st.full_rebuilds)
+        self.tombstones.set(idx.tombstones)
 
 
 class MetricsMiddleware(BaseHTTPMiddleware):

@@ -3,9 +3,9 @@
 Both are wrapped in an ``IDMap2`` so references keep their ids across deletions and rebuilds, and both
 give scores in [0, 1] (cosine mapped to (1 + cos) / 2; 1 - Hamming / bits) so callers can threshold one
 way whatever the mode. Flat is exact and right up to ~100k references; IVF and HNSW trade a little recall
-for speed beyond that. HNSW graphs cannot remove nodes (nor can IVF lists with the direct map we need to read
-codes back), so deletions there become tombstones that searches skip, and ``needs_rebuild`` says when
-the dead weight is worth a rebuild from the stored codes.
+for speed beyond that. Deletions become tombstones that searches skip (removing a vector from a flat index moves
+every vector after it, a cost that grows with the collection); ``compact`` drops them on a copy when a
+snapshot is written, off the request path.
 """
 
 from __future__ import annotations
@@ -92,20 +92,28 @@ class VectorIndex:
         self._index.add_with_ids(x, ids)
 
     def remove(self, ids) -> int:
-        """Remove ids; HNSW and IVF (whose direct map, needed to read codes back, cannot shrink) mark them
-        dead instead. Returns how many were live."""
-        ids = [int(i) for i in ids]
-        if self._index is None or not ids:
-            return 0
-        live = [i for i in ids if i in self._id_set() and i not in self.tombstones]
-        if self.kind != "flat":
-            self.tombstones.update(live)
-            return len(live)
-        self._index.remove_ids(faiss.IDSelectorBatch(np.array(ids, dtype=np.int64)))
-        return len(live)
+        """Mark ids dead (tombstones): searches skip them at once, and ``compact`` drops them later. Removing
+        in place would move every vector after them (a flat index is one array), a cost that grows with the
+        collection on every single deletion. Returns how many ids were newly marked."""
+        before = len(self.tombstones)
+        if self._index is not None:
+            self.tombstones.update(int(i) for i in ids)
+        return len(self.tombstones) - before
 
-    def _id_set(self) -> set[int]:
-        return set(faiss.vector_to_array(self._index.id_map).tolist()) if self._index is not None else set()
+    def compact(self) -> None:
+        """Drop tombstoned vectors for good (done on a copy, off the request path, when a snapshot is written).
+        Flat indexes remove them in place; IVF and HNSW, which cannot, are rebuilt from their live codes once
+        the dead weight passes 20 %, else keep their tombstones."""
+        if not self.tombstones or self._index is None:
+            return
+        dead = np.fromiter(self.tombstones, np.int64, len(self.tombstones))
+        if self.kind == "flat":
+            self._index.remove_ids(faiss.IDSelectorBatch(dead))
+            self.tombstones = set()
+        elif self.needs_rebuild:
+            live = self.ids()
+            fresh = VectorIndex.rebuild(self, live, self.reconstruct(live))
+            self._index, self.tombstones = fresh._index, set()
 
     @property
     def ntotal(self) -> int:
@@ -122,7 +130,7 @@ class VectorIndex:
         all_ids = faiss.vector_to_array(self._index.id_map)
         if not self.tombstones:
             return all_ids
-        return all_ids[~np.isin(all_ids, list(self.tombstones))]
+        return all_ids[~np.isin(all_ids, np.fromiter(self.tombstones, np.int64, len(self.tombstones)))]
 
     def reconstruct(self, ids) -> np.ndarray:
         """Stored vectors (codes) of ``ids``, in order."""
@@ -140,46 +148,30 @@ class VectorIndex:
 
     def search(self, q: np.ndarray, k: int, allowed: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Top ``k`` per query as (scores, ids), best first, ids -1 where fewer exist. ``allowed`` restricts
-        the search itself to those ids (a region), exactly, by scoring their stored codes."""
+        the search itself to those ids (a region) through a FAISS id selector. Tombstoned ids are skipped by
+        over-fetching as many extra results as there are tombstones (compaction keeps that number small)."""
         q = self._prepare(q)
         nq = len(q)
-        scores = np.full((nq, k), -np.inf if not self.binary else 0.0, np.float32)
+        scores = np.zeros((nq, k), np.float32)
         out_ids = np.full((nq, k), -1, np.int64)
         if self._index is None or self.ntotal == 0 or k <= 0:
-            return np.zeros((nq, k), np.float32), out_ids
-        if allowed is not None:
-            return self._search_subset(q, k, np.asarray(allowed, np.int64))
-        kk = min(k + len(self.tombstones), self._index.ntotal)
-        d, ids = self._index.search(q, kk)
-        s = self._to_scores(d)
-        scores = np.zeros((nq, k), np.float32)
-        for r in range(nq):
-            keep = [(sc, i) for sc, i in zip(s[r], ids[r], strict=True) if i >= 0 and int(i) not in self.tombstones]
-            keep = keep[:k]
-            for c, (sc, i) in enumerate(keep):
-                scores[r, c], out_ids[r, c] = sc, i
-        return scores, out_ids
-
-    def _search_subset(self, q: np.ndarray, k: int, allowed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        live = self.ids()
-        allowed = allowed[np.isin(allowed, live)]
-        nq = len(q)
-        scores = np.zeros((nq, k), np.float32)
-        out_ids = np.full((nq, k), -1, np.int64)
-        if len(allowed) == 0:
             return scores, out_ids
-        codes = self.reconstruct(allowed)
-        if self.binary:
-            sub = faiss.IndexBinaryFlat(self.dim)
-            sub.add(codes)
-            d, rows = sub.search(q, min(k, len(allowed)))
+        kk = min(k + len(self.tombstones), self._index.ntotal)
+        if allowed is not None:
+            allowed = np.ascontiguousarray(allowed, np.int64)
+            if len(allowed) == 0:
+                return scores, out_ids
+            params = faiss.SearchParameters(sel=faiss.IDSelectorBatch(allowed))
+            d, ids = self._index.search(q, kk, params=params)
         else:
-            sub = faiss.IndexFlatIP(self.dim)
-            sub.add(codes)
-            d, rows = sub.search(q, min(k, len(allowed)))
-        n = rows.shape[1]
-        scores[:, :n] = self._to_scores(d)
-        out_ids[:, :n] = np.where(rows >= 0, allowed[np.maximum(rows, 0)], -1)
+            d, ids = self._index.search(q, kk)
+        s = self._to_scores(d)
+        ok = ids >= 0
+        if self.tombstones:
+            ok &= ~np.isin(ids, np.fromiter(self.tombstones, np.int64, len(self.tombstones)))
+        for r in range(nq):
+            keep = np.flatnonzero(ok[r])[:k]
+            scores[r, : len(keep)], out_ids[r, : len(keep)] = s[r, keep], ids[r, keep]
         return scores, out_ids
 
     def score_ids(self, q: np.ndarray, ids: np.ndarray) -> np.ndarray:

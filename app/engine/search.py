@@ -42,6 +42,16 @@ class ReferenceIndex:
                 n = idx.remove(ids)
         return n
 
+    def compact(self) -> None:
+        for idx in (self.float, self.binary):
+            if idx is not None:
+                idx.compact()
+
+    @property
+    def tombstones(self) -> int:
+        idx = self.float or self.binary
+        return len(idx.tombstones) if idx is not None else 0
+
     def check_mode(self, mode: str | None) -> str:
         """The mode to use: the configuration's best when None; an error naming the choices otherwise."""
         modes = self.config.modes

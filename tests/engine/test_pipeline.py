@@ -6,13 +6,14 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from app.core import LocateOptions, locate_features
 from app.datasets import read_manifest
 from app.engine.configs import get_config
 from app.engine.errors import IncompatibleArtifact, ModelNotReady
 from app.engine.imageio import load_image
-from app.engine.locator import Locator
 from app.engine.pipeline import Pipeline
 from app.engine.search import ReferenceIndex
+from app.evaluate import RowReferences
 
 
 @pytest.fixture(scope="module")
@@ -48,15 +49,13 @@ def test_a_reencoded_reference_is_found_first(images, squeezenet):
     index = ReferenceIndex(pipe.config, pipe.float_dim, pipe.bits)
     codes = [pipe.encode_features(f) for f in feats]
     index.add(np.arange(len(rows)), np.stack([c.float_ for c in codes]), None)
-    lat = np.array([r.lat for r in rows])
-    lon = np.array([r.lon for r in rows])
-    locator = Locator(pipe, index, lambda ids: (lat[ids], lon[ids]))
+    refs = RowReferences(rows, list(range(len(rows))))
     photo = next(i for i, r in enumerate(rows) if "photos" in str(r.image))
     buf = io.BytesIO()
     Image.fromarray(rgbs[photo]).resize((800, 600) if rgbs[photo].shape[1] > rgbs[photo].shape[0] else (600, 800)).save(
         buf, "JPEG", quality=70
     )
-    res = locator.locate_rgb(load_image(buf.getvalue()).rgb, top_k=5)
+    res = locate_features(pipe, index, refs, pipe.extract(load_image(buf.getvalue()).rgb), LocateOptions(top_k=5))
     assert res.candidates[0].reference_id == photo
     assert res.features_extracted > 100 and res.features_kept == res.features_extracted
     assert {"local_features", "cnn", "aggregate", "codes", "search", "estimate"} <= set(res.timings_ms)

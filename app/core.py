@@ -1,0 +1,538 @@
+"""The application core: the use cases every face of the product calls (HTTP routes, the CLI, the
+evaluation, the benchmarks), so that what the evaluation measures is what /locate serves.
+
+- ``locate_features`` is the one locate path: search (restricted to a region when asked), optional
+  geometric verification, the fused estimate, then the candidates' metadata in one batched read. It works
+  on anything that searches (a live ``Collection`` or an in-memory ``ReferenceIndex``) and anything that
+  knows the references (the store, or the evaluation's rows), so the evaluation calls it unchanged.
+- ``GeolocService`` binds it to a data dir and adds the other use cases: accept uploads (validated, then
+  stored in bulk as pending rows with their job), encode, complete, delete, list, get.
+
+The estimate rule, one for every face: fuse the first ``ESTIMATE_CANDIDATES`` candidates after the region
+filter and verification, before ``min_score`` and before cutting to ``top_k``, so the estimate never
+depends on how many candidates the caller asked for.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path, PurePosixPath
+from typing import Protocol
+
+import cv2
+import numpy as np
+
+from app.collection import Collection, SnapshotPolicy
+from app.engine import rerank as rerank_mod
+from app.engine.errors import GeolocError, InvalidPosition, NoGpsInImage
+from app.engine.estimate import Estimate, fuse_position
+from app.engine.geo import haversine_m, valid_position
+from app.engine.imageio import ImageLimits, LoadedImage, load_image
+from app.engine.pipeline import Features, Pipeline
+from app.store import NewReference, Reference, ReferenceStore, StorageUnavailable, is_storage_error
+
+log = logging.getLogger("geoloc.core")
+
+#: How many candidates the fused estimate is made of (after region filter and verification).
+ESTIMATE_CANDIDATES = 10
+#: How many of the best candidates geometric verification looks at.
+RERANK_CANDIDATES = 10
+
+
+class InvalidRequest(GeolocError):
+    """Parameters that cannot describe a request (an empty or inverted region, a bad heading...)."""
+
+
+# -- requests and answers -------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Region:
+    """A circle (lat, lon, radius_m) or a bbox (min_lon, min_lat, max_lon, max_lat)."""
+
+    lat: float | None = None
+    lon: float | None = None
+    radius_m: float | None = None
+    bbox: tuple[float, float, float, float] | None = None
+
+    def __post_init__(self):
+        if self.bbox is not None:
+            if any(v is not None for v in (self.lat, self.lon, self.radius_m)):
+                raise InvalidRequest("give either bbox or lat+lon+radius_m, not both")
+            min_lon, min_lat, max_lon, max_lat = self.bbox
+            if (
+                not all(math.isfinite(v) for v in self.bbox)
+                or not (valid_position(min_lat, min_lon) and valid_position(max_lat, max_lon))
+                or min_lon > max_lon
+                or min_lat > max_lat
+            ):
+                raise InvalidRequest("bbox is out of range or inverted (min must not exceed max)")
+            return
+        if not all(v is not None for v in (self.lat, self.lon, self.radius_m)):
+            raise InvalidRequest("a circular region needs lat, lon and radius_m together")
+        if not valid_position(self.lat, self.lon):
+            raise InvalidRequest(f"region centre {self.lat},{self.lon} is out of range")
+        if not (math.isfinite(self.radius_m) and self.radius_m > 0):
+            raise InvalidRequest("radius_m must be a positive number of metres")
+
+    def bounding_box(self) -> tuple[float, float, float, float]:
+        if self.bbox is not None:
+            return self.bbox
+        dlat = self.radius_m / 111_320
+        dlon = self.radius_m / (111_320 * max(math.cos(math.radians(self.lat)), 1e-6))
+        return self.lon - dlon, self.lat - dlat, self.lon + dlon, self.lat + dlat
+
+    def contains(self, lats: np.ndarray, lons: np.ndarray) -> np.ndarray:
+        if self.bbox is not None:
+            min_lon, min_lat, max_lon, max_lat = self.bbox
+            return (lats >= min_lat) & (lats <= max_lat) & (lons >= min_lon) & (lons <= max_lon)
+        return haversine_m(self.lat, self.lon, lats, lons) <= self.radius_m
+
+
+@dataclass(frozen=True)
+class LocateOptions:
+    top_k: int = 10
+    mode: str | None = None
+    rerank: bool = False
+    region: Region | None = None
+    min_score: float = 0.0
+
+
+@dataclass(frozen=True)
+class RefInfo:
+    """What a candidate carries besides its score."""
+
+    lat: float
+    lon: float
+    label: str | None = None
+    captured_at: str | None = None
+    heading: float | None = None
+
+
+@dataclass(frozen=True)
+class Candidate:
+    reference_id: int
+    lat: float
+    lon: float
+    score: float
+    label: str | None = None
+    captured_at: str | None = None
+    heading: float | None = None
+    inliers: int | None = None  # geometric verification, when asked (None: not verified)
+    distance_m: float | None = None  # from the confident estimate
+
+
+@dataclass
+class LocateAnswer:
+    candidates: list[Candidate]
+    estimate: Estimate  # the fused position, confident or not (the evaluation measures both)
+    reason: str | None  # why there is no confident estimate; None when there is one
+    mode: str
+    config: str
+    features_extracted: int
+    features_kept: int
+    timings_ms: dict[str, float] = field(default_factory=dict)
+    index_size: int = 0
+    index_version: int = 0
+
+    @property
+    def confident_estimate(self) -> Estimate | None:
+        return self.estimate if self.reason is None else None
+
+    def as_dict(self) -> dict:
+        """The JSON shape shared by /locate and `geoloc locate`."""
+        e = self.confident_estimate
+        return {
+            "candidates": [
+                {
+                    "reference_id": c.reference_id,
+                    "lat": c.lat,
+                    "lon": c.lon,
+                    "score": round(c.score, 6),
+                    "distance_m": c.distance_m,
+                    "label": c.label,
+                    "captured_at": c.captured_at,
+                    "heading": c.heading,
+                    "inliers": c.inliers,
+                }
+                for c in self.candidates
+            ],
+            "estimate": None
+            if e is None
+            else {"lat": e.lat, "lon": e.lon, "radius_m": e.radius_m, "confidence": e.confidence},
+            "reason": self.reason,
+            "mode": self.mode,
+            "config": self.config,
+            "features": {"extracted": self.features_extracted, "kept": self.features_kept},
+            "timings_ms": {k: round(v, 3) for k, v in self.timings_ms.items()},
+            "index": {"size": self.index_size, "version": self.index_version},
+        }
+
+
+class Searchable(Protocol):
+    def check_mode(self, mode: str | None) -> str: ...
+
+    def search(self, float_code, binary_code, k: int, mode: str | None = None, allowed=None): ...
+
+
+class ReferenceSource(Protocol):
+    """What locate needs to know about references besides their codes."""
+
+    def info(self, ids: Sequence[int]) -> dict[int, RefInfo]: ...
+
+    def in_region(self, region: Region) -> np.ndarray: ...
+
+    def image_bytes(self, ref_id: int) -> bytes | None: ...
+
+
+class StoreReferences:
+    """The data dir as a ``ReferenceSource``: every read is one batched query."""
+
+    def __init__(self, store: ReferenceStore):
+        self.store = store
+
+    def info(self, ids: Sequence[int]) -> dict[int, RefInfo]:
+        return {
+            i: RefInfo(r.lat, r.lon, r.label, r.captured_at, r.heading) for i, r in self.store.get_many(ids).items()
+        }
+
+    def in_region(self, region: Region) -> np.ndarray:
+        ids, lats, lons = self.store.in_bbox(region.bounding_box())
+        return ids[region.contains(lats, lons)] if len(ids) else ids
+
+    def image_bytes(self, ref_id: int) -> bytes | None:
+        path = self.store.image_path(ref_id)
+        try:
+            return path.read_bytes() if path is not None else None
+        except OSError:
+            return None
+
+
+# -- the one locate path --------------------------------------------------------------------------------
+def _verify(
+    query_rgb: np.ndarray, ids: Sequence[int], refs: ReferenceSource, limits: ImageLimits
+) -> dict[int, int | None]:
+    """Inliers per candidate; None where the pair could not be verified (image gone, OpenCV refused)."""
+    q = rerank_mod.features_for_verification(query_rgb)
+    out: dict[int, int | None] = {}
+    for i in ids:
+        data = refs.image_bytes(int(i))
+        if data is None:
+            out[int(i)] = None
+            continue
+        try:
+            ref = rerank_mod.features_for_verification(load_image(data, limits).rgb)
+            out[int(i)] = rerank_mod.count_inliers(q, ref)
+        except (cv2.error, GeolocError) as e:  # degenerate sample sets make USAC raise: count as unverified
+            log.debug("verification of reference %s skipped: %s", i, e)
+            out[int(i)] = None
+    return out
+
+
+def locate_features(
+    pipeline: Pipeline,
+    index: Searchable,
+    refs: ReferenceSource,
+    features: Features,
+    options: LocateOptions,
+    query_rgb: np.ndarray | None = None,
+    limits: ImageLimits | None = None,
+    cluster_radius_m: float = 25.0,
+) -> LocateAnswer:
+    """Search, verify, fuse, shape. ``query_rgb`` is needed only for verification (``options.rerank``)."""
+    mode = index.check_mode(options.mode)
+    t: dict[str, float] = {}
+    allowed = None
+    if options.region is not None:
+        t0 = time.perf_counter()
+        allowed = refs.in_region(options.region)
+        t["region"] = (time.perf_counter() - t0) * 1000
+    keep = pipeline.select(features)
+    codes = pipeline.encode_features(features, keep)
+    t.update(codes.timings_ms)
+    n = max(options.top_k, ESTIMATE_CANDIDATES)
+    t0 = time.perf_counter()
+    if allowed is not None and len(allowed) == 0:
+        scores, ids = np.zeros(0, np.float32), np.zeros(0, np.int64)
+    else:
+        scores, ids = index.search(codes.float_, codes.binary, n, mode, allowed)
+    t["search"] = (time.perf_counter() - t0) * 1000
+    t0 = time.perf_counter()
+    info = refs.info(ids)
+    t["metadata"] = (time.perf_counter() - t0) * 1000
+    ranked = [(int(i), float(s)) for i, s in zip(ids, scores, strict=True) if int(i) in info]
+    inliers: dict[int, int | None] = {}
+    if options.rerank and ranked:
+        if query_rgb is None:
+            raise ValueError("verification needs the query image")
+        t0 = time.perf_counter()
+        head = [i for i, _ in ranked[:RERANK_CANDIDATES]]
+        inliers = _verify(query_rgb, head, refs, limits or ImageLimits())
+        order = {i: n for n, (i, _) in enumerate(ranked)}
+        ranked.sort(key=lambda p: (-(inliers.get(p[0]) if inliers.get(p[0]) is not None else -1), order[p[0]]))
+        t["rerank"] = (time.perf_counter() - t0) * 1000
+    t0 = time.perf_counter()
+    fused = ranked[:ESTIMATE_CANDIDATES]
+    estimate = fuse_position(
+        np.array([info[i].lat for i, _ in fused]),
+        np.array([info[i].lon for i, _ in fused]),
+        np.array([s for _, s in fused]),
+        cluster_radius_m,
+    )
+    t["estimate"] = (time.perf_counter() - t0) * 1000
+    region_empty = allowed is not None and len(allowed) == 0
+    reason = "no references in the requested region" if region_empty else estimate.reason
+    confident = estimate if reason is None else None
+    shown = [(i, s) for i, s in ranked if s >= options.min_score][: options.top_k]
+    candidates = [
+        Candidate(
+            reference_id=i,
+            lat=info[i].lat,
+            lon=info[i].lon,
+            score=s,
+            label=info[i].label,
+            captured_at=info[i].captured_at,
+            heading=info[i].heading,
+            inliers=inliers.get(i) if options.rerank else None,
+            distance_m=float(haversine_m(confident.lat, confident.lon, info[i].lat, info[i].lon))
+            if confident
+            else None,
+        )
+        for i, s in shown
+    ]
+    return LocateAnswer(
+        candidates=candidates,
+        estimate=estimate,
+        reason=reason,
+        mode=mode,
+        config=pipeline.config.name,
+        features_extracted=codes.features_extracted,
+        features_kept=codes.features_kept,
+        timings_ms=t,
+    )
+
+
+# -- uploads ----------------------------------------------------------------------------------------------
+@dataclass
+class Upload:
+    """One image to add, with the position from fields (or None, to read it from the photo's EXIF)."""
+
+    data: bytes
+    filename: str | None = None
+    lat: float | None = None
+    lon: float | None = None
+    heading: float | None = None
+    captured_at: str | None = None
+    label: str | None = None
+
+
+@dataclass(frozen=True)
+class Accepted:
+    job_id: str
+    reference_ids: list[int]
+    duplicates: list[bool]
+
+
+def _position(u: Upload, img: LoadedImage, n: int) -> tuple[float, float]:
+    if u.lat is None and u.lon is None:
+        if img.gps is None:
+            raise NoGpsInImage(f"image {n}: no lat/lon given and no GPS position in its EXIF")
+        return img.gps
+    if u.lat is None or u.lon is None:
+        raise InvalidPosition(f"image {n}: give both lat and lon, or neither (to use the EXIF GPS)")
+    try:
+        lat, lon = float(u.lat), float(u.lon)
+    except (TypeError, ValueError):
+        raise InvalidPosition(f"image {n}: lat and lon must be numbers") from None
+    if not valid_position(lat, lon):
+        raise InvalidPosition(f"image {n}: position {lat},{lon} is out of range (lat -90..90, lon -180..180)")
+    return lat, lon
+
+
+def label_from(filename: str | None) -> str | None:
+    if not filename:
+        return None
+    name = PurePosixPath(filename.replace("\\", "/")).name  # never a path: "../../x.jpg" -> "x.jpg"
+    return name[:200] or None
+
+
+def prepare_upload(u: Upload, limits: ImageLimits, n: int = 0, source: str = "api") -> NewReference:
+    """Validate one upload completely (decodable, within limits, with a position) before anything is stored."""
+    img = load_image(u.data, limits)
+    lat, lon = _position(u, img, n)
+    hd = u.heading
+    if hd is not None and (
+        isinstance(hd, bool) or not (isinstance(hd, int | float) and math.isfinite(hd) and 0 <= hd < 360)
+    ):
+        raise InvalidRequest(f"image {n}: heading must be a number in [0, 360)")
+    return NewReference(
+        image=u.data,
+        ext=img.format.lower(),
+        lat=lat,
+        lon=lon,
+        heading=hd,
+        captured_at=str(u.captured_at)[:64] if u.captured_at else img.captured_at,
+        label=str(u.label)[:200] if u.label else label_from(u.filename),
+        source=source,
+    )
+
+
+# -- encoding ---------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Encoded:
+    ref_id: int
+    float_code: np.ndarray | None
+    binary_code: np.ndarray | None
+    error: str | None = None  # a permanent failure (the row becomes failed)
+    retry: bool = False  # a storage failure: the row stays pending and is tried again later
+
+
+def encode_one(pipeline: Pipeline, limits: ImageLimits, ref_id: int, path: Path) -> Encoded:
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        if path.parent.is_dir():
+            return Encoded(ref_id, None, None, "the stored image is missing")
+        return Encoded(ref_id, None, None, retry=True)
+    except OSError as e:
+        log.warning("reference %d: cannot read its image now (%s); it stays queued", ref_id, e)
+        return Encoded(ref_id, None, None, retry=True)
+    try:
+        codes = pipeline.encode_image(load_image(data, limits).rgb)
+    except GeolocError as e:
+        return Encoded(ref_id, None, None, str(e))
+    return Encoded(ref_id, codes.float_, codes.binary)
+
+
+# -- the service ------------------------------------------------------------------------------------------
+class GeolocService:
+    """The use cases over one data dir. Thread-safe: the HTTP layer calls it from a thread pool."""
+
+    def __init__(self, collection: Collection, limits: ImageLimits | None = None, keep_queries: bool = False):
+        self.collection = collection
+        self.limits = limits or ImageLimits()
+        self.keep_queries = keep_queries
+        self.refs = StoreReferences(collection.store)
+
+    @classmethod
+    def open(
+        cls,
+        data_dir: Path,
+        models_dir: Path,
+        config: str | None,
+        limits: ImageLimits | None = None,
+        policy: SnapshotPolicy | None = None,
+        keep_queries: bool = False,
+    ) -> GeolocService:
+        return cls(Collection.open(data_dir, models_dir, config, policy), limits, keep_queries)
+
+    @property
+    def store(self) -> ReferenceStore:
+        return self.collection.store
+
+    @property
+    def pipeline(self) -> Pipeline:
+        return self.collection.pipeline
+
+    # -- locate ---------------------------------------------------------------------------------------
+    def decode(self, data: bytes) -> LoadedImage:
+        return load_image(data, self.limits)
+
+    def extract(self, data: bytes) -> tuple[LoadedImage, Features, float]:
+        """Decode and extract (the expensive, parallel part of a request); returns the decode time too."""
+        t0 = time.perf_counter()
+        img = self.decode(data)
+        decode_ms = (time.perf_counter() - t0) * 1000
+        return img, self.pipeline.extract(img.rgb), decode_ms
+
+    def locate_extracted(self, img: LoadedImage, features: Features, options: LocateOptions) -> LocateAnswer:
+        col = self.collection
+        col.catch_up()
+        col.check_mode(options.mode)
+        answer = locate_features(self.pipeline, col, self.refs, features, options, img.rgb, self.limits)
+        answer.index_size, answer.index_version = col.size, col.version
+        return answer
+
+    def locate(self, data: bytes, options: LocateOptions) -> LocateAnswer:
+        t0 = time.perf_counter()
+        self.collection.check_mode(options.mode)  # a bad mode is refused before the expensive part
+        img, features, decode_ms = self.extract(data)
+        answer = self.locate_extracted(img, features, options)
+        answer.timings_ms = {"decode": decode_ms, **answer.timings_ms, "total": (time.perf_counter() - t0) * 1000}
+        self.keep_query(data, img)
+        return answer
+
+    def keep_query(self, data: bytes, img: LoadedImage) -> None:
+        if not self.keep_queries:
+            return
+        from app.store import sha256_of
+
+        try:
+            folder = self.store.data_dir / "queries"
+            folder.mkdir(exist_ok=True)
+            (folder / f"{sha256_of(data)}.{img.format.lower()}").write_bytes(data)
+        except OSError as e:  # keeping queries is a courtesy; a full disk must not fail the answer
+            log.warning("query not kept: %s", e)
+
+    # -- accept, encode, complete -----------------------------------------------------------------------
+    def accept(self, uploads: Sequence[Upload], source: str = "api") -> Accepted:
+        """Validate every upload, then store them all (images durable, rows and job in one transaction) as
+        pending rows. The index is not touched: the worker encodes them."""
+        prepared = [prepare_upload(u, self.limits, n, source) for n, u in enumerate(uploads)]
+        return self.accept_prepared(prepared)
+
+    def accept_prepared(self, prepared: Sequence[NewReference]) -> Accepted:
+        items, job_id = self.store.add_many(prepared, job=True)
+        return Accepted(job_id, [i for i, _ in items], [not created for _, created in items])
+
+    def encode(self, batch: Sequence[tuple[int, Path]], workers: int = 1) -> list[Encoded]:
+        if workers <= 1 or len(batch) <= 1:
+            return [encode_one(self.pipeline, self.limits, i, p) for i, p in batch]
+        with ThreadPoolExecutor(max_workers=workers) as pool:
+            return list(pool.map(lambda b: encode_one(self.pipeline, self.limits, *b), batch))
+
+    def complete(self, results: Sequence[Encoded]) -> list[int]:
+        """Record a batch in one transaction (storage failures stay pending) and bring the index up to date."""
+        final = [(r.ref_id, r.float_code, r.binary_code, r.error) for r in results if not r.retry]
+        done = self.store.complete(final) if final else []
+        self.collection.catch_up()
+        return done
+
+    # -- the rest ---------------------------------------------------------------------------------------
+    def delete(self, ref_id: int) -> bool:
+        if not self.store.delete(ref_id):
+            return False
+        self.collection.catch_up()  # gone from this process's searches at once
+        return True
+
+    def get(self, ref_id: int) -> Reference | None:
+        return self.store.get(ref_id)
+
+    def list(self, offset: int, limit: int, bbox=None) -> tuple[list[Reference], int]:
+        return self.store.list(offset, limit, bbox)
+
+    def job(self, job_id: str) -> dict | None:
+        return self.store.job(job_id)
+
+    def image_path(self, ref_id: int) -> Path | None:
+        return self.store.image_path(ref_id)
+
+
+__all__ = [
+    "Accepted",
+    "Candidate",
+    "Encoded",
+    "GeolocService",
+    "InvalidRequest",
+    "LocateAnswer",
+    "LocateOptions",
+    "RefInfo",
+    "Region",
+    "StorageUnavailable",
+    "Upload",
+    "is_storage_error",
+    "locate_features",
+]

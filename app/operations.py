@@ -1,0 +1,158 @@
+"""Operations on a data dir: check that its parts agree, back it up while it is in use, restore it.
+
+Why a check: the FAISS snapshot is a cache of SQLite and the images live beside it; after a disk incident
+or a hand edit an operator needs one command that says which part disagrees with which, rather than
+rankings that are quietly wrong. Why SQLite's backup API: it copies a consistent state of a database
+that other processes keep writing, which a plain file copy of a WAL database does not.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import sqlite3
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from app.engine.errors import GeolocError
+from app.engine.pipeline import load_pipeline
+from app.snapshots import MANIFEST, SnapshotInvalid, load_snapshot, read_manifest, snapshot_files
+from app.store import DB_NAME, IMAGES, ReferenceStore
+
+BACKUP_MANIFEST = "backup.json"
+
+
+class OperationRefused(GeolocError):
+    """A backup or restore that would overwrite something, or read something that is not a backup."""
+
+
+@dataclass
+class CheckReport:
+    lines: list[str] = field(default_factory=list)
+    problems: list[str] = field(default_factory=list)
+
+
+def _sample(ids, n: int = 10) -> str:
+    ids = list(ids)
+    return ", ".join(str(i) for i in ids[:n]) + (f" (and {len(ids) - n} more)" if len(ids) > n else "")
+
+
+def check_data_dir(data_dir: Path, models_dir: Path, config: str | None) -> CheckReport:
+    r = CheckReport()
+    if not (data_dir / DB_NAME).exists():
+        r.problems.append(f"{data_dir / DB_NAME} does not exist")
+        return r
+    store = ReferenceStore(data_dir, read_only=True)
+    counts = {s: store.count(s) for s in ("indexed", "pending", "failed")}
+    r.lines.append(f"rows: {counts['indexed']} indexed, {counts['pending']} pending, {counts['failed']} failed")
+    rows = store.db.execute("SELECT id, sha256, image_ext, status, float_code, binary_code FROM refs").fetchall()
+    named = {f"{sha}.{ext}" for _, sha, ext, *_ in rows}
+    on_disk = {p.name for p in (data_dir / IMAGES).iterdir() if not p.name.startswith(".")}
+    missing = [i for i, sha, ext, *_ in rows if f"{sha}.{ext}" not in on_disk]
+    orphans = sorted(on_disk - named)
+    r.lines.append(f"images: {len(on_disk)} files, {len(missing)} missing, {len(orphans)} not named by any row")
+    if missing:
+        r.problems.append(f"references whose image file is missing: {_sample(missing)}")
+    if orphans:
+        r.problems.append(f"image files no row names: {_sample(orphans)}")
+    name = store.get_meta("config") or config or "hybrid"
+    pipeline = load_pipeline(models_dir, name)
+    fsize = 4 * (pipeline.float_dim or 0)
+    bsize = (pipeline.bits or 0) // 8
+    bad_codes = [
+        i
+        for i, _, _, status, f, b in rows
+        if status == "indexed"
+        and ((fsize and (f is None or len(f) != fsize)) or (bsize and (b is None or len(b) != bsize)))
+    ]
+    if bad_codes:
+        r.problems.append(f"indexed references without codes of the pipeline's size: {_sample(bad_codes)}")
+    indexed = np.array(sorted(i for i, _, _, status, *_ in rows if status == "indexed"), np.int64)
+    try:
+        index, manifest = load_snapshot(data_dir, pipeline)
+    except SnapshotInvalid as e:
+        r.lines.append(f"index: no usable snapshot ({e}); the service rebuilds it from SQLite")
+        if (data_dir / MANIFEST).exists():
+            r.problems.append(f"the snapshot is not usable: {e}")
+        return r
+    from app.collection import apply_changes
+
+    changes = store.changes_since(int(manifest["version"]))
+    apply_changes(index, changes)
+    idx = index.float or index.binary
+    in_index = np.sort(idx.ids()) if idx is not None else np.zeros(0, np.int64)
+    r.lines.append(
+        f"index: snapshot of version {manifest['version']} verified, {len(changes)} later changes in the log, "
+        f"{len(in_index)} references after replay"
+    )
+    not_indexed = np.setdiff1d(indexed, in_index)
+    extra = np.setdiff1d(in_index, indexed)
+    if len(not_indexed):
+        r.problems.append(f"indexed rows missing from the index: {_sample(not_indexed.tolist())}")
+    if len(extra):
+        r.problems.append(f"index entries without an indexed row: {_sample(extra.tolist())}")
+    store.close()
+    return r
+
+
+def backup_data_dir(data_dir: Path, dest: Path) -> dict:
+    if dest.exists() and any(dest.iterdir()):
+        raise OperationRefused(f"{dest} is not empty: back up into a new or empty folder")
+    (dest / IMAGES).mkdir(parents=True, exist_ok=True)
+    src = sqlite3.connect(data_dir / DB_NAME)
+    dst = sqlite3.connect(dest / DB_NAME)
+    try:
+        src.backup(dst)  # a consistent copy while other processes keep writing
+    finally:
+        src.close()
+    rows = dst.execute("SELECT sha256, image_ext FROM refs").fetchall()
+    dst.close()
+    copied = missing = 0
+    for sha, ext in rows:
+        name = f"{sha}.{ext}"
+        try:
+            shutil.copy2(data_dir / IMAGES / name, dest / IMAGES / name)
+            copied += 1
+        except FileNotFoundError:  # deleted since the database copy was taken
+            missing += 1
+    version = None
+    try:
+        for path in snapshot_files(data_dir):
+            shutil.copy2(path, dest / path.name)
+        version = read_manifest(dest)["version"]
+    except (SnapshotInvalid, FileNotFoundError):
+        pass  # no snapshot (or replaced meanwhile): a restore rebuilds the index from SQLite
+    summary = {
+        "references": len(rows),
+        "images": copied,
+        "missing_images": missing,
+        "snapshot_version": version,
+        "source": str(data_dir.resolve()),
+        "written_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+    }
+    (dest / BACKUP_MANIFEST).write_text(json.dumps(summary, indent=1))
+    return summary
+
+
+def restore_data_dir(source: Path, data_dir: Path) -> dict:
+    if not (source / BACKUP_MANIFEST).exists() or not (source / DB_NAME).exists():
+        raise OperationRefused(f"{source} is not a backup written by `geoloc backup`")
+    if data_dir.exists() and any(p for p in data_dir.iterdir() if p.name != "README.md"):
+        raise OperationRefused(f"{data_dir} is not empty: restore into a new or empty data dir")
+    data_dir.mkdir(parents=True, exist_ok=True)
+    src = sqlite3.connect(source / DB_NAME)
+    dst = sqlite3.connect(data_dir / DB_NAME)
+    try:
+        src.backup(dst)
+    finally:
+        src.close()
+        dst.close()
+    shutil.copytree(source / IMAGES, data_dir / IMAGES, dirs_exist_ok=True)
+    for path in source.glob("*-v*.faiss"):
+        shutil.copy2(path, data_dir / path.name)
+    if (source / MANIFEST).exists():
+        shutil.copy2(source / MANIFEST, data_dir / MANIFEST)
+    return json.loads((source / BACKUP_MANIFEST).read_text())
