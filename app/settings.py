@@ -31,6 +31,17 @@ class Settings(BaseSettings):
         0, ge=0, description="/locate requests decoding and extracting at once (0: no limit); more wait"
     )
     thumbnail_px: int = 320
+    snapshot_every_changes: int = Field(
+        5_000, ge=1, description="write an index snapshot after this many index changes (the worker's process)"
+    )
+    snapshot_every_seconds: float = Field(
+        300.0, gt=0, description="...or this long after the first change not in a snapshot"
+    )
+
+    def snapshot_policy(self):
+        from app.collection import SnapshotPolicy
+
+        return SnapshotPolicy(self.snapshot_every_changes, self.snapshot_every_seconds)
 
     def image_limits(self):
         from app.engine.imageio import ImageLimits

@@ -56,7 +56,7 @@ def _load(app: FastAPI, stop: threading.Event) -> None:
     while not stop.is_set():
         try:
             service = GeolocService.open(
-                s.data_dir, s.models_dir, s.config, s.image_limits(), keep_queries=s.keep_queries
+                s.data_dir, s.models_dir, s.config, s.image_limits(), s.snapshot_policy(), s.keep_queries
             )
             if s.worker == "inprocess":
                 _start_worker(app, service)
