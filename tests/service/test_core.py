@@ -1,0 +1,120 @@
+"""One core for every face: /locate, `geoloc locate` and the function the evaluation calls give the same
+answer; the estimate does not depend on top_k; eval runs the core's rerank and region; operations."""
+
+import json
+import sqlite3
+
+import numpy as np
+import pytest
+
+from app.collection import index_from_codes
+from app.core import LocateOptions, StoreReferences, locate_features
+from app.engine.configs import get_config
+from app.engine.imageio import load_image
+from app.engine.pipeline import load_pipeline
+from app.store import ReferenceStore
+from tests.conftest import PENN
+from tests.service.conftest import CONFIG, Server
+from tests.test_cli import geoloc
+
+
+@pytest.fixture(scope="module")
+def ingested(tmp_path_factory, fitted_models, mini_manifest):
+    data = tmp_path_factory.mktemp("core") / "data"
+    out = geoloc(
+        "ingest", "--manifest", str(mini_manifest), "--split", "db", "--config", CONFIG,
+        "--data-dir", str(data), "--models-dir", str(fitted_models),
+    )  # fmt: skip
+    assert "ingested 30 new references" in out.stdout
+    return data
+
+
+def test_every_face_gives_the_same_answer(ingested, fitted_models):
+    photo = PENN / "photos" / "img_00001.jpg"  # a query capture of the mini manifest: not in the collection
+    cli = json.loads(
+        geoloc(
+            "locate", str(photo), "--top-k", "5", "--data-dir", str(ingested), "--models-dir", str(fitted_models)
+        ).stdout
+    )
+    with Server(ingested, fitted_models) as s:
+        r = s.client.post("/locate", files=[("image", ("q.jpg", photo.read_bytes(), "image/jpeg"))], data={"top_k": 5})
+        api = r.json()
+    pipe = load_pipeline(fitted_models, CONFIG)
+    store = ReferenceStore(ingested)
+    version, ids, f, b = store.all_codes()
+    index = index_from_codes(pipe, ids, f, b)
+    features = pipe.extract(load_image(photo.read_bytes()).rgb)
+    core = locate_features(pipe, index, StoreReferences(store), features, LocateOptions(top_k=5)).as_dict()
+    for other in (cli, api):
+        assert [c["reference_id"] for c in other["candidates"]] == [c["reference_id"] for c in core["candidates"]]
+        assert [c["score"] for c in other["candidates"]] == pytest.approx(
+            [c["score"] for c in core["candidates"]], abs=1e-6
+        )
+        assert other["reason"] == core["reason"]
+        assert (other["estimate"] is None) == (core["estimate"] is None)
+        if core["estimate"]:
+            assert other["estimate"] == pytest.approx(core["estimate"], abs=1e-6)
+    assert len(core["candidates"]) == 5 and core["index"]["size"] == 0  # the bare function knows no data dir
+    assert api["index"]["size"] == 30 == cli["index"]["size"]
+
+
+def test_the_estimate_does_not_depend_on_top_k(ingested, fitted_models):
+    pipe = load_pipeline(fitted_models, CONFIG)
+    store = ReferenceStore(ingested)
+    _, ids, f, b = store.all_codes()
+    index = index_from_codes(pipe, ids, f, b)
+    refs = StoreReferences(store)
+    for name in ("img_00001.jpg", "img_00006.jpg", "img_00011.jpg"):
+        features = pipe.extract(load_image((PENN / "photos" / name).read_bytes()).rgb)
+        answers = [locate_features(pipe, index, refs, features, LocateOptions(top_k=k)) for k in (1, 3, 10, 20)]
+        assert [len(a.candidates) for a in answers] == [1, 3, 10, 20]
+        for a in answers[1:]:
+            assert (a.estimate.lat, a.estimate.lon, a.estimate.confidence, a.reason) == (
+                answers[0].estimate.lat,
+                answers[0].estimate.lon,
+                answers[0].estimate.confidence,
+                answers[0].reason,
+            )
+        high = locate_features(pipe, index, refs, features, LocateOptions(top_k=10, min_score=0.999))
+        assert high.candidates == [] and high.estimate == answers[0].estimate  # min_score only filters the list
+
+
+def test_eval_with_rerank_and_region(fitted_models, mini_manifest, tmp_path):
+    out = tmp_path / "eval.json"
+    p = geoloc(
+        "eval", "--manifest", str(mini_manifest), "--config", CONFIG, "--models-dir", str(fitted_models),
+        "--rerank", "--region-radius-m", "150", "--json", str(out),
+    )  # fmt: skip
+    assert "rerank" in p.stdout and "region 150 m" in p.stdout
+    r = json.loads(out.read_text())
+    assert r["rerank"] is True and r["region_radius_m"] == 150 and "rerank" in r["ms_per_query"]
+    assert r["n_query"] == 9 and 0 <= r["recall_at"]["1"] <= 1
+
+
+def test_check_backup_restore(ingested, fitted_models, tmp_path):
+    models = ["--models-dir", str(fitted_models)]
+    ok = geoloc("check", "--data-dir", str(ingested), *models)
+    assert "ok: rows, images, codes and index agree" in ok.stdout and "30 indexed" in ok.stdout
+    backup = tmp_path / "backup"
+    out = geoloc("backup", str(backup), "--data-dir", str(ingested))
+    assert "backed up 30 references (30 images" in out.stdout
+    refused = geoloc("backup", str(backup), "--data-dir", str(ingested), check=False)
+    assert refused.returncode == 2 and "not empty" in refused.stderr
+    restored = tmp_path / "restored"
+    geoloc("restore", str(backup), "--data-dir", str(restored))
+    assert "ok:" in geoloc("check", "--data-dir", str(restored), *models).stdout
+    photo = PENN / "photos" / "img_00000.jpg"
+    res = json.loads(geoloc("locate", str(photo), "--top-k", "1", "--data-dir", str(restored), *models).stdout)
+    assert res["candidates"][0]["label"] == "img_00000.jpg" and res["index"]["size"] == 30
+    # Break the restored copy three ways: check names each.
+    db = sqlite3.connect(restored / "references.sqlite")
+    sha = db.execute("SELECT sha256, image_ext FROM refs WHERE id=2").fetchone()
+    db.execute("UPDATE refs SET float_code=NULL WHERE id=3")
+    db.commit()
+    db.close()
+    (restored / "images" / f"{sha[0]}.{sha[1]}").unlink()
+    (restored / "images" / "stray.jpg").write_bytes(b"x")
+    bad = geoloc("check", "--data-dir", str(restored), *models, check=False)
+    assert bad.returncode == 1
+    assert "image file is missing: 2" in bad.stderr and "stray.jpg" in bad.stderr and "without codes" in bad.stderr
+    assert get_config(CONFIG).float_codes and np.isfinite(0)
