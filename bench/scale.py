@@ -1,0 +1,175 @@
+"""The service at collection sizes users have: /ready, memory, /locate and uploads at 1k / 100k / 1M.
+
+    .venv/bin/python -m bench.scale [--sizes 1000,100000,1000000] [--config hybrid] [--out out/bench/scale]
+
+For each size: a data dir seeded with synthetic codes (bench.seed, kept between runs), then a real
+`geoloc serve`: /ready after a restart with the snapshot and with the snapshot deleted, resident memory,
+/locate p50/p95 on real 1600 px photos steady and right after an upload, the job time per upload, and how
+long a second API process on the same data dir takes to see an upload. Prints the table and the ratios of
+each size against the smallest, and writes them to OUT/scale.json and the scale section of
+docs/BENCHMARKS.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import statistics
+import time
+from pathlib import Path
+
+import httpx
+
+from app.server_process import ServerProcess, wait_job
+from bench.seed import placeholder, seed
+
+REPO = Path(__file__).resolve().parents[1]
+PENN = REPO.parent / "shared" / "data" / "penn-campus-gps" / "photos"
+DOC = REPO / "docs" / "BENCHMARKS.md"
+BEGIN, END = "<!-- scale:begin -->", "<!-- scale:end -->"
+
+
+def _ms(f) -> float:
+    t0 = time.perf_counter()
+    f()
+    return (time.perf_counter() - t0) * 1000
+
+
+def _rss_mb(client: httpx.Client) -> float:
+    m = re.search(r"^process_resident_memory_bytes ([0-9.e+]+)$", client.get("/metrics").text, re.M)
+    return float(m.group(1)) / 2**20 if m else float("nan")
+
+
+def _locate(client: httpx.Client, photo: Path) -> float:
+    data = photo.read_bytes()
+
+    def go():
+        r = client.post("/locate", files=[("image", ("q.jpg", data, "image/jpeg"))], data={"top_k": 10})
+        r.raise_for_status()
+
+    return _ms(go)
+
+
+def _start(data: Path, models: Path, config: str, **kw) -> tuple[ServerProcess, float]:
+    t0 = time.perf_counter()
+    s = ServerProcess(data, models, config, extra_env={"GEOLOC_API_KEY": "bench"}, **kw)
+    s.wait_ready(timeout=600)
+    return s, time.perf_counter() - t0
+
+
+def measure(size: int, root: Path, models: Path, config: str, photos: list[Path]) -> dict:
+    data = root / f"n{size}"
+    t0 = time.perf_counter()
+    seeded = seed(data, size, models, config)
+    out: dict = {"references": size, "seed_rows_per_s": seeded["rows_per_second"] if seeded["added"] else None}
+    print(f"[{size:,d}] seeded in {time.perf_counter() - t0:.0f} s", flush=True)
+    # First start (builds from SQLite if there is no snapshot yet), clean stop (writes the final snapshot).
+    s, _ = _start(data, models, config)
+    s.stop()
+    s, out["ready_with_snapshot_s"] = _start(data, models, config)
+    out["rss_mb"] = _rss_mb(s.client)
+    steady = [_locate(s.client, p) for p in photos]
+    out["locate_p50_ms"] = statistics.median(steady)
+    out["locate_p95_ms"] = sorted(steady)[int(0.95 * (len(steady) - 1))]
+    second = ServerProcess(data, models, config, worker="none", extra_env={"GEOLOC_API_KEY": "bench"})
+    second.wait_ready(timeout=600)
+    job_ms, after_ms, seen_ms = [], [], []
+    for n, photo in enumerate(photos[:5]):
+        size_b = second.client.get("/ready").json()["index_size"]
+        t_post = time.perf_counter()
+        r = s.client.post(
+            "/references",
+            files=[("image", (photo.name, placeholder(photo.read_bytes(), time.time_ns()), "image/jpeg"))],
+            data={"lat": 39.95 + n * 1e-4, "lon": -75.19},
+            headers={"X-API-Key": "bench"},
+        )
+        r.raise_for_status()
+        body = r.json()
+        if body["duplicates"][0]:
+            continue
+        wait_job(s.client, body["job_id"], timeout=600)
+        job_ms.append((time.perf_counter() - t_post) * 1000)
+        after_ms.append(_locate(s.client, photos[-1 - n]))
+        deadline = time.time() + 120
+        while second.client.get("/ready").json()["index_size"] <= size_b and time.time() < deadline:
+            time.sleep(0.01)
+        seen_ms.append((time.perf_counter() - t_post) * 1000)
+    out["job_p50_ms"] = statistics.median(job_ms) if job_ms else None
+    out["locate_after_upload_p50_ms"] = statistics.median(after_ms) if after_ms else None
+    out["second_process_sees_upload_p50_ms"] = statistics.median(seen_ms) if seen_ms else None
+    out["snapshot_writes_during_uploads"] = int(
+        float(re.search(r"^geoloc_snapshot_writes ([0-9.e+]+)$", s.client.get("/metrics").text, re.M).group(1))
+    )
+    second.stop()
+    s.stop()
+    for f in list(data.glob("*.faiss")) + [data / "index.json"]:
+        f.unlink(missing_ok=True)
+    s, out["ready_without_snapshot_s"] = _start(data, models, config)
+    s.stop()
+    print(json.dumps(out), flush=True)
+    return out
+
+
+def table(results: list[dict]) -> str:
+    base = results[0]
+    cols = [
+        ("references", "{:,d}"),
+        ("ready_with_snapshot_s", "{:.1f}"),
+        ("ready_without_snapshot_s", "{:.1f}"),
+        ("rss_mb", "{:.0f}"),
+        ("locate_p50_ms", "{:.0f}"),
+        ("locate_p95_ms", "{:.0f}"),
+        ("locate_after_upload_p50_ms", "{:.0f}"),
+        ("job_p50_ms", "{:.0f}"),
+        ("second_process_sees_upload_p50_ms", "{:.0f}"),
+        ("snapshot_writes_during_uploads", "{}"),
+    ]
+    lines = ["| " + " | ".join(c for c, _ in cols) + " |", "|" + "---|" * len(cols)]
+    for r in results:
+        lines.append("| " + " | ".join(f.format(r[c]) if r.get(c) is not None else "-" for c, f in cols) + " |")
+    lines.append("")
+    for r in results[1:]:
+        ratios = ", ".join(
+            f"{c} {r[c] / base[c]:.2f}x"
+            for c in ("job_p50_ms", "locate_after_upload_p50_ms", "locate_p50_ms")
+            if r.get(c) and base.get(c)
+        )
+        lines.append(f"- {r['references']:,d} against {base['references']:,d}: {ratios}")
+    return "\n".join(lines)
+
+
+def write_doc(text: str, command: str) -> None:
+    section = (
+        f"{BEGIN}\n## The service at scale\n\n`{command}` ({time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, "
+        "synthetic codes through bench/seed.py, real 1600 px photos for /locate and uploads; times in ms unless "
+        "marked s; medians):\n\n" + text + f"\n{END}"
+    )
+    doc = DOC.read_text() if DOC.exists() else ""
+    if BEGIN in doc:
+        doc = doc[: doc.index(BEGIN)] + section + doc[doc.index(END) + len(END) :]
+    else:
+        doc = doc.rstrip() + "\n\n" + section + "\n"
+    DOC.write_text(doc)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--sizes", default="1000,100000,1000000")
+    ap.add_argument("--config", default="hybrid")
+    ap.add_argument("--models-dir", type=Path, default=REPO / "models")
+    ap.add_argument("--root", type=Path, default=REPO / "out" / "bench" / "scale")
+    ap.add_argument("--queries", type=int, default=20)
+    ap.add_argument("--no-write", action="store_true")
+    args = ap.parse_args()
+    photos = sorted(PENN.glob("*.jpg"))[: args.queries]
+    results = [measure(int(n), args.root, args.models_dir, args.config, photos) for n in args.sizes.split(",")]
+    text = table(results)
+    print(text)
+    (args.root / "scale.json").write_text(json.dumps(results, indent=1))
+    if not args.no_write:
+        write_doc(text, f".venv/bin/python -m bench.scale --sizes {args.sizes} --config {args.config}")
+
+
+if __name__ == "__main__":
+    main()
