@@ -212,7 +212,7 @@ class StoreReferences:
 
 
 # -- the one locate path --------------------------------------------------------------------------------
-def _verify(
+def verify_candidates(
     query_rgb: np.ndarray, ids: Sequence[int], refs: ReferenceSource, limits: ImageLimits
 ) -> dict[int, int | None]:
     """Inliers per candidate; None where the pair could not be verified (image gone, OpenCV refused)."""
@@ -270,7 +270,7 @@ def locate_features(
             raise ValueError("verification needs the query image")
         t0 = time.perf_counter()
         head = [i for i, _ in ranked[:RERANK_CANDIDATES]]
-        inliers = _verify(query_rgb, head, refs, limits or ImageLimits())
+        inliers = verify_candidates(query_rgb, head, refs, limits or ImageLimits())
         order = {i: n for n, (i, _) in enumerate(ranked)}
         ranked.sort(key=lambda p: (-(inliers.get(p[0]) if inliers.get(p[0]) is not None else -1), order[p[0]]))
         t["rerank"] = (time.perf_counter() - t0) * 1000
