@@ -90,11 +90,11 @@ def measure(size: int, root: Path, models: Path, config: str, photos: list[Path]
             continue
         wait_job(s.client, body["job_id"], timeout=600)
         job_ms.append((time.perf_counter() - t_post) * 1000)
-        after_ms.append(_locate(s.client, photos[-1 - n]))
         deadline = time.time() + 120
         while second.client.get("/ready").json()["index_size"] <= size_b and time.time() < deadline:
             time.sleep(0.01)
         seen_ms.append((time.perf_counter() - t_post) * 1000)
+        after_ms.append(_locate(s.client, photos[-1 - n]))
     out["job_p50_ms"] = statistics.median(job_ms) if job_ms else None
     out["locate_after_upload_p50_ms"] = statistics.median(after_ms) if after_ms else None
     out["second_process_sees_upload_p50_ms"] = statistics.median(seen_ms) if seen_ms else None
