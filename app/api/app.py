@@ -69,7 +69,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         title="geoloc",
         version=__version__,
         description="Visual geolocation: find where a photo was taken by recognising the place in geotagged "
-        'reference images. Errors are JSON: {"error": code, "message": text}.',
+        'reference images.\n\nErrors are JSON: `{"error": code, "message": text}`; the codes are a frozen '
+        "list (never renamed):\n\n" + errors.codes_markdown(),
         lifespan=lifespan,
     )
     app.state.settings = settings
