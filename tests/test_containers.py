@@ -52,3 +52,15 @@ def test_compose_shares_one_volume_and_checks_readiness():
     assert vol in compose["volumes"]
     assert f"{vol}:/data" in api["volumes"] and f"{vol}:/data" in worker["volumes"]
     assert worker["depends_on"]["api"]["condition"] == "service_healthy"
+
+
+def test_env_example_lists_every_setting_and_compose_reads_env():
+    from app.settings import Settings
+
+    example = (REPO / ".env.example").read_text()
+    listed = set(re.findall(r"^# (GEOLOC_[A-Z_]+)=", example, re.M))
+    assert {f"GEOLOC_{name.upper()}" for name in Settings.model_fields} <= listed
+    compose = yaml.safe_load((REPO / "docker-compose.yml").read_text())
+    for service in compose["services"].values():
+        assert {"path": ".env", "required": False} in service["env_file"]
+    assert ".env" in (REPO / ".dockerignore").read_text().split()  # a key in .env never enters an image

@@ -12,7 +12,7 @@ from fastapi import FastAPI
 from fastapi.responses import FileResponse
 from fastapi.staticfiles import StaticFiles
 
-from app import __version__
+from app import __version__, apikey
 from app.api import errors
 from app.api.metrics import Metrics, MetricsMiddleware
 from app.api.routes import router
@@ -74,6 +74,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         lifespan=lifespan,
     )
     app.state.settings = settings
+    #: Resolved once, before the first request: the environment's key, none (--no-auth), or the data dir's.
+    app.state.api_key = apikey.resolve(settings.api_key, settings.no_auth, settings.data_dir)
     app.state.metrics = Metrics()
     app.state.live = None
     app.state.worker = None
