@@ -27,6 +27,8 @@ def test_dockerfile_shape():
     final_from = [rest for op, rest in ins if op == "FROM"][-1]
     assert re.match(r"python:3\.1[1-9]-slim", final_from)
     assert any(op == "COPY" and rest.startswith("--from=web") and "leaflet" in rest for op, rest in ins)
+    swagger = next(rest for op, rest in ins if op == "COPY" and "swagger-ui-dist" in rest)  # /docs works offline
+    assert "swagger-ui-bundle.js" in swagger and "swagger-ui.css" in swagger and "vendor/swagger-ui/" in swagger
     user = [rest for op, rest in ins if op == "USER"]
     assert user and user[-1] not in ("root", "0")
     assert ops.index("USER") > max(i for i, op in enumerate(ops) if op == "RUN")  # nothing runs as root after

@@ -13,15 +13,15 @@ from fastapi.responses import FileResponse
 from fastapi.staticfiles import StaticFiles
 
 from app import __version__, apikey
-from app.api import errors
+from app.api import docs, errors
 from app.api.metrics import Metrics, MetricsMiddleware
 from app.api.routes import router
 from app.settings import Settings
 from app.worker import IngestWorker, LiveCollection, WorkerLock
 
 log = logging.getLogger("geoloc.api")
-#: The page (issue: drop a photo, see where it was taken). Leaflet is copied into vendor/ by `make setup`
-#: from the npm registry, never loaded from a CDN.
+#: The page (issue: drop a photo, see where it was taken). Leaflet and Swagger UI are copied into vendor/ by
+#: `make setup` from the npm registry, never loaded from a CDN.
 WEB_DIR = Path(__file__).resolve().parents[1] / "web" / "static"
 
 
@@ -72,6 +72,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         'reference images.\n\nErrors are JSON: `{"error": code, "message": text}`; the codes are a frozen '
         "list (never renamed):\n\n" + errors.codes_markdown(),
         lifespan=lifespan,
+        docs_url=None,  # served by app/api/docs.py from local files, not from a CDN
+        redoc_url=None,  # off: see app/api/docs.py
     )
     app.state.settings = settings
     #: Resolved once, before the first request: the environment's key, none (--no-auth), or the data dir's.
@@ -91,6 +93,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     errors.install(app)
     app.include_router(router)
     app.mount("/static", StaticFiles(directory=WEB_DIR), name="static")
+    docs.install(app, WEB_DIR)
 
     @app.get("/", include_in_schema=False)
     def page() -> FileResponse:
