@@ -14,7 +14,7 @@ NPM_STAMP := web/node_modules/.geoloc-installed
 FOLDS ?= 5
 DEMO_QUERY ?= $(SHARED)/data/penn-campus-gps/photos/img_00008.jpg
 
-.PHONY: setup browser model manifests fit demo run serve test lint eval results bench load fuzz crash-full clean-index
+.PHONY: setup browser model manifests fit demo run serve test test-quick lint eval results bench load fuzz crash-full clean-index
 
 setup: $(VENV)/.installed $(LEAFLET) $(SWAGGER)
 
@@ -82,6 +82,12 @@ serve: fit
 
 test: setup browser
 	$(BIN)/python -m pytest -q
+
+# The edit-test loop: engine, store, CLI and API tests (real servers included) without the crash, fuzz and
+# browser tests (pytest markers); tests/test_quick_selection.py checks that selection.
+QUICK := not crash and not fuzz and not browser
+test-quick: setup
+	$(BIN)/python -m pytest -q -m "$(QUICK)"
 
 lint: setup
 	$(BIN)/ruff check app tests bench

@@ -12,6 +12,8 @@ from app.datasets import read_manifest
 from tests.conftest import REPO
 from tests.service.conftest import Server, wait_job
 
+pytestmark = pytest.mark.browser  # not in `make test-quick`
+
 CHROMIUM = os.environ.get("GEOLOC_CHROMIUM", "/usr/bin/chromium")
 SHOTS = REPO / "out" / "screenshots"
 ARGS = [

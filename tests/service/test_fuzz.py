@@ -12,6 +12,8 @@ from schemathesis.checks import not_a_server_error
 
 from tests.service.conftest import Server
 
+pytestmark = pytest.mark.fuzz  # not in `make test-quick`
+
 EXAMPLES = int(os.environ.get("GEOLOC_FUZZ_EXAMPLES", "12"))
 MIN_REQUESTS = int(os.environ.get("GEOLOC_FUZZ_MIN_REQUESTS", "0"))
 
