@@ -271,10 +271,15 @@ def serve(
     import uvicorn
 
     from app.api.app import create_app
+    from app.apikey import ApiKeyError
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     settings = Settings(data_dir=data_dir, models_dir=models_dir, config=config, worker=worker, no_auth=no_auth)
-    uvicorn.run(create_app(settings), host=host, port=port, log_level="info")
+    try:
+        api = create_app(settings)
+    except ApiKeyError as e:
+        _fail(str(e))
+    uvicorn.run(api, host=host, port=port, log_level="info")
 
 
 @app.command("api-key")
