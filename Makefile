@@ -73,7 +73,7 @@ run: demo
 	@if KEY=$$($(GEOLOC) api-key); then \
 	  echo "--- API key: $$KEY (writes need it in X-API-Key; it stays in the data dir's api_key file)"; \
 	  echo "    curl -H 'X-API-Key: $$KEY' -F image=@$(DEMO_QUERY) -F top_k=3 http://$(HOST):$(PORT)/locate"; \
-	else echo "--- no API key: GEOLOC_NO_AUTH is set, anyone who reaches the port can write"; fi
+	else echo "--- no API key to show (see the line above)"; fi
 	@echo "--- serving on http://$(HOST):$(PORT) (API docs at /docs); Ctrl-C stops"
 	$(GEOLOC) serve --host $(HOST) --port $(PORT) --config $(CONFIG)
 
