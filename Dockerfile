@@ -7,7 +7,7 @@
 FROM node:20-slim AS web
 WORKDIR /web
 COPY web/package.json web/package-lock.json ./
-RUN npm ci --no-audit --no-fund
+RUN npm ci --no-audit --no-fund --ignore-scripts
 
 FROM python:3.11-slim
 
@@ -27,6 +27,8 @@ WORKDIR /app
 COPY pyproject.toml README.md ./
 COPY app ./app
 COPY --from=web /web/node_modules/leaflet/dist ./app/web/static/vendor/leaflet
+COPY --from=web /web/node_modules/swagger-ui-dist/swagger-ui-bundle.js /web/node_modules/swagger-ui-dist/swagger-ui.css \
+     /web/node_modules/swagger-ui-dist/LICENSE /web/node_modules/swagger-ui-dist/NOTICE ./app/web/static/vendor/swagger-ui/
 RUN pip install .
 
 COPY --from=weights . /tmp/weights

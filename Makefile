@@ -9,12 +9,14 @@ CONFIG ?= hybrid
 MANIFEST := data/manifests/penn-campus-gps.csv
 MODEL := models/squeezenet1_1.onnx
 LEAFLET := app/web/static/vendor/leaflet/leaflet.js
+SWAGGER := app/web/static/vendor/swagger-ui/swagger-ui-bundle.js
+NPM_STAMP := web/node_modules/.geoloc-installed
 FOLDS ?= 5
 DEMO_QUERY ?= $(SHARED)/data/penn-campus-gps/photos/img_00008.jpg
 
-.PHONY: setup browser model manifests fit demo run serve test lint eval results bench load fuzz crash-full clean-index
+.PHONY: setup browser model manifests fit demo run serve test test-quick lint eval results bench load fuzz crash-full clean-index
 
-setup: $(VENV)/.installed $(LEAFLET)
+setup: $(VENV)/.installed $(LEAFLET) $(SWAGGER)
 
 $(VENV)/.installed: pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -22,9 +24,19 @@ $(VENV)/.installed: pyproject.toml
 	$(BIN)/python -m pip install -q -e '.[dev]'
 	touch $@
 
-# Leaflet from the npm registry, served by the app itself (never from a CDN).
-$(LEAFLET): web/package.json web/package-lock.json
-	cd web && npm ci --no-audit --no-fund --silent
+# Leaflet (the page's map) and Swagger UI (/docs) from the npm registry, served by the app itself (never from
+# a CDN). --ignore-scripts: neither needs one, and swagger-ui-dist's dependency @scarf/scarf would phone home.
+$(NPM_STAMP): web/package.json web/package-lock.json
+	cd web && npm ci --no-audit --no-fund --silent --ignore-scripts
+	touch $@
+
+$(SWAGGER): $(NPM_STAMP)
+	mkdir -p app/web/static/vendor/swagger-ui
+	cd web/node_modules/swagger-ui-dist && cp swagger-ui-bundle.js swagger-ui.css LICENSE NOTICE \
+	  ../../../app/web/static/vendor/swagger-ui/
+	touch $@
+
+$(LEAFLET): $(NPM_STAMP)
 	mkdir -p app/web/static/vendor/leaflet
 	cp -r web/node_modules/leaflet/dist/. app/web/static/vendor/leaflet/
 	touch $@
@@ -58,6 +70,10 @@ PORT ?= 8000
 run: demo
 	@echo "--- demo query: $(DEMO_QUERY) (a query-side photo, not in the collection)"
 	$(GEOLOC) locate $(DEMO_QUERY) --top-k 5
+	@if KEY=$$($(GEOLOC) api-key); then \
+	  echo "--- API key: $$KEY (writes need it in X-API-Key; it stays in the data dir's api_key file)"; \
+	  echo "    curl -H 'X-API-Key: $$KEY' -F image=@$(DEMO_QUERY) -F top_k=3 http://$(HOST):$(PORT)/locate"; \
+	else echo "--- no API key to show (see the line above)"; fi
 	@echo "--- serving on http://$(HOST):$(PORT) (API docs at /docs); Ctrl-C stops"
 	$(GEOLOC) serve --host $(HOST) --port $(PORT) --config $(CONFIG)
 
@@ -66,6 +82,12 @@ serve: fit
 
 test: setup browser
 	$(BIN)/python -m pytest -q
+
+# The edit-test loop: engine, store, CLI and API tests (real servers included) without the crash, fuzz and
+# browser tests (pytest markers); tests/test_quick_selection.py checks that selection.
+QUICK := not crash and not fuzz and not browser
+test-quick: setup
+	$(BIN)/python -m pytest -q -m "$(QUICK)"
 
 lint: setup
 	$(BIN)/ruff check app tests bench

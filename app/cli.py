@@ -303,14 +303,41 @@ def serve(
     models_dir: ModelsDir = _S.models_dir,
     config: ConfigOpt = _S.config,
     worker: Annotated[str, typer.Option(help="inprocess, or none when a `geoloc worker` runs")] = _S.worker,
+    no_auth: Annotated[
+        bool, typer.Option("--no-auth", help="no API key at all: anyone who reaches the port can write")
+    ] = _S.no_auth,
 ) -> None:
-    """Run the REST service with uvicorn."""
+    """Run the REST service with uvicorn. Writes need the API key: GEOLOC_API_KEY, else DATA_DIR/api_key
+    (created, and logged once, at the first start), unless --no-auth."""
+    import logging
+
     import uvicorn
 
     from app.api.app import create_app
+    from app.apikey import ApiKeyError
 
-    settings = Settings(data_dir=data_dir, models_dir=models_dir, config=config, worker=worker)
-    uvicorn.run(create_app(settings), host=host, port=port, log_level="info")
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    settings = Settings(data_dir=data_dir, models_dir=models_dir, config=config, worker=worker, no_auth=no_auth)
+    try:
+        api = create_app(settings)
+    except ApiKeyError as e:
+        _fail(str(e))
+    uvicorn.run(api, host=host, port=port, log_level="info")
+
+
+@app.command("api-key")
+def api_key_cmd(data_dir: DataDir = _S.data_dir) -> None:
+    """Print the key writes need (GEOLOC_API_KEY, else DATA_DIR/api_key, created if missing), for scripts:
+    KEY=$(geoloc api-key)."""
+    from app.apikey import load_or_create
+
+    if _S.api_key:
+        typer.echo(_S.api_key)
+        return
+    if _S.no_auth:
+        _fail("GEOLOC_NO_AUTH is set: the service asks for no key", code=1)
+    key, _ = load_or_create(data_dir)
+    typer.echo(key)
 
 
 @app.command("worker")

@@ -23,7 +23,12 @@ def free_port() -> int:
 
 
 class ServerProcess:
-    """stop() is SIGTERM (then SIGKILL after 30 s), kill() is SIGKILL; the log goes beside the data dir."""
+    """stop() is SIGTERM (then SIGKILL after 30 s), kill() is SIGKILL; the log goes beside the data dir.
+
+    Auth is on, as for users: with ``api_key`` the server gets it in GEOLOC_API_KEY and the caller sends it
+    where it means to; without one the server makes DATA_DIR/api_key, and once it is ready ``api_key`` holds
+    that key and ``client`` sends it on every request (callers that are not about auth need not care).
+    ``no_auth`` starts it with --no-auth."""
 
     def __init__(
         self,
@@ -34,12 +39,15 @@ class ServerProcess:
         api_key: str | None = None,
         worker: str = "inprocess",
         extra_env: dict | None = None,
+        no_auth: bool = False,
     ):
         self.data_dir, self.models_dir, self.config = data_dir, models_dir, config
+        self.api_key, self._key_from_file = api_key, not api_key and not no_auth
         data_dir.parent.mkdir(parents=True, exist_ok=True)
         self.port = free_port()
         self.url = f"http://127.0.0.1:{self.port}"
-        env = {**os.environ, "PYTHONUNBUFFERED": "1", **(extra_env or {})}
+        inherited = {k: v for k, v in os.environ.items() if k not in ("GEOLOC_API_KEY", "GEOLOC_NO_AUTH")}
+        env = {**inherited, "PYTHONUNBUFFERED": "1", **(extra_env or {})}
         if api_key:
             env["GEOLOC_API_KEY"] = api_key
         self.log = open(data_dir.parent / f"server-{self.port}.log", "w")  # noqa: SIM115
@@ -59,6 +67,7 @@ class ServerProcess:
                 config,
                 "--worker",
                 worker,
+                *(["--no-auth"] if no_auth else []),
             ],
             stdout=self.log,
             stderr=subprocess.STDOUT,
@@ -74,6 +83,11 @@ class ServerProcess:
             try:
                 r = self.client.get("/ready")
                 if r.status_code == 200:
+                    if self._key_from_file:
+                        from app.apikey import key_path, read_key
+
+                        self.api_key = read_key(key_path(self.data_dir))
+                        self.client.headers["X-API-Key"] = self.api_key
                     return r.json()
             except httpx.TransportError:
                 pass

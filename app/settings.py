@@ -17,7 +17,10 @@ class Settings(BaseSettings):
     models_dir: Path = Field(REPO_ROOT / "models", description="the built ONNX model and fitted pipelines")
     shared_dir: Path = Field(REPO_ROOT.parent / "shared", description="read-only data and weights")
     config: str = Field("hybrid", description="named pipeline configuration")
-    api_key: str | None = Field(None, description="required in X-API-Key on writes when set")
+    api_key: str | None = Field(
+        None, description="the key writes need in X-API-Key; unset: DATA_DIR/api_key, made at the first start"
+    )
+    no_auth: bool = Field(False, description="serve with no key at all (logs a warning); GEOLOC_API_KEY wins")
     protect_reads: bool = Field(False, description="require the API key on reads too")
     max_upload_bytes: int = Field(30 * 1024 * 1024, description="per image; 12 MP phone photos are 2-8 MB")
     max_image_pixels: int = Field(50_000_000, description="declared pixels; refuses decompression bombs")

@@ -72,7 +72,7 @@ def service_figures(rows, models_dir: Path, config: str, reps_full: int, reps_16
             measure_locate(server.client, floor, photos_1600, "1600 px photos (query split)", reps_1600),
         ]
         print(f"load: 4 clients for {load_seconds:.0f} s ...")
-        load = run_load(server.url, clients=4, seconds=load_seconds, locate_share=0.8, max_requests=3000, rows=rows)
+        load = run_load(server.url, 4, load_seconds, 0.8, 3000, api_key=server.api_key, rows=rows)
     return {
         "collection_size": len(collection),
         "ingestion": [{**asdict(i), "images_per_s": i.images_per_s} for i in ingestion],

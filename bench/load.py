@@ -226,7 +226,7 @@ def main() -> None:
                 args.seconds,
                 args.locate_share,
                 args.max_requests,
-                args.api_key,
+                args.api_key or (server.api_key if server else None),
                 args.timeout,
                 rows=rows,
             )

@@ -53,7 +53,7 @@ def _locate(client: httpx.Client, photo: Path) -> float:
 
 def _start(data: Path, models: Path, config: str, **kw) -> tuple[ServerProcess, float]:
     t0 = time.perf_counter()
-    s = ServerProcess(data, models, config, extra_env={"GEOLOC_API_KEY": "bench"}, **kw)
+    s = ServerProcess(data, models, config, api_key="bench", **kw)
     s.wait_ready(timeout=600)
     return s, time.perf_counter() - t0
 
@@ -72,7 +72,7 @@ def measure(size: int, root: Path, models: Path, config: str, photos: list[Path]
     steady = [_locate(s.client, p) for p in photos]
     out["locate_p50_ms"] = statistics.median(steady)
     out["locate_p95_ms"] = sorted(steady)[int(0.95 * (len(steady) - 1))]
-    second = ServerProcess(data, models, config, worker="none", extra_env={"GEOLOC_API_KEY": "bench"})
+    second = ServerProcess(data, models, config, worker="none", api_key="bench")
     second.wait_ready(timeout=600)
     job_ms, after_ms, seen_ms = [], [], []
     for n, photo in enumerate(photos[:5]):

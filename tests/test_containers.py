@@ -27,6 +27,8 @@ def test_dockerfile_shape():
     final_from = [rest for op, rest in ins if op == "FROM"][-1]
     assert re.match(r"python:3\.1[1-9]-slim", final_from)
     assert any(op == "COPY" and rest.startswith("--from=web") and "leaflet" in rest for op, rest in ins)
+    swagger = next(rest for op, rest in ins if op == "COPY" and "swagger-ui-dist" in rest)  # /docs works offline
+    assert "swagger-ui-bundle.js" in swagger and "swagger-ui.css" in swagger and "vendor/swagger-ui/" in swagger
     user = [rest for op, rest in ins if op == "USER"]
     assert user and user[-1] not in ("root", "0")
     assert ops.index("USER") > max(i for i, op in enumerate(ops) if op == "RUN")  # nothing runs as root after
@@ -52,3 +54,15 @@ def test_compose_shares_one_volume_and_checks_readiness():
     assert vol in compose["volumes"]
     assert f"{vol}:/data" in api["volumes"] and f"{vol}:/data" in worker["volumes"]
     assert worker["depends_on"]["api"]["condition"] == "service_healthy"
+
+
+def test_env_example_lists_every_setting_and_compose_reads_env():
+    from app.settings import Settings
+
+    example = (REPO / ".env.example").read_text()
+    listed = set(re.findall(r"^# (GEOLOC_[A-Z_]+)=", example, re.M))
+    assert {f"GEOLOC_{name.upper()}" for name in Settings.model_fields} <= listed
+    compose = yaml.safe_load((REPO / "docker-compose.yml").read_text())
+    for service in compose["services"].values():
+        assert {"path": ".env", "required": False} in service["env_file"]
+    assert ".env" in (REPO / ".dockerignore").read_text().split()  # a key in .env never enters an image

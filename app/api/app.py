@@ -12,8 +12,8 @@ from fastapi import FastAPI
 from fastapi.responses import FileResponse
 from fastapi.staticfiles import StaticFiles
 
-from app import __version__
-from app.api import errors
+from app import __version__, apikey
+from app.api import docs, errors
 from app.api.metrics import Metrics, MetricsMiddleware
 from app.api.routes import router
 from app.collection import SnapshotWriter
@@ -22,8 +22,8 @@ from app.settings import Settings
 from app.worker import IngestWorker, WorkerLock
 
 log = logging.getLogger("geoloc.api")
-#: The page (issue: drop a photo, see where it was taken). Leaflet is copied into vendor/ by `make setup`
-#: from the npm registry, never loaded from a CDN.
+#: The page (issue: drop a photo, see where it was taken). Leaflet and Swagger UI are copied into vendor/ by
+#: `make setup` from the npm registry, never loaded from a CDN.
 WEB_DIR = Path(__file__).resolve().parents[1] / "web" / "static"
 
 
@@ -93,10 +93,15 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         title="geoloc",
         version=__version__,
         description="Visual geolocation: find where a photo was taken by recognising the place in geotagged "
-        'reference images. Errors are JSON: {"error": code, "message": text}.',
+        'reference images.\n\nErrors are JSON: `{"error": code, "message": text}`; the codes are a frozen '
+        "list (never renamed):\n\n" + errors.codes_markdown(),
         lifespan=lifespan,
+        docs_url=None,  # served by app/api/docs.py from local files, not from a CDN
+        redoc_url=None,  # off: see app/api/docs.py
     )
     app.state.settings = settings
+    #: Resolved once, before the first request: the environment's key, none (--no-auth), or the data dir's.
+    app.state.api_key = apikey.resolve(settings.api_key, settings.no_auth, settings.data_dir)
     app.state.metrics = Metrics()
     app.state.service = None
     app.state.worker = None
@@ -113,6 +118,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     errors.install(app)
     app.include_router(router)
     app.mount("/static", StaticFiles(directory=WEB_DIR), name="static")
+    docs.install(app, WEB_DIR)
 
     @app.get("/", include_in_schema=False)
     def page() -> FileResponse:

@@ -1,14 +1,21 @@
-"""Domain errors to HTTP status codes, and one JSON error shape: {"error": code, "message": text}."""
+"""Domain errors to HTTP status codes, and one JSON error shape: {"error": code, "message": text}.
+
+The codes are a frozen, documented list (``ERRORS``): clients branch on them, so a code is snake_case,
+has one HTTP status and one meaning, and is never renamed. The engine raises its own exception classes
+(``UnreadableImage``, ...); only this module turns them into codes, so the engine's class names never
+leak into the API. The README's error table and the OpenAPI document are checked against this list."""
 
 from __future__ import annotations
 
 import logging
 import sqlite3
+from dataclasses import dataclass
+from typing import Literal
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
-from pydantic import BaseModel
+from pydantic import BaseModel, Field
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from app.core import InvalidRequest
@@ -19,63 +26,123 @@ from app.store import StorageUnavailable, is_storage_error
 
 log = logging.getLogger("geoloc.api")
 
-STATUS = {
-    e.UnreadableImage: 400,
-    e.ImageTooSmall: 422,
-    e.ImageTooLarge: 413,
-    e.UnsupportedImageFormat: 415,
-    e.NoGpsInImage: 422,
-    e.InvalidPosition: 422,
-    UnsupportedMode: 422,
-    UnknownConfig: 422,
-    e.ModelNotReady: 503,
-    InvalidRequest: 422,
-    StorageUnavailable: 503,
+
+@dataclass(frozen=True)
+class ErrorCode:
+    status: int
+    meaning: str
+
+
+#: Every code the API answers with. Add to it, never rename or re-purpose an entry.
+ERRORS: dict[str, ErrorCode] = {
+    "malformed_request": ErrorCode(400, "the body could not be parsed (a broken multipart form)"),
+    "unreadable_image": ErrorCode(400, "the bytes are not an image we can decode (empty, truncated, not an image)"),
+    "unauthorized": ErrorCode(401, "the call needs a valid X-API-Key header"),
+    "not_found": ErrorCode(404, "no such reference, job or path"),
+    "image_missing": ErrorCode(404, "the reference exists but its stored image file is gone (see `geoloc check`)"),
+    "method_not_allowed": ErrorCode(405, "the path exists but not with this HTTP method"),
+    "too_large": ErrorCode(413, "an uploaded image has too many bytes or too many pixels"),
+    "too_many_files": ErrorCode(413, "more images in one request than GEOLOC_MAX_FILES_PER_REQUEST"),
+    "unsupported_image_format": ErrorCode(415, "a real image in a format we do not accept (e.g. GIF, HEIC)"),
+    "invalid_request": ErrorCode(422, "a parameter or field is missing, malformed or out of range"),
+    "image_too_small": ErrorCode(422, "too few pixels to describe a place"),
+    "no_gps_in_image": ErrorCode(422, "no position was given and the photo has no EXIF GPS position"),
+    "invalid_position": ErrorCode(422, "latitude/longitude out of range or not finite"),
+    "unsupported_mode": ErrorCode(422, "the search mode is not available in the served configuration"),
+    "internal_error": ErrorCode(500, "a bug: the server log has the traceback"),
+    "not_ready": ErrorCode(503, "the model, fitted pipeline or index is not loaded (yet): see /ready"),
+    "storage_unavailable": ErrorCode(503, "the data dir cannot be written (disk full, read-only, permissions)"),
 }
-#: Errors whose code is not their class name.
-CODES = {InvalidRequest: "invalid_request", StorageUnavailable: "storage_unavailable"}
+
+#: Engine exception classes to codes. A subclass maps like its nearest listed base; an unlisted domain
+#: error is a mapping bug and answers ``internal_error``.
+DOMAIN_CODES: dict[type[Exception], str] = {
+    e.UnreadableImage: "unreadable_image",
+    e.ImageTooSmall: "image_too_small",
+    e.ImageTooLarge: "too_large",
+    e.UnsupportedImageFormat: "unsupported_image_format",
+    e.NoGpsInImage: "no_gps_in_image",
+    e.InvalidPosition: "invalid_position",
+    UnsupportedMode: "unsupported_mode",
+    UnknownConfig: "invalid_request",
+    e.ModelNotReady: "not_ready",
+    e.IncompatibleArtifact: "not_ready",
+    e.ModelBuildError: "not_ready",
+    InvalidRequest: "invalid_request",
+    StorageUnavailable: "storage_unavailable",
+}
+
+#: Refusals raised by Starlette/FastAPI themselves (routing, multipart parsing, static files).
+FRAMEWORK_CODES: dict[int, str] = {
+    400: "malformed_request",
+    401: "unauthorized",
+    404: "not_found",
+    405: "method_not_allowed",
+    413: "too_large",
+}
+
+ErrorCodeName = Literal[tuple(ERRORS)]  # type: ignore[valid-type]  # the OpenAPI enum of ErrorBody.error
 
 
 class ErrorBody(BaseModel):
-    error: str
-    message: str
+    error: ErrorCodeName = Field(description="one of the frozen codes listed in the API description")
+    message: str = Field(description="what went wrong, in words, for a person")
 
 
 class ApiError(Exception):
+    """A refusal decided in the HTTP layer. ``error`` must be a code of ``ERRORS`` with its status, written as
+    literals so that tests/service/test_errors.py can check every call."""
+
     def __init__(self, status: int, error: str, message: str):
         self.status, self.error, self.message = status, error, message
 
 
+def domain_code(exc: Exception) -> str:
+    """The code of an engine exception (by class, most specific first)."""
+    for cls in type(exc).__mro__:
+        if cls in DOMAIN_CODES:
+            return DOMAIN_CODES[cls]
+    return "internal_error"
+
+
+def framework_code(status: int) -> str:
+    """The code of a framework refusal; an unknown status folds into the nearest listed one."""
+    return FRAMEWORK_CODES.get(status, "malformed_request" if status < 500 else "internal_error")
+
+
+def codes_markdown() -> str:
+    """The frozen list as a Markdown table (the API description on /docs shows it)."""
+    rows = [f"| `{code}` | {c.status} | {c.meaning} |" for code, c in ERRORS.items()]
+    return "\n".join(["| error | HTTP | meaning |", "|---|---|---|", *rows])
+
+
 def error_responses(*codes: int) -> dict:
-    """OpenAPI entries so /openapi.json documents every error a route can answer."""
-    text = {
-        400: "unreadable input",
-        401: "missing or wrong API key",
-        404: "not found",
-        413: "too large",
-        415: "unsupported image format",
-        422: "invalid parameters",
-        503: "not ready, or the storage is unavailable (retry later)",
-    }
-    return {c: {"model": ErrorBody, "description": text.get(c, "error")} for c in codes}
+    """OpenAPI entries so /openapi.json documents every error a route can answer, with the codes per status."""
+    out = {}
+    for status in codes:
+        names = [f"`{n}`" for n, c in ERRORS.items() if c.status == status]
+        out[status] = {"model": ErrorBody, "description": ", ".join(names) or "error"}
+    return out
 
 
-def _json(status: int, error: str, message: str) -> JSONResponse:
-    return JSONResponse({"error": error, "message": message}, status_code=status)
+def _json(error: str, message: str, status: int | None = None, headers: dict | None = None) -> JSONResponse:
+    body = {"error": error, "message": message}
+    return JSONResponse(body, status_code=status or ERRORS[error].status, headers=headers)
 
 
 def install(app: FastAPI) -> None:
     @app.exception_handler(ApiError)
     async def _api(_: Request, exc: ApiError):
-        return _json(exc.status, exc.error, exc.message)
+        return _json(exc.error, exc.message, exc.status)
 
     @app.exception_handler(e.GeolocError)
     async def _domain(_: Request, exc: e.GeolocError):
-        status = next((s for t, s in STATUS.items() if isinstance(exc, t)), 400)
-        code = next((c for t, c in CODES.items() if isinstance(exc, t)), type(exc).__name__)
-        if isinstance(exc, StorageUnavailable):
+        code = domain_code(exc)
+        if code == "storage_unavailable":
             log.warning("storage unavailable: %s", exc)
-        return _json(status, code, str(exc))
+        if code == "internal_error":
+            log.error("domain error %s has no API code: add it to DOMAIN_CODES", type(exc).__name__)
+        return _json(code, str(exc))
 
     @app.exception_handler(RequestValidationError)
     async def _validation(_: Request, exc: RequestValidationError):
@@ -83,16 +150,16 @@ def install(app: FastAPI) -> None:
         for err in exc.errors():
             loc = ".".join(str(x) for x in err.get("loc", []) if x not in ("body", "query", "path", "form"))
             parts.append(f"{loc or 'request'}: {err.get('msg')}")
-        return _json(422, "invalid_request", "; ".join(parts) or "invalid request")
+        return _json("invalid_request", "; ".join(parts) or "invalid request")
 
     async def _storage(_: Request, exc: Exception):
         """Raw storage failures from any path: a 503 the client can retry, answered like any other error
         (a handler for ``Exception`` itself would answer and then drop the keep-alive connection)."""
         if is_storage_error(exc):
             log.warning("storage unavailable: %s", exc)
-            return _json(503, "storage_unavailable", f"the data dir cannot be used right now ({exc}); retry later")
+            return _json("storage_unavailable", f"the data dir cannot be used right now ({exc}); retry later")
         log.exception("unhandled error", exc_info=exc)
-        return _json(500, "internal_error", f"internal error ({type(exc).__name__}); see the server log")
+        return _json("internal_error", f"internal error ({type(exc).__name__}); see the server log")
 
     app.add_exception_handler(OSError, _storage)
     app.add_exception_handler(sqlite3.Error, _storage)
@@ -101,11 +168,9 @@ def install(app: FastAPI) -> None:
     async def _unexpected(_: Request, exc: Exception):
         """A bug still answers in the API's JSON shape; the traceback goes to the server log."""
         log.exception("unhandled error", exc_info=exc)
-        return _json(500, "internal_error", f"internal error ({type(exc).__name__}); see the server log")
+        return _json("internal_error", f"internal error ({type(exc).__name__}); see the server log")
 
     @app.exception_handler(StarletteHTTPException)
     async def _http(_: Request, exc: StarletteHTTPException):
         message = exc.detail if isinstance(exc.detail, str) else str(exc.detail)
-        return _json(
-            exc.status_code, {404: "not_found", 405: "method_not_allowed"}.get(exc.status_code, "http_error"), message
-        )
+        return _json(framework_code(exc.status_code), message, headers=exc.headers)  # 405 keeps its Allow

@@ -38,7 +38,8 @@ def service(request: Request) -> GeolocService:
 
 
 def _check_key(request: Request, key: str | None) -> None:
-    expected = request.app.state.settings.api_key
+    """Every address alike, loopback included: the port may be forwarded or shared. None only under --no-auth."""
+    expected = request.app.state.api_key
     if expected and not (key and secrets.compare_digest(key.encode(), expected.encode())):
         raise ApiError(401, "unauthorized", "this call needs a valid X-API-Key header")
 

@@ -4,12 +4,15 @@ import json
 import os
 import shutil
 from pathlib import Path
+from urllib.parse import urlparse
 
 import pytest
 
 from app.datasets import read_manifest
 from tests.conftest import REPO
 from tests.service.conftest import Server, wait_job
+
+pytestmark = pytest.mark.browser  # not in `make test-quick`
 
 CHROMIUM = os.environ.get("GEOLOC_CHROMIUM", "/usr/bin/chromium")
 SHOTS = REPO / "out" / "screenshots"
@@ -105,3 +108,37 @@ def test_references_view_at_phone_width_with_the_keyboard(browser, server):
     width = page.evaluate("document.documentElement.scrollWidth")
     assert width <= 400  # no horizontal scrolling at phone width
     page.screenshot(path=str(SHOTS / "references-phone.png"), full_page=True)
+
+
+def test_api_docs_render_with_no_network_beyond_the_service(browser, server):
+    """/docs is Swagger UI from the app's own files: with every other host blocked it still shows the
+    operations, and it never even tries another host."""
+    page = browser.new_page(viewport={"width": 1200, "height": 900})
+    blocked = []
+
+    def only_this_service(route):
+        host = urlparse(route.request.url).hostname
+        if host in ("127.0.0.1", "localhost"):
+            route.continue_()
+        else:
+            blocked.append(route.request.url)
+            route.abort()
+
+    page.route("**/*", only_this_service)
+    errors = []
+    page.on("pageerror", lambda e: errors.append(str(e)))
+    page.goto(server.url + "/docs")
+    locate = page.locator('.opblock-summary-path[data-path="/locate"]')
+    locate.wait_for(state="visible", timeout=30_000)
+    assert page.locator(".opblock").count() >= 9  # every operation, not just the first
+    locate.click()  # the operation opens, with its parameters and its documented errors
+    page.wait_for_selector(".opblock.is-open .parameters-container, .opblock.is-open .opblock-section")
+    assert "unreadable_image" in page.locator(".opblock.is-open").inner_text()
+    assert not blocked, blocked
+    assert not errors, errors
+    SHOTS.mkdir(parents=True, exist_ok=True)
+    page.screenshot(path=str(SHOTS / "docs-offline.png"))
+    icon = page.request.get(server.url + "/favicon.ico")
+    assert icon.status == 200 and icon.headers["content-type"] == "image/x-icon" and icon.body()[:4] == b"\0\0\1\0"
+    redoc = page.request.get(server.url + "/redoc")  # turned off rather than loaded from a CDN
+    assert redoc.status == 404 and redoc.json()["error"] == "not_found"

@@ -18,6 +18,8 @@ from PIL import Image
 from tests.conftest import PENN
 from tests.service.conftest import Server, start_worker, wait_job
 
+pytestmark = pytest.mark.crash  # not in `make test-quick`
+
 N = int(os.environ.get("GEOLOC_CRASH_N", "200"))
 FULL = os.environ.get("GEOLOC_CRASH_FULL") == "1"
 

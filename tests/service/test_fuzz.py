@@ -12,6 +12,8 @@ from schemathesis.checks import not_a_server_error
 
 from tests.service.conftest import Server
 
+pytestmark = pytest.mark.fuzz  # not in `make test-quick`
+
 EXAMPLES = int(os.environ.get("GEOLOC_FUZZ_EXAMPLES", "12"))
 MIN_REQUESTS = int(os.environ.get("GEOLOC_FUZZ_MIN_REQUESTS", "0"))
 
@@ -33,7 +35,7 @@ def test_no_server_errors(server):
         @settings(max_examples=EXAMPLES, deadline=None, database=None, suppress_health_check=list(HealthCheck))
         @given(case=op.as_strategy())
         def run(case):
-            response = case.call(base_url=server.url, timeout=60)
+            response = case.call(base_url=server.url, headers={"X-API-Key": server.api_key}, timeout=60)
             sent["n"] += 1
             if response.status_code >= 500:
                 failures.append(f"{case.method} {case.formatted_path} -> {response.status_code}: {response.text[:300]}")

@@ -16,7 +16,9 @@ def server(tmp_path_factory, fitted_models):
 
 def test_mixed_load_is_served_without_errors(server, mini_manifest):
     rows = read_manifest(mini_manifest)
-    report = run_load(server.url, clients=2, seconds=4, locate_share=0.5, max_requests=30, rows=rows, seed=1)
+    report = run_load(
+        server.url, clients=2, seconds=4, locate_share=0.5, max_requests=30, api_key=server.api_key, rows=rows, seed=1
+    )
     summary = report.summary()
     assert 0 < summary["requests"] <= 30
     assert summary["errors"] == {}, summary

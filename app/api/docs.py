@@ -1,0 +1,37 @@
+"""The interactive API docs (/docs) and the favicon, served from the app's own files.
+
+FastAPI's default /docs page loads Swagger UI from a CDN and is blank without internet, while the
+service is meant to work on a closed network. Swagger UI comes from the npm registry instead
+(swagger-ui-dist in web/package.json, copied into static/vendor/swagger-ui by ``make setup`` and the
+Dockerfile), like Leaflet. /redoc is turned off rather than vendored: it is a second renderer of the same
+document, and its default page also pulls fonts from Google."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from fastapi import FastAPI
+from fastapi.openapi.docs import get_swagger_ui_html
+from fastapi.responses import FileResponse, HTMLResponse
+
+VENDOR = "/static/vendor/swagger-ui"
+
+
+def install(app: FastAPI, web_dir: Path) -> None:
+    """Call on an app made with ``docs_url=None, redoc_url=None``."""
+
+    @app.get("/docs", include_in_schema=False)
+    def docs() -> HTMLResponse:
+        return get_swagger_ui_html(
+            openapi_url=app.openapi_url,
+            title=f"{app.title} - API docs",
+            swagger_js_url=f"{VENDOR}/swagger-ui-bundle.js",
+            swagger_css_url=f"{VENDOR}/swagger-ui.css",
+            swagger_favicon_url="/favicon.ico",
+            # No call to swagger.io's online validator: nothing leaves the machine.
+            swagger_ui_parameters={"validatorUrl": None},
+        )
+
+    @app.get("/favicon.ico", include_in_schema=False)
+    def favicon() -> FileResponse:
+        return FileResponse(web_dir / "favicon.ico", media_type="image/x-icon")
