@@ -22,6 +22,7 @@ from app.core import InvalidRequest
 from app.engine import errors as e
 from app.engine.configs import UnknownConfig
 from app.engine.search import UnsupportedMode
+from app.operations import OperationRefused
 from app.store import StorageUnavailable, is_storage_error
 
 log = logging.getLogger("geoloc.api")
@@ -70,6 +71,7 @@ DOMAIN_CODES: dict[type[Exception], str] = {
     e.ModelBuildError: "not_ready",
     InvalidRequest: "invalid_request",
     StorageUnavailable: "storage_unavailable",
+    OperationRefused: "invalid_request",  # CLI-only (backup/restore), listed so no domain error is unmapped
 }
 
 #: Refusals raised by Starlette/FastAPI themselves (routing, multipart parsing, static files).
