@@ -71,6 +71,8 @@ def apply_changes(index: ReferenceIndex, changes: list[Change]) -> None:
         run.clear()
 
     for c in changes:
+        if c.op == "move":  # positions live in SQLite, read at every search: nothing to change in the index
+            continue
         if c.op == "add":
             if c.float_code is None and c.binary_code is None:
                 skipped.add(c.ref_id)

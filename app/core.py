@@ -334,6 +334,32 @@ class Accepted:
     job_id: str
     reference_ids: list[int]
     duplicates: list[bool]
+    #: One line per duplicate whose upload asked for other metadata than the stored reference has.
+    notes: list[str] = field(default_factory=list)
+
+
+def _differences(new: NewReference, old: Reference, asked: Upload | None) -> list[str]:
+    """What the upload asked for (explicitly: not a label made from the file name) that differs."""
+    out = []
+    if abs(new.lat - old.lat) > 1e-7 or abs(new.lon - old.lon) > 1e-7:
+        out.append(f"position {old.lat:.6f},{old.lon:.6f} (not {new.lat:.6f},{new.lon:.6f})")
+    for name in ("heading", "label", "captured_at"):
+        value = getattr(asked, name) if asked is not None else getattr(new, name)
+        if value is not None and value != getattr(old, name):
+            out.append(f"{name} {getattr(old, name)!r} (not {value!r})")
+    return out
+
+
+@dataclass(frozen=True)
+class ReferenceEdit:
+    """A PATCH: only the fields given change."""
+
+    lat: float | None = None
+    lon: float | None = None
+    heading: float | None = None
+    label: str | None = None
+    captured_at: str | None = None
+    given: frozenset[str] = frozenset()  # which fields the caller set (a None heading clears it)
 
 
 def _position(u: Upload, img: LoadedImage, n: int) -> tuple[float, float]:
@@ -482,11 +508,40 @@ class GeolocService:
         """Validate every upload, then store them all (images durable, rows and job in one transaction) as
         pending rows. The index is not touched: the worker encodes them."""
         prepared = [prepare_upload(u, self.limits, n, source) for n, u in enumerate(uploads)]
-        return self.accept_prepared(prepared)
+        return self.accept_prepared(prepared, uploads)
 
-    def accept_prepared(self, prepared: Sequence[NewReference]) -> Accepted:
+    def accept_prepared(self, prepared: Sequence[NewReference], asked: Sequence[Upload] | None = None) -> Accepted:
+        """Store; for identical images already stored, say when the upload's metadata was not applied."""
         items, job_id = self.store.add_many(prepared, job=True)
-        return Accepted(job_id, [i for i, _ in items], [not created for _, created in items])
+        dups = [(n, i) for n, (i, created) in enumerate(items) if not created]
+        stored = self.store.get_many([i for _, i in dups]) if dups else {}
+        notes = []
+        for n, ref_id in dups:
+            upload = asked[n] if asked is not None else None
+            diff = _differences(prepared[n], stored[ref_id], upload) if ref_id in stored else []
+            if diff:
+                notes.append(
+                    f"image {n} is already stored as reference {ref_id}; its stored metadata was kept: "
+                    + "; ".join(diff)
+                    + f". To change it: PATCH /references/{ref_id}"
+                )
+        return Accepted(job_id, [i for i, _ in items], [not created for _, created in items], notes)
+
+    def update(self, ref_id: int, edit: ReferenceEdit) -> Reference | None:
+        """Edit a reference's metadata (validated here; codes and image unchanged)."""
+        fields = {k: getattr(edit, k) for k in edit.given}
+        if not fields:
+            raise InvalidRequest("give at least one of lat, lon, heading, label, captured_at")
+        current = self.store.get(ref_id)
+        if current is None:
+            return None
+        lat, lon = fields.get("lat", current.lat), fields.get("lon", current.lon)
+        if lat is None or lon is None or not valid_position(lat, lon):
+            raise InvalidPosition(f"position {lat},{lon} is out of range (lat -90..90, lon -180..180)")
+        hd = fields.get("heading")
+        if hd is not None and not (math.isfinite(hd) and 0 <= hd < 360):
+            raise InvalidRequest("heading must be a number in [0, 360)")
+        return self.store.update(ref_id, fields)
 
     def encode(self, batch: Sequence[tuple[int, Path]], workers: int = 1) -> list[Encoded]:
         if workers <= 1 or len(batch) <= 1:
@@ -530,6 +585,7 @@ __all__ = [
     "LocateAnswer",
     "LocateOptions",
     "RefInfo",
+    "ReferenceEdit",
     "Region",
     "StorageUnavailable",
     "Upload",

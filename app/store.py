@@ -70,7 +70,7 @@ CREATE TABLE IF NOT EXISTS job_items (
 CREATE TABLE IF NOT EXISTS changes (
     version INTEGER PRIMARY KEY AUTOINCREMENT,
     ref_id INTEGER NOT NULL,
-    op TEXT NOT NULL CHECK (op IN ('add', 'delete'))
+    op TEXT NOT NULL CHECK (op IN ('add', 'delete', 'move'))
 );
 """
 
@@ -405,6 +405,26 @@ class ReferenceStore:
                 db.execute("INSERT INTO changes(ref_id, op) VALUES(?, 'delete')", (ref_id,))
         self.image_path_for(row[0], row[1]).unlink(missing_ok=True)
         return True
+
+    # -- editing --------------------------------------------------------------------------------------
+    EDITABLE = ("lat", "lon", "heading", "label", "captured_at")
+
+    def update(self, ref_id: int, fields: dict) -> Reference | None:
+        """Change metadata in one transaction; a position change is logged ('move') like any change of where
+        a reference is, so every process that follows the log learns of it. None: no such reference."""
+        unknown = set(fields) - set(self.EDITABLE)
+        if unknown:
+            raise ValueError(f"not editable: {sorted(unknown)}")
+        with self.transaction() as db:
+            row = db.execute("SELECT lat, lon FROM refs WHERE id=?", (ref_id,)).fetchone()
+            if row is None:
+                return None
+            if fields:
+                sets = ", ".join(f"{k}=?" for k in fields)
+                db.execute(f"UPDATE refs SET {sets} WHERE id=?", (*fields.values(), ref_id))
+            if (fields.get("lat", row[0]), fields.get("lon", row[1])) != tuple(row):
+                db.execute("INSERT INTO changes(ref_id, op) VALUES(?, 'move')", (ref_id,))
+        return self.get(ref_id)
 
     # -- reading --------------------------------------------------------------------------------------
     def get(self, ref_id: int) -> Reference | None:

@@ -23,8 +23,9 @@ from app.api.schemas import (
     ReadyOut,
     ReferenceList,
     ReferenceOut,
+    ReferencePatch,
 )
-from app.core import GeolocService, LocateOptions, Region, Upload
+from app.core import GeolocService, LocateOptions, ReferenceEdit, Region, Upload
 
 router = APIRouter()
 
@@ -181,7 +182,12 @@ def add_references(
     worker = request.app.state.worker
     if worker is not None:
         worker.wake.set()
-    body = AcceptedOut(job_id=accepted.job_id, reference_ids=accepted.reference_ids, duplicates=accepted.duplicates)
+    body = AcceptedOut(
+        job_id=accepted.job_id,
+        reference_ids=accepted.reference_ids,
+        duplicates=accepted.duplicates,
+        notes=accepted.notes,
+    )
     return JSONResponse(body.model_dump(), status_code=202, headers={"Location": f"/jobs/{accepted.job_id}"})
 
 
@@ -260,6 +266,23 @@ def reference_image(request: Request, ref_id: RefId, core: Core) -> Response:
         buf = io.BytesIO()
         im.save(buf, "JPEG", quality=85)  # a new file: no EXIF, no GPS block
     return Response(buf.getvalue(), media_type="image/jpeg", headers={"Cache-Control": "max-age=3600"})
+
+
+@router.patch(
+    "/references/{ref_id}",
+    response_model=ReferenceOut,
+    responses=error_responses(401, 404, 422, 503),
+    dependencies=[Depends(write_access)],
+    summary="Edit a reference's metadata (position, heading, label, capture time)",
+)
+def patch_reference(ref_id: RefId, patch: ReferencePatch, core: Core) -> ReferenceOut:
+    given = patch.model_fields_set
+    if any(name in given and getattr(patch, name) is None for name in ("lat", "lon")):
+        raise ApiError(422, "invalid_request", "lat and lon cannot be cleared, only changed")
+    ref = core.update(ref_id, ReferenceEdit(**patch.model_dump(), given=frozenset(given)))
+    if ref is None:
+        raise ApiError(404, "not_found", f"no reference {ref_id}")
+    return _ref_out(ref)
 
 
 @router.delete(

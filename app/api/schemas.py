@@ -70,6 +70,22 @@ class AcceptedOut(BaseModel):
     job_id: str
     reference_ids: list[int]
     duplicates: list[bool] = Field(description="true where identical bytes were already stored")
+    notes: list[str] = Field(
+        default_factory=list,
+        description="for a duplicate uploaded with other metadata: the stored metadata was kept (PATCH changes it)",
+    )
+
+
+class ReferencePatch(BaseModel):
+    """PATCH /references/{id}: every field optional; only those given change."""
+
+    model_config = {"extra": "forbid"}
+
+    lat: float | None = Field(None, ge=-90, le=90)
+    lon: float | None = Field(None, ge=-180, le=180)
+    heading: float | None = Field(None, ge=0, lt=360)
+    label: str | None = Field(None, max_length=200)
+    captured_at: str | None = Field(None, max_length=64)
 
 
 class JobItem(BaseModel):
