@@ -29,6 +29,7 @@ import numpy as np
 
 from app.collection import Collection, SnapshotPolicy
 from app.engine import rerank as rerank_mod
+from app.engine.calibration import candidate_probabilities
 from app.engine.errors import GeolocError, InvalidPosition, NoGpsInImage
 from app.engine.estimate import Estimate, fuse_position
 from app.engine.geo import haversine_m, valid_position
@@ -122,6 +123,7 @@ class Candidate:
     captured_at: str | None = None
     heading: float | None = None
     inliers: int | None = None  # geometric verification, when asked (None: not verified)
+    p_within_25m: float | None = None  # calibrated probability that it lies within 25 m of the photo
     distance_m: float | None = None  # from the confident estimate
 
 
@@ -157,6 +159,7 @@ class LocateAnswer:
                     "captured_at": c.captured_at,
                     "heading": c.heading,
                     "inliers": c.inliers,
+                    "p_within_25m": c.p_within_25m,
                 }
                 for c in self.candidates
             ],
@@ -282,6 +285,15 @@ def locate_features(
         np.array([s for _, s in fused]),
         cluster_radius_m,
     )
+    probability = dict(
+        zip(
+            [i for i, _ in fused],
+            candidate_probabilities(
+                [info[i].lat for i, _ in fused], [info[i].lon for i, _ in fused], [s for _, s in fused], estimate
+            ),
+            strict=True,
+        )
+    )
     t["estimate"] = (time.perf_counter() - t0) * 1000
     region_empty = allowed is not None and len(allowed) == 0
     reason = "no references in the requested region" if region_empty else estimate.reason
@@ -297,6 +309,7 @@ def locate_features(
             captured_at=info[i].captured_at,
             heading=info[i].heading,
             inliers=inliers.get(i) if options.rerank else None,
+            p_within_25m=round(float(probability[i]), 4) if i in probability else None,
             distance_m=float(haversine_m(confident.lat, confident.lon, info[i].lat, info[i].lon))
             if confident
             else None,

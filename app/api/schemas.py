@@ -15,6 +15,11 @@ class CandidateOut(BaseModel):
     captured_at: str | None = None
     heading: float | None = None
     inliers: int | None = Field(None, description="geometric verification inliers, when rerank=true")
+    p_within_25m: float | None = Field(
+        None,
+        description="calibrated probability that this reference lies within 25 m of where the photo was taken "
+        "(cross-validated on penn-campus-gps; given for the first 10 candidates)",
+    )
 
 
 class EstimateOut(BaseModel):

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from app.engine.configs import CONFIGS, get_config
-from app.engine.estimate import fuse_position
+from app.engine.estimate import MARGIN_M, RADIUS_FLOOR_M, fuse_position
 from app.engine.geo import haversine_m
 from app.engine.search import ReferenceIndex, UnsupportedMode
 
@@ -62,7 +62,9 @@ def test_agreeing_candidates_give_a_confident_estimate_at_their_centre():
     e = fuse_position(lats, lons, scores)
     assert e.confident and e.support == 3
     assert haversine_m(e.lat, e.lon, *_offset(0.5, 1.7)) < 5
-    assert 0.5 < e.confidence <= 1 and 5 <= e.radius_m < 25
+    farthest = max(haversine_m(e.lat, e.lon, la, lo) for la, lo in pts[:3])
+    assert 0.5 < e.confidence <= 1 and e.radius_m == pytest.approx(max(farthest + MARGIN_M, RADIUS_FLOOR_M))
+    assert e.radius_m >= farthest and e.members == (True, True, True, False, False)
 
 
 def test_disagreeing_candidates_are_not_confident():
