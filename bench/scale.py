@@ -111,6 +111,45 @@ def measure(size: int, root: Path, models: Path, config: str, photos: list[Path]
     return out
 
 
+def interleaved(sizes: list[int], root: Path, models: Path, config: str, photos: list[Path]) -> dict[int, dict]:
+    """The same use cases in one process, size by size for each photo (the fairest comparison on a shared
+    machine): locate through the core, and one upload accepted, encoded and completed (the job)."""
+    from app.core import GeolocService, LocateOptions, Upload
+    from app.worker import IngestWorker
+
+    svcs = {n: GeolocService.open(root / f"n{n}", models, config) for n in sizes}
+    out = {n: {"locate": [], "search": [], "job": []} for n in sizes}
+    for k, photo in enumerate(photos):
+        data = photo.read_bytes()
+        for n, svc in svcs.items():
+            t0 = time.perf_counter()
+            answer = svc.locate(data, LocateOptions(top_k=10))
+            out[n]["locate"].append((time.perf_counter() - t0) * 1000)
+            out[n]["search"].append(answer.timings_ms["search"])
+            if k < 5:
+                t0 = time.perf_counter()
+                svc.accept([Upload(placeholder(data, time.time_ns()), photo.name, 39.95, -75.19)])
+                IngestWorker(svc, batch_size=8).run_once()
+                out[n]["job"].append((time.perf_counter() - t0) * 1000)
+    return {n: {f"{k}_p50_ms": statistics.median(v) for k, v in d.items()} | {"references": n} for n, d in out.items()}
+
+
+def interleaved_table(res: dict[int, dict]) -> str:
+    sizes = sorted(res)
+    base = res[sizes[0]]
+    lines = [
+        "| references | locate p50 (core) | search p50 | upload job p50 (accept + encode + complete) |",
+        "|---|---|---|---|",
+    ]
+    for n in sizes:
+        r = res[n]
+        lines.append(
+            f"| {n:,d} | {r['locate_p50_ms']:.0f} ({r['locate_p50_ms'] / base['locate_p50_ms']:.2f}x) | "
+            f"{r['search_p50_ms']:.1f} | {r['job_p50_ms']:.0f} ({r['job_p50_ms'] / base['job_p50_ms']:.2f}x) |"
+        )
+    return "\n".join(lines)
+
+
 def table(results: list[dict]) -> str:
     base = results[0]
     cols = [
@@ -161,12 +200,20 @@ def main() -> None:
     ap.add_argument("--root", type=Path, default=REPO / "out" / "bench" / "scale")
     ap.add_argument("--queries", type=int, default=20)
     ap.add_argument("--no-write", action="store_true")
+    ap.add_argument("--skip-server", action="store_true", help="only the in-process comparison (seeded dirs)")
     args = ap.parse_args()
     photos = sorted(PENN.glob("*.jpg"))[: args.queries]
-    results = [measure(int(n), args.root, args.models_dir, args.config, photos) for n in args.sizes.split(",")]
-    text = table(results)
+    sizes = [int(n) for n in args.sizes.split(",")]
+    text = ""
+    if not args.skip_server:
+        results = [measure(n, args.root, args.models_dir, args.config, photos) for n in sizes]
+        text = "On a real server (each size in turn):\n\n" + table(results) + "\n\n"
+        (args.root / "scale.json").write_text(json.dumps(results, indent=1))
+    inproc = interleaved(sizes, args.root, args.models_dir, args.config, photos)
+    text += "In one process, interleaved photo by photo across the sizes (ratios against the smallest):\n\n"
+    text += interleaved_table(inproc)
+    (args.root / "scale-inprocess.json").write_text(json.dumps(inproc, indent=1))
     print(text)
-    (args.root / "scale.json").write_text(json.dumps(results, indent=1))
     if not args.no_write:
         write_doc(text, f".venv/bin/python -m bench.scale --sizes {args.sizes} --config {args.config}")
 
