@@ -75,8 +75,8 @@ def test_a_duplicate_racing_in_from_another_process_returns_the_existing_id(tmp_
     assert a.existing_ids([item_a.sha256]) == {} and b.existing_ids([item_b.sha256]) == {}
     a.write_images([item_a])
     b.write_images([item_b])
-    (id_a, created_a), = a.insert_rows([item_a])[0]
-    (id_b, created_b), = b.insert_rows([item_b], job=True)[0]
+    ((id_a, created_a),) = a.insert_rows([item_a])[0]
+    ((id_b, created_b),) = b.insert_rows([item_b], job=True)[0]
     assert (id_b, created_b) == (id_a, False) and created_a
     assert a.count(None) == 1
 
@@ -94,7 +94,7 @@ def test_id_lists_of_any_length(tmp_path, fitted):
 def test_storage_failures_lose_nothing_and_recover(tmp_path, fitted):
     pipe, rows, _ = fitted
     store = ReferenceStore(tmp_path)
-    (first, _), = store.add_many([_new(rows[0])])[0]
+    ((first, _),) = store.add_many([_new(rows[0])])[0]
     # The images folder replaced by a plain file (what an operator's mistake or a broken mount looks like).
     store.images_dir.rename(tmp_path / "images.moved")
     store.images_dir.write_bytes(b"not a folder")
@@ -112,7 +112,7 @@ def test_storage_failures_lose_nothing_and_recover(tmp_path, fitted):
     finally:
         resource.setrlimit(resource.RLIMIT_FSIZE, (soft, hard))
     # Recovered without reopening anything.
-    (second, created), = store.add_many([_new(rows[2])])[0]
+    ((second, created),) = store.add_many([_new(rows[2])])[0]
     assert created and store.count(None) == 2
 
 

@@ -19,3 +19,15 @@ def test_seed_fills_a_consistent_data_dir(tmp_path, fitted_models):
     assert col.size == 2_500
     ok = geoloc("check", "--data-dir", str(data), "--models-dir", str(fitted_models))
     assert "ok:" in ok.stdout
+
+
+def test_scale_bench_compares_sizes_in_one_process(tmp_path, fitted_models):
+    from bench.scale import interleaved, interleaved_table
+    from tests.conftest import PENN
+
+    for n in (300, 900):
+        seed(tmp_path / f"n{n}", n, fitted_models, CONFIG, batch=500)
+    res = interleaved([300, 900], tmp_path, fitted_models, CONFIG, sorted((PENN / "photos").glob("*.jpg"))[:2])
+    assert set(res) == {300, 900} and all(r["locate_p50_ms"] > 0 and r["job_p50_ms"] > 0 for r in res.values())
+    assert ReferenceStore(tmp_path / "n900").count() == 902  # two uploads encoded and indexed
+    assert "900" in interleaved_table(res)

@@ -133,3 +133,16 @@ def test_ingest_follows_a_running_servers_worker(tmp_path, fitted_models, mini_m
         assert s.client.get("/ready").json()["index_size"] == 9
         listed = s.client.get("/references").json()
         assert listed["total"] == 9 and {r["source"] for r in listed["items"]} == {"manifest"}
+
+
+def test_locate_command_with_rerank_and_regions(ingested, fitted_models):
+    photo = PENN / "photos" / "img_00000.jpg"
+    base = ["--data-dir", str(ingested), "--models-dir", str(fitted_models), "--top-k", "3"]
+    res = json.loads(geoloc("locate", str(photo), "--rerank", "--lat", "39.9522", "--lon", "-75.1932",
+                            "--radius-m", "300", *base).stdout)  # fmt: skip
+    assert res["candidates"] and all("inliers" in c for c in res["candidates"]) and "rerank" in res["timings_ms"]
+    assert res["candidates"][0]["label"] == "img_00000.jpg" and res["candidates"][0]["inliers"] > 0
+    empty = json.loads(geoloc("locate", str(photo), "--bbox", "0,0,0.01,0.01", *base).stdout)
+    assert empty["candidates"] == [] and empty["reason"] == "no references in the requested region"
+    bad = geoloc("locate", str(photo), "--lat", "39.95", *base, check=False)
+    assert bad.returncode == 2 and "lat, lon and radius_m together" in bad.stderr
