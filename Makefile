@@ -18,16 +18,18 @@ DEMO_QUERY ?= $(SHARED)/data/penn-campus-gps/photos/img_00008.jpg
 
 setup: $(VENV)/.installed $(LEAFLET) $(SWAGGER)
 
+# Each step prints one line with its time when not on a terminal (app/steps.py; logs in out/logs/).
+STEP := $(PYTHON) app/steps.py
+
 $(VENV)/.installed: pyproject.toml
-	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
-	$(BIN)/python -m pip install -q --upgrade pip
-	$(BIN)/python -m pip install -q -e '.[dev]'
+	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	@$(STEP) install -- $(BIN)/python -m pip install -q -e '.[dev]'
 	touch $@
 
 # Leaflet (the page's map) and Swagger UI (/docs) from the npm registry, served by the app itself (never from
 # a CDN). --ignore-scripts: neither needs one, and swagger-ui-dist's dependency @scarf/scarf would phone home.
 $(NPM_STAMP): web/package.json web/package-lock.json
-	cd web && npm ci --no-audit --no-fund --silent --ignore-scripts
+	@$(STEP) npm -- npm ci --prefix web --no-audit --no-fund --silent --ignore-scripts
 	touch $@
 
 $(SWAGGER): $(NPM_STAMP)
@@ -49,19 +51,19 @@ browser:
 
 model: $(MODEL)
 $(MODEL): | setup
-	$(GEOLOC) models build --from $(SHARED)/models/squeezenet1.1/caffe-openvino-ir
+	@$(STEP) model -- $(GEOLOC) models build --from $(SHARED)/models/squeezenet1.1/caffe-openvino-ir
 
 manifests: $(MANIFEST)
 $(MANIFEST): | setup
-	$(GEOLOC) datasets --shared $(SHARED)/data --out data/manifests
+	@$(STEP) manifests -- $(GEOLOC) datasets --shared $(SHARED)/data --out data/manifests
 
 fit: models/pipelines/$(CONFIG)/pipeline.json
 models/pipelines/$(CONFIG)/pipeline.json: $(MODEL) $(MANIFEST)
-	$(GEOLOC) fit --manifest $(MANIFEST) --config $(CONFIG)
+	@$(STEP) fit -- $(GEOLOC) fit --manifest $(MANIFEST) --config $(CONFIG)
 
 # The demo collection: penn-campus-gps db rows in index/ (identical images are skipped on re-runs).
 demo: fit
-	$(GEOLOC) ingest --manifest $(MANIFEST) --split db --config $(CONFIG)
+	@$(STEP) demo-collection -- $(GEOLOC) ingest --manifest $(MANIFEST) --split db --config $(CONFIG) --workers 2
 
 HOST ?= 127.0.0.1
 PORT ?= 8000
