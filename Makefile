@@ -12,7 +12,8 @@ LEAFLET := app/web/static/vendor/leaflet/leaflet.js
 SWAGGER := app/web/static/vendor/swagger-ui/swagger-ui-bundle.js
 NPM_STAMP := web/node_modules/.geoloc-installed
 FOLDS ?= 5
-DEMO_QUERY ?= $(SHARED)/data/penn-campus-gps/photos/img_00008.jpg
+# A query-split photo: neither it nor its crops are in the demo collection (its top candidate is right).
+DEMO_QUERY ?= $(SHARED)/data/penn-campus-gps/photos/img_00001.jpg
 
 .PHONY: setup browser model manifests fit demo run serve test test-quick lint eval results bench load fuzz crash-full clean-index
 
@@ -70,8 +71,9 @@ PORT ?= 8000
 
 # Set up, ingest the demo collection, show a located demo query, then serve on $(HOST):$(PORT).
 run: demo
-	@echo "--- demo query: $(DEMO_QUERY) (a query-side photo, not in the collection)"
-	$(GEOLOC) locate $(DEMO_QUERY) --top-k 5
+	@echo "--- demo query: $(DEMO_QUERY): a photo of the Penn campus that is not in the demo collection"
+	@echo "    (neither it nor its crops). The service answers from the pixels alone:"
+	@$(GEOLOC) locate $(DEMO_QUERY) --top-k 3 --compare-exif
 	@if KEY=$$($(GEOLOC) api-key); then \
 	  echo "--- API key: $$KEY (writes need it in X-API-Key; it stays in the data dir's api_key file)"; \
 	  echo "    curl -H 'X-API-Key: $$KEY' -F image=@$(DEMO_QUERY) -F top_k=3 http://$(HOST):$(PORT)/locate"; \

@@ -234,6 +234,9 @@ def locate(
     radius_m: Annotated[float | None, typer.Option("--radius-m")] = None,
     bbox: Annotated[str | None, typer.Option(help="region as min_lon,min_lat,max_lon,max_lat")] = None,
     min_score: Annotated[float, typer.Option("--min-score")] = 0.0,
+    compare_exif: Annotated[
+        bool, typer.Option("--compare-exif", help="say how far the answer is from the photo's own EXIF GPS")
+    ] = False,
     data_dir: DataDir = _S.data_dir,
     models_dir: ModelsDir = _S.models_dir,
     config: ConfigOpt = _S.config,
@@ -245,8 +248,35 @@ def locate(
     options = LocateOptions(
         top_k=top_k, mode=mode, rerank=rerank, region=_region_option(lat, lon, radius_m, bbox), min_score=min_score
     )
-    answer = service.locate(image.read_bytes(), options)
-    typer.echo(json.dumps(answer.as_dict(), indent=1))
+    data = image.read_bytes()
+    answer = service.locate(data, options)
+    out = answer.as_dict()
+    if compare_exif:
+        out["exif_check"] = _exif_check(service.decode(data).gps, answer)
+    typer.echo(json.dumps(out, indent=1))
+    if compare_exif:
+        typer.echo(out["exif_check"]["sentence"], err=True)
+
+
+def _exif_check(gps, answer) -> dict:
+    """How far the answer lies from where the photo's EXIF says it was taken (the search never reads it)."""
+    from app.engine.geo import haversine_m
+
+    if gps is None:
+        return {"sentence": "The photo has no EXIF GPS position to compare with."}
+    best = answer.candidates[0] if answer.candidates else None
+    e = answer.confident_estimate
+    best_m = float(haversine_m(*gps, best.lat, best.lon)) if best else None
+    est_m = float(haversine_m(*gps, e.lat, e.lon)) if e else None
+    parts = [f"The photo's own EXIF GPS (which the search does not use) puts it at {gps[0]:.5f},{gps[1]:.5f}."]
+    if best:
+        parts.append(f"The best candidate is {best_m:.0f} m from there.")
+    if e:
+        inside = "inside" if est_m <= e.radius_m else "outside"
+        parts.append(f"The estimate is {est_m:.0f} m from there, {inside} its stated radius of {e.radius_m:.0f} m.")
+    else:
+        parts.append(f"There is no confident estimate ({answer.reason}): trust the ranked candidates.")
+    return {"lat": gps[0], "lon": gps[1], "best_candidate_m": best_m, "estimate_m": est_m, "sentence": " ".join(parts)}
 
 
 @app.command("eval")

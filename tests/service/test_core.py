@@ -146,3 +146,11 @@ def test_locate_command_with_rerank_and_regions(ingested, fitted_models):
     assert empty["candidates"] == [] and empty["reason"] == "no references in the requested region"
     bad = geoloc("locate", str(photo), "--lat", "39.95", *base, check=False)
     assert bad.returncode == 2 and "lat, lon and radius_m together" in bad.stderr
+
+
+def test_locate_compare_exif_says_how_far_the_answer_is(ingested, fitted_models):
+    photo = PENN / "photos" / "img_00000.jpg"  # in the collection: its best candidate is itself
+    p = geoloc("locate", str(photo), "--compare-exif", "--top-k", "3", "--data-dir", str(ingested),
+               "--models-dir", str(fitted_models))  # fmt: skip
+    check = json.loads(p.stdout)["exif_check"]
+    assert check["best_candidate_m"] < 1 and "The best candidate is 0 m from there." in p.stderr
