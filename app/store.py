@@ -244,6 +244,9 @@ class ReferenceStore:
                 self.db.execute("PRAGMA journal_mode=WAL")
             self.db.execute("PRAGMA synchronous=FULL")
             self.db.execute("PRAGMA busy_timeout=10000")
+            # 64 MB of page cache (default 2 MB): bulk inserts into the sha256 index of a million rows touch
+            # pages all over it, and seeding slowed from 2,000 to 800 rows/s past 600k rows without it.
+            self.db.execute("PRAGMA cache_size=-65536")
             if not read_only:
                 self.db.executescript(SCHEMA)
 
