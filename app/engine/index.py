@@ -97,8 +97,16 @@ class VectorIndex:
         collection on every single deletion. Returns how many ids were newly marked."""
         before = len(self.tombstones)
         if self._index is not None:
-            self.tombstones.update(int(i) for i in ids)
+            self.tombstones.update(i for i in (int(i) for i in ids) if i not in self.tombstones and self._has(i))
         return len(self.tombstones) - before
+
+    def _has(self, ref_id: int) -> bool:
+        """Whether the id is stored (IDMap2 keeps an id -> position hash: one lookup, whatever the size)."""
+        try:
+            self._index.reconstruct(ref_id)
+            return True
+        except RuntimeError:
+            return False
 
     def compact(self) -> None:
         """Drop tombstoned vectors for good (done on a copy, off the request path, when a snapshot is written).
