@@ -34,10 +34,7 @@ def _path(folder: Path, source: str, selection: str) -> Path:
 def command(source: str, selection: str) -> str:
     if source == "off":
         return f"{COMMAND} --json out/eval/bank-off.json"
-    return (
-        f"{COMMAND} --svm-bank {selection} --svm-bank-source {source} "
-        f"--json out/eval/bank-{source}-{selection}.json"
-    )
+    return f"{COMMAND} --svm-bank {selection} --svm-bank-source {source} --json out/eval/bank-{source}-{selection}.json"
 
 
 def row(source: str, selection: str, label: str, r: dict, base_r1: float) -> str:
