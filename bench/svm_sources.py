@@ -48,13 +48,14 @@ def row(source: str, selection: str, label: str, r: dict, base_r1: float) -> str
         f"| {label} | {selection} | {'1.00' if kept is None else f'{kept:.2f}'} | {fractions} | "
         f"{rec['1']:.3f} ({rec['1'] - base_r1:+.3f}) | {rec['5']:.3f} | {rec['10']:.3f} | "
         f"{ms.get('svm', 0.0):.1f} | {ms['total']:.1f} | "
-        + (f"{sum(train_s) / len(train_s):.0f} s / {sum(photos) / len(photos):.0f} photos" if folds else "-")
+        + (f"{min(train_s):.0f}-{max(train_s):.0f} s, {min(photos)}-{max(photos)} labelled photos" if folds else "-")
         + " |"
     )
 
 
 def table(folder: Path) -> str:
-    results = {(s, sel): json.loads(_path(folder, s, sel).read_text()) for s, sel, _ in RUNS}
+    paths = {(s, sel): _path(folder, s, sel) for s, sel, _ in RUNS}
+    results = {k: json.loads(p.read_text()) for k, p in paths.items() if p.exists()}
     base = results[("off", "all")]["recall_at"]["1"]
     lines = [
         "```sh",
@@ -62,9 +63,14 @@ def table(folder: Path) -> str:
         "```",
         "",
         "| bank trained on | features aggregated | kept (median) | keep fraction per fold | R@1 (vs none) | R@5 | "
-        "R@10 | svm ms | total ms/query | bank training per fold |",
+        "R@10 | svm ms | total ms/query | bank training per fold (fastest-slowest) |",
         "|---|---|---|---|---|---|---|---|---|---|",
-        *[row(s, sel, label, results[(s, sel)], base) for s, sel, label in RUNS],
+        *[
+            row(s, sel, label, results[(s, sel)], base)
+            if (s, sel) in results
+            else f"| {label} | {sel} | not measured ({paths[(s, sel)].name} missing) |" + " |" * 7
+            for s, sel, label in RUNS
+        ],
     ]
     return "\n".join(lines)
 
