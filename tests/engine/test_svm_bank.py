@@ -142,3 +142,16 @@ def test_the_collection_sample_takes_whole_groups_up_to_the_cap():
     assert all(sum(p.group == g for p in picked) == n for g, n in sizes.items())  # whole groups only
     assert [p.group for p in picked] == [p.group for p in sample_references(refs, 20, seed=3)]  # seeded
     assert [p.group for p in picked] != [p.group for p in sample_references(refs, 20, seed=4)]
+
+
+def test_definitions_saved_before_the_bank_field_still_match():
+    """Pipeline.load compares a saved definition with the named one: a manifest written before
+    ``svm_bank`` existed must still load (an existing data dir keeps its pipeline), and the new
+    ``hybrid-nobank`` differs from ``hybrid`` in the bank alone."""
+    from app.engine.configs import CONFIGS, PipelineConfig, get_config
+
+    for name, config in CONFIGS.items():
+        old = {k: v for k, v in config.model_dump().items() if k != "svm_bank"}
+        assert (PipelineConfig(**old) == config) == config.svm_bank, name
+    a, b = get_config("hybrid").model_dump(), get_config("hybrid-nobank").model_dump()
+    assert {k for k in a if a[k] != b[k]} == {"name", "description", "svm_bank"}
