@@ -34,7 +34,11 @@ def _path(folder: Path, source: str, selection: str) -> Path:
 def command(source: str, selection: str) -> str:
     if source == "off":
         return f"{COMMAND} --json out/eval/bank-off.json"
-    return f"{COMMAND} --svm-bank {selection} --svm-bank-source {source} --json out/eval/bank-{source}-{selection}.json"
+    # One BLAS thread: how the bank rows were run on the shared machine (docs/RESULTS.md, "The runs").
+    return (
+        f"OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 {COMMAND} --svm-bank {selection} "
+        f"--svm-bank-source {source} --json out/eval/bank-{source}-{selection}.json"
+    )
 
 
 def row(source: str, selection: str, label: str, r: dict, base_r1: float) -> str:
