@@ -58,9 +58,13 @@ manifests: $(MANIFEST)
 $(MANIFEST): | setup
 	@$(STEP) manifests -- $(GEOLOC) datasets --shared $(SHARED)/data --out data/manifests
 
+# The default configuration trains its SVM bank from the demo collection (the db rows as training photos,
+# plus the train rows); CONFIG=hybrid-nobank turns it off by name, SVM_BANK=collection|train|none overrides.
+# An existing fitted pipeline is kept as it is (delete models/pipelines/$(CONFIG) to refit).
+SVM_BANK ?=
 fit: models/pipelines/$(CONFIG)/pipeline.json
 models/pipelines/$(CONFIG)/pipeline.json: $(MODEL) $(MANIFEST)
-	@$(STEP) fit -- $(GEOLOC) fit --manifest $(MANIFEST) --config $(CONFIG)
+	@$(STEP) fit -- $(GEOLOC) fit --manifest $(MANIFEST) --config $(CONFIG) $(if $(SVM_BANK),--svm-bank $(SVM_BANK))
 
 # The demo collection: penn-campus-gps db rows in index/ (identical images are skipped on re-runs).
 demo: fit

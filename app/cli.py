@@ -73,50 +73,72 @@ def _load_cnn(models_dir: Path, config):
     return cnn
 
 
+BANK_SOURCES = ("collection", "train", "none")
+
+
 @app.command()
 def fit(
     manifest: ManifestOpt,
     config: ConfigOpt = _S.config,
     models_dir: ModelsDir = _S.models_dir,
     seed: int = 0,
-    svm_bank: Annotated[bool, typer.Option("--svm-bank", help="also train the SVM bank on the train rows")] = False,
+    svm_bank: Annotated[
+        str | None,
+        typer.Option(
+            "--svm-bank",
+            help="where the SVM bank learns: collection (the db rows, plus train rows if any), train (the train "
+            "rows only) or none; default: collection, or none for a configuration without a bank",
+        ),
+    ] = None,
     svm_bank_kind: Annotated[str, typer.Option("--svm-bank-kind", help="contrastive or confusers")] = "contrastive",
 ) -> None:
-    """Fit codebook, PCA-whitening and binariser on the manifest's db and train rows (and the SVM bank)."""
+    """Fit codebook, PCA-whitening and binariser on the manifest's db and train rows, then the SVM bank."""
     from app.datasets import read_manifest
     from app.engine.configs import get_config
     from app.engine.pipeline import Pipeline, pipeline_dir
     from app.evaluate import extract_all
 
     cfg = get_config(config)
+    source = svm_bank or ("collection" if cfg.svm_bank and cfg.local is not None else "none")
+    if source not in BANK_SOURCES:
+        _fail(f"--svm-bank must be one of {', '.join(BANK_SOURCES)}, not {source!r}")
+    if source != "none" and cfg.local is None:
+        _fail(f"configuration {cfg.name} has no local features: an SVM bank has nothing to select")
     rows = [r for r in read_manifest(manifest) if r.split in ("db", "train")]
     pipe = Pipeline(cfg, cnn=_load_cnn(models_dir, cfg))
     feats = [e.features for e in extract_all(pipe, rows, desc="extract")]
     typer.echo(f"fitting {cfg.name} on {len(feats)} images ...")
     pipe.fit(feats, seed=seed)
-    if svm_bank:
-        pipe.bank = _train_bank(pipe, rows, feats, svm_bank_kind, seed)
+    if source != "none":
+        pipe.bank = _train_bank(pipe, rows, feats, svm_bank_kind, seed, source)
     pipe.save(pipeline_dir(models_dir, cfg.name), {"manifest": str(manifest.resolve())})
     typer.echo(
         f"saved {pipeline_dir(models_dir, cfg.name)} (float dim {pipe.float_dim}, bits {pipe.bits}"
-        + (f", SVM bank of {len(pipe.bank.centers)} clusters" if pipe.bank is not None else "")
+        + (f", SVM bank of {len(pipe.bank.centers)} clusters" if pipe.bank is not None else ", no SVM bank")
         + ")"
     )
 
 
-def _train_bank(pipe, rows, feats, kind: str, seed: int):
+def _train_bank(pipe, rows, feats, kind: str, seed: int, source: str = "collection"):
+    """The bank from the db rows (the collection rule, plus train rows) or from the train rows alone,
+    retrieved against an in-memory index of the db rows encoded by the pipeline just fitted."""
     import numpy as np
 
     from app.engine.search import ReferenceIndex
     from app.engine.svm_bank import KINDS, BankParams
-    from app.engine.svm_training import Geotagged, fit_bank
+    from app.engine.svm_training import Geotagged, fit_bank, fit_bank_from_collection
 
     if kind not in KINDS:
         _fail(f"--svm-bank-kind must be one of {', '.join(KINDS)}")
     db = [i for i, r in enumerate(rows) if r.split == "db"]
     train = [Geotagged(feats[i], r.lat, r.lon, r.group) for i, r in enumerate(rows) if r.split == "train"]
-    if not train:
-        _fail("the manifest has no train rows: the SVM bank learns from geotagged photos that are not references")
+    if source == "train" and not train:
+        _fail(
+            "the manifest has no train rows: --svm-bank train learns from geotagged photos that are not references "
+            "(--svm-bank collection learns from the references)"
+        )
+    if not db:
+        _fail("the manifest has no db rows: the SVM bank needs references to retrieve against")
     index = ReferenceIndex(pipe.config, pipe.float_dim, pipe.bits)
     codes = [pipe.encode_features(feats[i]) for i in db]
     index.add(
@@ -125,11 +147,15 @@ def _train_bank(pipe, rows, feats, kind: str, seed: int):
         np.stack([c.binary for c in codes]) if pipe.bits else None,
     )
     refs = {i: Geotagged(feats[i], rows[i].lat, rows[i].lon, rows[i].group) for i in db}
-    bank = fit_bank(pipe, index, refs, train, BankParams(kind=kind, seed=seed))
+    params = BankParams(kind=kind, seed=seed)
+    if source == "collection":
+        bank = fit_bank_from_collection(pipe, index, refs, params, train)
+    else:
+        bank = fit_bank(pipe, index, refs, train, params)
     t = bank.manifest["training"]
     typer.echo(
-        f"SVM bank ({kind}): {t['labelled_positive']} positive / {t['labelled_negative']} negative features "
-        f"from {t['training_photos']} photos, negative radius {t['negative_radius_m']} m, keep fraction "
+        f"SVM bank ({kind}, from {source}): {t['labelled_positive']} positive / {t['labelled_negative']} negative "
+        f"features from {t['training_photos']} photos, negative radius {t['negative_radius_m']} m, keep fraction "
         f"{bank.manifest['chosen_keep_fraction']} chosen on {bank.manifest['heldout_photos']} held-out photos, "
         f"{bank.manifest['train_seconds']} s"
     )
@@ -298,11 +324,19 @@ def eval_cmd(
     region_radius_m: Annotated[
         float | None, typer.Option("--region-radius-m", help="search a circle of R m around each query's truth")
     ] = None,
+    svm_bank_source: Annotated[
+        str, typer.Option("--svm-bank-source", help="train (train rows) or collection (each fold's db + train rows)")
+    ] = "train",
 ) -> None:
     """Fit, index the db rows in memory, query the query rows through the core; print Recall@N, time, bytes."""
     from app.engine.configs import get_config
+    from app.evaluate import BANK_SOURCES as EVAL_BANK_SOURCES
     from app.evaluate import evaluate, format_summary, write_report
 
+    if svm_bank not in ("off", "positive", "negative"):
+        _fail(f"--svm-bank must be off, positive or negative, not {svm_bank!r}")
+    if svm_bank_source not in EVAL_BANK_SOURCES:
+        _fail(f"--svm-bank-source must be one of {', '.join(EVAL_BANK_SOURCES)}, not {svm_bank_source!r}")
     cfg = get_config(config).with_overrides(_parse_overrides(overrides or []))
     result = evaluate(
         manifest,
@@ -318,6 +352,7 @@ def eval_cmd(
         bank_kind=svm_bank_kind,
         rerank=rerank,
         region_radius_m=region_radius_m,
+        bank_source=svm_bank_source,
     )
     typer.echo(format_summary(result))
     if json_out:

@@ -24,14 +24,20 @@ from app.core import LocateOptions, RefInfo, Region, locate_features
 from app.datasets import Row, read_manifest
 from app.engine.artifacts import atomic_write_bytes
 from app.engine.configs import PipelineConfig
+from app.engine.errors import GeolocError
 from app.engine.geo import haversine_m
 from app.engine.imageio import load_image
 from app.engine.pipeline import Features, Pipeline
 from app.engine.search import ReferenceIndex
 from app.engine.svm_bank import BankParams
-from app.engine.svm_training import Geotagged, fit_bank
+from app.engine.svm_training import Geotagged, fit_bank, fit_bank_from_collection
 
 RECALL_AT = (1, 5, 10, 20)
+BANK_SOURCES = ("train", "collection")
+
+
+class ManifestCannotBeEvaluated(GeolocError):
+    """The manifest's splits and groups leave a fold with nothing to fit on, to index or to query."""
 
 
 @dataclass
@@ -100,6 +106,29 @@ def assign_folds(rows: list[Row], folds: int, seed: int = 0) -> list[list[str]]:
     return [groups[f::folds] for f in range(folds)]
 
 
+def check_folds(manifest: Path, rows: list[Row], query_sets: list[list[str]]) -> None:
+    """Refuse, naming the manifest's problem, a fold with no query or with no db row left once its
+    queries' groups are set aside (a db row sharing a group with a query is never a reference for it):
+    fitting on nothing would otherwise die deep in numpy."""
+    db_groups = {r.group for r in rows if r.split != "train"}
+    for f, qgroups in enumerate(query_sets):
+        qset = set(qgroups)
+        where = f"fold {f + 1} of {len(query_sets)}" if len(query_sets) > 1 else "the query rows"
+        if not any(r.group in qset and r.split != "train" for r in rows):
+            raise ManifestCannotBeEvaluated(
+                f"{manifest}: {where} has no query ({len(db_groups | qset)} groups for {len(query_sets)} "
+                "folds); use fewer folds or more capture groups"
+            )
+        if not any(r.group not in qset and r.split != "train" for r in rows):
+            shared = sorted(db_groups & qset)
+            raise ManifestCannotBeEvaluated(
+                f"{manifest}: {where} leaves no db row to fit on and search: every db row shares a group with "
+                f"a query (groups {', '.join(shared[:5])}{' ...' if len(shared) > 5 else ''}). A group is one "
+                "capture and its crops; give the references groups of their own, or use --folds to rotate "
+                "the query role over the groups"
+            )
+
+
 def evaluate(
     manifest: Path,
     config: PipelineConfig,
@@ -115,18 +144,23 @@ def evaluate(
     bank_kind: str = "contrastive",
     rerank: bool = False,
     region_radius_m: float | None = None,
+    bank_source: str = "train",
 ) -> dict:
     """``svm_bank``: off (all features), positive (features the bank predicts useful) or negative (only
-    the ones it predicts confusing): the thesis ablation. The bank is trained per fold on the train rows.
-    ``rerank`` and ``region_radius_m`` (a circle of that radius around each query's true position) ask the
-    same of the core as /locate's ``rerank`` and region do: queries go through ``core.locate_features``."""
+    the ones it predicts confusing): the thesis ablation. The bank is trained per fold, never on that
+    fold's queries: ``bank_source`` train (the train rows only) or collection (the fold's db rows as
+    training photos, plus the train rows: the rule ``geoloc fit`` serves). ``rerank`` and
+    ``region_radius_m`` (a circle of that radius around each query's true position) ask the same of the
+    core as /locate's ``rerank`` and region do: queries go through ``core.locate_features``."""
     if svm_bank not in ("off", "positive", "negative"):
         raise ValueError(f"svm_bank must be off, positive or negative, not {svm_bank!r}")
+    if bank_source not in BANK_SOURCES:
+        raise ValueError(f"bank_source must be one of {BANK_SOURCES}, not {bank_source!r}")
     rows = read_manifest(manifest)
+    query_sets = [[r.group for r in rows if r.split == "query"]] if folds <= 1 else assign_folds(rows, folds, seed)
+    check_folds(manifest, rows, query_sets)  # before the expensive extraction
     base = Pipeline(config, cnn=cnn)
     extracted = extract_cached(base, rows, cache_dir, workers)
-
-    query_sets = [[r.group for r in rows if r.split == "query"]] if folds <= 1 else assign_folds(rows, folds, seed)
 
     lat = np.array([r.lat for r in rows])
     lon = np.array([r.lon for r in rows])
@@ -159,14 +193,16 @@ def evaluate(
                 for i, r in enumerate(rows)
                 if r.split == "train"
             ]
-            pipe.bank = fit_bank(
-                pipe, index, refs, train, BankParams(kind=bank_kind, seed=seed + f), pos_radius_m=radius_m
-            )
+            params = BankParams(kind=bank_kind, seed=seed + f)
+            if bank_source == "collection":
+                pipe.bank = fit_bank_from_collection(pipe, index, refs, params, train, pos_radius_m=radius_m)
+            else:
+                pipe.bank = fit_bank(pipe, index, refs, train, params, pos_radius_m=radius_m)
             pipe.bank_select = svm_bank
             bank_reports.append(
                 {
-                    k: pipe.bank.manifest[k]
-                    for k in ("training", "chosen_keep_fraction", "threshold_trials", "train_seconds")
+                    k: pipe.bank.manifest.get(k)
+                    for k in ("training", "chosen_keep_fraction", "threshold_trials", "train_seconds", "source")
                 }
             )
         refs = RowReferences(rows, db_idx)
@@ -245,6 +281,7 @@ def evaluate(
         "svm_bank": {
             "selection": svm_bank,
             "kind": bank_kind if svm_bank != "off" else None,
+            "source": bank_source if svm_bank != "off" else None,
             "kept_fraction_median": float(np.median(kept_fractions)) if kept_fractions else None,
             "folds": bank_reports,
         },

@@ -29,8 +29,9 @@ def workdir(tmp_path_factory) -> Path:
 def test_build_fit_ingest_locate(workdir, mini_manifest):
     m, data, models = str(mini_manifest), str(workdir / "index"), str(workdir / "models")
     assert (workdir / "models" / "squeezenet1_1.onnx").exists()
-    out = geoloc("fit", "--manifest", m, "--config", "hybrid-bin", "--models-dir", models)
-    assert "saved" in out.stdout
+    # No bank here: this test checks exact self-retrieval (a db photo's own code, all its features).
+    out = geoloc("fit", "--manifest", m, "--config", "hybrid-bin", "--models-dir", models, "--svm-bank", "none")
+    assert "saved" in out.stdout and "no SVM bank" in out.stdout
     manifest = json.loads((workdir / "models" / "pipelines" / "hybrid-bin" / "pipeline.json").read_text())
     assert manifest["config"]["name"] == "hybrid-bin" and manifest["bits"] > 0
 
@@ -103,10 +104,11 @@ def test_fit_with_svm_bank_and_the_ablation(workdir, mini_manifest):
         "--models-dir",
         models,
         "--svm-bank",
+        "train",
         "--svm-bank-kind",
         "confusers",
     )
-    assert "SVM bank (confusers)" in out.stdout
+    assert "SVM bank (confusers, from train)" in out.stdout
     bank_dir = workdir / "models" / "pipelines" / "hybrid"
     manifest = json.loads((bank_dir / "svm_bank.json").read_text())
     assert manifest["params"]["kind"] == "confusers" and manifest["fit"]["clusters"]
@@ -130,3 +132,70 @@ def test_fit_with_svm_bank_and_the_ablation(workdir, mini_manifest):
     assert r["svm_bank"]["selection"] == "negative" and r["svm_bank"]["kind"] == "contrastive"
     assert 0 < r["svm_bank"]["kept_fraction_median"] <= 1 and "svm" in r["ms_per_query"]
     assert r["svm_bank"]["folds"][0]["training"]["negative_radius_m"] >= 75
+
+
+def test_fit_trains_the_bank_from_the_collection_unless_the_configuration_says_none(workdir, mini_manifest):
+    models = workdir / "models"
+    out = geoloc("fit", "--manifest", str(mini_manifest), "--config", "hybrid", "--models-dir", str(models))
+    assert "SVM bank (contrastive, from collection)" in out.stdout
+    bank = json.loads((models / "pipelines" / "hybrid" / "svm_bank.json").read_text())["fit"]
+    # 30 db images (10 captures) sampled as training photos, plus the 9 train images.
+    assert bank["source"] == {
+        "kind": "collection",
+        "references": 30,
+        "sampled_references": 30,
+        "train_photos": 9,
+        "max_photos": bank["source"]["max_photos"],
+    }
+    assert bank["training"]["labelled_positive"] > 0 and bank["training"]["labelled_negative"] > 0
+
+    out = geoloc("fit", "--manifest", str(mini_manifest), "--config", "hybrid-nobank", "--models-dir", str(models))
+    assert "no SVM bank" in out.stdout
+    assert not (models / "pipelines" / "hybrid-nobank" / "svm_bank.json").exists()
+    bad = geoloc("fit", "--manifest", str(mini_manifest), "--svm-bank", "everything", check=False)
+    assert bad.returncode == 2 and "--svm-bank must be one of collection, train, none" in bad.stderr
+
+
+def _write_manifest(path: Path, rows: list[tuple[str, str, str]], penn_index) -> Path:
+    """rows: (image path relative to PENN, split, group); positions from the penn index by photo id."""
+    pos = {r["photo_id"]: (r["lat"], r["lon"]) for r in penn_index}
+    lines = ["image,lat,lon,split,group"]
+    for image, split, group in rows:
+        lat, lon = pos[Path(image).stem[:9]]
+        lines.append(f"{PENN / image},{lat},{lon},{split},{group}")
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def test_eval_names_a_manifest_that_leaves_nothing_to_fit_on(workdir, penn_index, tmp_path):
+    # Every db row is a crop of a query photo, in the query's group: once the queries' groups are set
+    # aside, no reference is left to fit the pipeline on or to search.
+    m = _write_manifest(
+        tmp_path / "shared-groups.csv",
+        [
+            ("photos/img_00000.jpg", "query", "a"),
+            ("crops/img_00000_0.jpg", "db", "a"),
+            ("photos/img_00001.jpg", "query", "b"),
+            ("crops/img_00001_0.jpg", "db", "b"),
+        ],
+        penn_index,
+    )
+    p = geoloc("eval", "--manifest", str(m), "--config", "hybrid", "--models-dir", str(workdir / "models"), check=False)
+    assert p.returncode == 2, p.stderr
+    assert "leaves no db row to fit on" in p.stderr and "every db row shares a group with a query" in p.stderr
+    assert "groups a, b" in p.stderr and "Traceback" not in p.stderr
+
+    # Two groups rotated over three folds: one fold has no query at all.
+    p = geoloc(
+        "eval",
+        "--manifest",
+        str(m),
+        "--folds",
+        "3",
+        "--config",
+        "hybrid",
+        "--models-dir",
+        str(workdir / "models"),
+        check=False,
+    )
+    assert p.returncode == 2 and "has no query" in p.stderr and "Traceback" not in p.stderr

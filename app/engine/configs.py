@@ -49,6 +49,10 @@ class PipelineConfig(BaseModel):
     float_index: Literal["flat", "ivf", "hnsw"] = "flat"
     binary_index: Literal["flat", "ivf", "hnsw"] = "flat"
     shortlist: int = 100  # two-stage: binary shortlist size before the float re-rank
+    #: ``geoloc fit`` trains an SVM bank (from the collection, METHOD.md "SVM bank") and queries aggregate
+    #: only the features it keeps; False aggregates every feature. Ignored without local features. The
+    #: default is True so that the definitions fitted before this field existed stay equal (Pipeline.load).
+    svm_bank: bool = True
 
     #: Fields that change what ``Pipeline.extract`` returns (the evaluation caches features by them).
     EXTRACTION_FIELDS: ClassVar[tuple[str, ...]] = (
@@ -132,6 +136,12 @@ CONFIGS: dict[str, PipelineConfig] = {
             name="hybrid",
             description="Feature-level hybrid (RootSIFT + fire9 sampled at each keypoint) MBVLAD, joined with "
             "fire9 GeM, PCA-whitened floats (the default)",
+            **_HYBRID,
+        ),
+        PipelineConfig(
+            name="hybrid-nobank",
+            description="The default hybrid without the SVM bank: every local feature of a query is aggregated",
+            svm_bank=False,
             **_HYBRID,
         ),
         PipelineConfig(

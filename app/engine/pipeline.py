@@ -178,6 +178,8 @@ class Pipeline:
     def fit(self, features: list[Features], seed: int = 0, progress: Iterable | None = None) -> None:
         """Fit codebook, then PCA-whitening, then the binariser, each on the previous stage's output."""
         c = self.config
+        if not features:
+            raise ModelNotReady(f"nothing to fit {c.name} on: no db or train images were given")
         rng = np.random.default_rng(seed)
         if c.local is not None:
             sample = []

@@ -7,22 +7,43 @@ decision threshold on a held-out part of the training photos (never on queries).
 
 The negative radius: the thesis used about 225 m in a city. On a small area almost nothing is that far,
 so the rule is: the median distance between references, at least 3 x the positive radius, at most 225 m.
+
+Training from the collection itself (``fit_bank_from_collection``): a deployment rarely has geotagged
+photos apart from its references, so the references play the training photos. Each sampled reference is
+retrieved against all the others, but never learns from itself: references of its own capture group
+(a photo and its crops) and its near-duplicates (within ``near_m`` metres AND a retrieval score of at
+least ``near_score``: the same view re-uploaded or re-shot) are skipped, as if they were not in the
+index; every other reference is a positive or a confuser by GPS exactly as for a training photo. The
+manifest's ``train`` rows, when there are any, are added to the sampled references. The sample is capped
+(``max_photos`` references, whole capture groups, seeded), so the cost is bounded whatever the size of
+the collection: labelling is one retrieval and ``top_n`` feature matchings per training photo.
 """
 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 
 import numpy as np
 from tqdm import tqdm
 
+from app.engine.errors import GeolocError
 from app.engine.geo import haversine_m
 from app.engine.pipeline import Features, Pipeline
 from app.engine.search import ReferenceIndex
 from app.engine.svm_bank import BankParams, SvmBank, labels_from_scores, match_scores
 
 KEEP_FRACTIONS = (0.3, 0.5, 0.7, 0.85)  # candidate operating points for the threshold
+#: The collection rule's cap on training photos sampled from the references (cost: docs/RESULTS.md).
+MAX_COLLECTION_PHOTOS = 600
+#: The collection rule's operating points, chosen on its held-out references. "Keep all" is not among
+#: them: the served bank always filters, and whether it should filter at all was decided by the five-fold
+#: measurement in docs/RESULTS.md (R@1 within 0.02 of no bank), not by a hundred held-out references.
+COLLECTION_KEEP_FRACTIONS: tuple[float, ...] | None = KEEP_FRACTIONS
+
+
+class NothingToTrainOn(GeolocError):
+    """The SVM bank got no training photo or no labelled feature."""
 
 
 @dataclass
@@ -31,6 +52,58 @@ class Geotagged:
     lat: float
     lon: float
     group: str
+
+
+@dataclass(frozen=True)
+class Exclusion:
+    """Which retrieved references a training photo must not learn from (nor be scored against): those of
+    its own capture group, and its near-duplicates: within ``near_m`` metres AND scoring at least
+    ``near_score`` against its unfiltered code (search scores lie in [0, 1]). Why both conditions: two
+    captures a few metres apart are the best positives there are, unless they are the same picture."""
+
+    near_m: float = 5.0
+    near_score: float = 0.9
+    depth: int = 10  # how many extra references to retrieve to make up for the excluded ones
+
+
+def _positions(refs: dict[int, Geotagged], ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    return np.array([refs[int(i)].lat for i in ids]), np.array([refs[int(i)].lon for i in ids])
+
+
+class _Retriever:
+    """Top-n references of a training photo, with its own group and near-duplicates left out."""
+
+    def __init__(self, pipeline: Pipeline, index: ReferenceIndex, refs: dict[int, Geotagged], rule: Exclusion):
+        self.pipeline, self.index, self.refs, self.rule = pipeline, index, refs, rule
+        self._near: dict[int, set[int]] = {}
+
+    def _search(self, t: Geotagged, keep: np.ndarray | None, k: int) -> tuple[np.ndarray, np.ndarray]:
+        codes = self.pipeline.encode_features(t.features, keep)
+        return self.index.search(codes.float_, codes.binary, min(k, self.index.size))
+
+    def near_duplicates(self, t: Geotagged) -> set[int]:
+        """Decided once per photo on its unfiltered code, so every keep fraction skips the same ones."""
+        key = id(t)
+        if key not in self._near:
+            scores, ids = self._search(t, None, 1 + self.rule.depth)
+            lat, lon = _positions(self.refs, ids)
+            d = haversine_m(t.lat, t.lon, lat, lon)
+            near = (d <= self.rule.near_m) & (scores >= self.rule.near_score)
+            self._near[key] = {int(i) for i in ids[near]}
+        return self._near[key]
+
+    def __call__(self, t: Geotagged, n: int, keep: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """(ids, distances in metres) of up to ``n`` allowed references, best first."""
+        skip = self.near_duplicates(t)
+        k = n + self.rule.depth
+        while True:
+            _, ids = self._search(t, keep, k)
+            ok = np.array([int(i) not in skip and self.refs[int(i)].group != t.group for i in ids], bool)
+            if ok.sum() >= n or k >= self.index.size:
+                ids = ids[ok][:n] if len(ids) else ids
+                lat, lon = _positions(self.refs, ids)
+                return ids, haversine_m(t.lat, t.lon, lat, lon)
+            k *= 2
 
 
 def negative_radius(lats: np.ndarray, lons: np.ndarray, pos_radius_m: float, cap_m: float = 225.0) -> float:
@@ -43,12 +116,6 @@ def negative_radius(lats: np.ndarray, lons: np.ndarray, pos_radius_m: float, cap
     return float(min(cap_m, max(3 * pos_radius_m, med)))
 
 
-def _retrieve(pipeline: Pipeline, index: ReferenceIndex, f: Features, top_n: int) -> np.ndarray:
-    codes = pipeline.encode_features(f)
-    _, ids = index.search(codes.float_, codes.binary, top_n)
-    return ids
-
-
 def build_training_set(
     pipeline: Pipeline,
     index: ReferenceIndex,
@@ -58,7 +125,9 @@ def build_training_set(
     top_n: int = 20,
     pos_radius_m: float = 25.0,
     neg_radius_m: float | None = None,
+    rule: Exclusion | None = None,
 ) -> tuple[np.ndarray, np.ndarray, dict]:
+    retrieve = _Retriever(pipeline, index, refs, rule or Exclusion())
     ids_all = np.array(list(refs), np.int64)
     lat = np.array([refs[i].lat for i in ids_all])
     lon = np.array([refs[i].lon for i in ids_all])
@@ -68,10 +137,7 @@ def build_training_set(
     for t in tqdm(train, desc="svm labels", unit="img", leave=False):
         if t.features.n_local == 0:
             continue
-        ids = _retrieve(pipeline, index, t.features, top_n)
-        d = haversine_m(
-            t.lat, t.lon, np.array([refs[int(i)].lat for i in ids]), np.array([refs[int(i)].lon for i in ids])
-        )
+        ids, d = retrieve(t, top_n)
         pos = [refs[int(i)].features.local for i, di in zip(ids, d, strict=True) if di <= pos_radius_m]
         neg = [refs[int(i)].features.local for i, di in zip(ids, d, strict=True) if di > neg_r]
         n_pos_refs += len(pos)
@@ -109,15 +175,18 @@ def recall_at_1(
     queries: list[Geotagged],
     bank: SvmBank | None,
     radius_m: float,
+    rule: Exclusion | None = None,
+    retriever: _Retriever | None = None,
 ) -> tuple[float, float]:
+    """R@1 and R@5 of held-out training photos, each retrieved with its own group and near-duplicates
+    left out (a held-out reference must not find itself)."""
+    retrieve = retriever or _Retriever(pipeline, index, refs, rule or Exclusion())
     hits1 = hits5 = 0
     for q in queries:
         keep = bank.keep(q.features.local) if bank is not None and q.features.n_local else None
-        codes = pipeline.encode_features(q.features, keep)
-        _, ids = index.search(codes.float_, codes.binary, 5)
-        d = [haversine_m(q.lat, q.lon, refs[int(i)].lat, refs[int(i)].lon) for i in ids]
-        hits1 += bool(d and d[0] <= radius_m)
-        hits5 += any(x <= radius_m for x in d)
+        _, d = retrieve(q, 5, keep)
+        hits1 += bool(len(d) and d[0] <= radius_m)
+        hits5 += bool(np.any(d <= radius_m))
     n = max(len(queries), 1)
     return hits1 / n, hits5 / n
 
@@ -131,8 +200,14 @@ def fit_bank(
     pos_radius_m: float = 25.0,
     holdout_fraction: float = 0.3,
     min_keep: int = 50,
+    rule: Exclusion | None = None,
+    keep_fractions: tuple[float, ...] | None = None,
 ) -> SvmBank:
-    """Labels and SVMs from part of the training photos; threshold from the rest (split by group)."""
+    """Labels and SVMs from part of the training photos; threshold from the rest (split by group).
+
+    ``keep_fractions``: the operating points tried on the held-out photos (fraction of their features
+    the threshold keeps); by default "keep all" and ``KEEP_FRACTIONS``. Pass one value to fix the rule."""
+    rule = rule or Exclusion()
     started = time.time()
     groups = sorted({t.group for t in train})
     rng = np.random.default_rng(params.seed)
@@ -141,7 +216,14 @@ def fit_bank(
     held = set(groups[:n_hold])
     fit_part = [t for t in train if t.group not in held]
     hold_part = [t for t in train if t.group in held]
-    x, y, report = build_training_set(pipeline, index, refs, fit_part, params, pos_radius_m=pos_radius_m)
+    if not fit_part:
+        raise NothingToTrainOn("no training photos for the SVM bank: no train rows and no references to sample")
+    x, y, report = build_training_set(pipeline, index, refs, fit_part, params, pos_radius_m=pos_radius_m, rule=rule)
+    if not (y > 0).any() and not (y < 0).any():
+        raise NothingToTrainOn(
+            f"the SVM bank's {len(fit_part)} training photos gave no labelled feature: no reference within "
+            f"{pos_radius_m} m nor beyond the negative radius among their top matches"
+        )
     bank = SvmBank.train(x, y, params)
     bank.min_keep = min_keep
     # Threshold: the keep fraction that does best on the held-out training photos (R@1, then R@5, then
@@ -149,11 +231,13 @@ def fit_bank(
     decisions = np.concatenate(
         [bank.decision(t.features.local) for t in hold_part if t.features.n_local] or [np.zeros(1)]
     )
-    candidates = [(1.0, -1e9)] + [(f, float(np.quantile(decisions, 1 - f))) for f in KEEP_FRACTIONS]
+    fractions = (1.0, *KEEP_FRACTIONS) if keep_fractions is None else tuple(keep_fractions)
+    candidates = [(f, -1e9 if f >= 1.0 else float(np.quantile(decisions, 1 - f))) for f in fractions]
+    retriever = _Retriever(pipeline, index, refs, rule)
     trials = []
     for frac, thr in candidates:
         bank.threshold = thr
-        r1, r5 = recall_at_1(pipeline, index, refs, hold_part, bank, pos_radius_m)
+        r1, r5 = recall_at_1(pipeline, index, refs, hold_part, bank, pos_radius_m, retriever=retriever)
         trials.append({"keep_fraction": frac, "threshold": thr, "heldout_r1": r1, "heldout_r5": r5})
     best = max(trials, key=lambda t: (t["heldout_r1"], t["heldout_r5"], t["keep_fraction"]))
     bank.threshold = best["threshold"]
@@ -166,7 +250,64 @@ def fit_bank(
                 for t in trials
             ],
             "chosen_keep_fraction": best["keep_fraction"],
+            "exclusion": asdict(rule),
             "train_seconds": round(time.time() - started, 1),
         }
     )
+    return bank
+
+
+def sample_references(refs: dict[int, Geotagged], max_photos: int, seed: int = 0) -> list[Geotagged]:
+    """Up to ``max_photos`` references, whole capture groups drawn in a seeded order (a group's crops
+    come with their photo), so a large collection costs what ``max_photos`` costs."""
+    by_group: dict[str, list[int]] = {}
+    for i in sorted(refs):
+        by_group.setdefault(refs[i].group, []).append(i)
+    groups = sorted(by_group)
+    np.random.default_rng(seed).shuffle(groups)
+    picked: list[Geotagged] = []
+    for g in groups:
+        if len(picked) + len(by_group[g]) > max_photos and picked:
+            break
+        picked += [refs[i] for i in by_group[g]]
+    return picked
+
+
+def fit_bank_from_collection(
+    pipeline: Pipeline,
+    index: ReferenceIndex,
+    refs: dict[int, Geotagged],
+    params: BankParams,
+    train: list[Geotagged] | None = None,
+    max_photos: int = MAX_COLLECTION_PHOTOS,
+    pos_radius_m: float = 25.0,
+    min_keep: int = 50,
+    rule: Exclusion | None = None,
+    keep_fractions: tuple[float, ...] | None = COLLECTION_KEEP_FRACTIONS,
+) -> SvmBank:
+    """The bank from the references themselves (plus ``train`` photos when there are any): the rule in
+    this module's docstring. ``refs`` must be exactly what ``index`` holds (ids to positions and features);
+    the same function serves ``geoloc fit`` on a manifest and a refit from a data dir's stored references."""
+    started = time.time()
+    sample = sample_references(refs, max_photos, params.seed)
+    photos = sample + list(train or [])
+    bank = fit_bank(
+        pipeline,
+        index,
+        refs,
+        photos,
+        params,
+        pos_radius_m=pos_radius_m,
+        min_keep=min_keep,
+        rule=rule,
+        keep_fractions=keep_fractions,
+    )
+    bank.manifest["source"] = {
+        "kind": "collection",
+        "references": len(refs),
+        "sampled_references": len(sample),
+        "train_photos": len(train or []),
+        "max_photos": max_photos,
+    }
+    bank.manifest["train_seconds"] = round(time.time() - started, 1)
     return bank

@@ -122,3 +122,36 @@ def test_negative_radius_rule():
     r = negative_radius(lat, lon, 25.0)
     assert 75.0 <= r <= 225.0
     assert negative_radius(lat * 0 + 39.95, lon * 0 - 75.19, 25.0) == pytest.approx(75.0)
+
+
+def test_the_collection_sample_takes_whole_groups_up_to_the_cap():
+    from app.engine.pipeline import Features
+    from app.engine.svm_training import Geotagged, sample_references
+
+    none = Features(local=None, xy=None, global_=None)
+    # 30 groups of 1 to 4 references each (a photo and its crops), 75 references in all.
+    refs, i = {}, 0
+    for g in range(30):
+        for _ in range(1 + g % 4):
+            refs[i] = Geotagged(none, 39.95, -75.19, f"g{g}")
+            i += 1
+    assert len(sample_references(refs, 1000)) == len(refs)  # under the cap: every reference
+    picked = sample_references(refs, 20, seed=3)
+    assert 16 < len(picked) <= 20
+    sizes = {g: sum(r.group == g for r in refs.values()) for g in {r.group for r in picked}}
+    assert all(sum(p.group == g for p in picked) == n for g, n in sizes.items())  # whole groups only
+    assert [p.group for p in picked] == [p.group for p in sample_references(refs, 20, seed=3)]  # seeded
+    assert [p.group for p in picked] != [p.group for p in sample_references(refs, 20, seed=4)]
+
+
+def test_definitions_saved_before_the_bank_field_still_match():
+    """Pipeline.load compares a saved definition with the named one: a manifest written before
+    ``svm_bank`` existed must still load (an existing data dir keeps its pipeline), and the new
+    ``hybrid-nobank`` differs from ``hybrid`` in the bank alone."""
+    from app.engine.configs import CONFIGS, PipelineConfig, get_config
+
+    for name, config in CONFIGS.items():
+        old = {k: v for k, v in config.model_dump().items() if k != "svm_bank"}
+        assert (PipelineConfig(**old) == config) == config.svm_bank, name
+    a, b = get_config("hybrid").model_dump(), get_config("hybrid-nobank").model_dump()
+    assert {k for k in a if a[k] != b[k]} == {"name", "description", "svm_bank"}
