@@ -156,6 +156,7 @@ def markers(page) -> list[dict]:
 
 
 def check_best_marker_on_top(page, count: int) -> None:
+    page.locator("#map").scroll_into_view_if_needed()
     ms = markers(page)
     assert len(ms) == count  # markers render whatever the tiles do
     one = next(m for m in ms if m["n"] == "1")
@@ -250,8 +251,8 @@ def test_the_page_with_map_tiles_blocked(browser, server, viewport):
     page.click("#locate-btn")
     page.wait_for_selector("#answer:not([hidden])", timeout=60_000)
     assert page.inner_text("#level") == "Likely"
-    page.wait_for_selector("#map .no-tiles")
-    assert "no tiles" in page.inner_text("#map .no-tiles")
+    page.wait_for_selector("#map-note:not([hidden])")
+    assert "tiles" in page.inner_text("#map-note") and "could not load" in page.inner_text("#map-note")
     check_best_marker_on_top(page, page.locator("#candidates li").count())
     assert page.locator("#map path.leaflet-interactive").count() >= 1  # the estimate's circle
     screenshot(page, f"locate-no-tiles-{viewport}.png")

@@ -78,20 +78,17 @@ function makeMap(id) {
     attribution: "&copy; OpenStreetMap contributors",
   }).addTo(map);
   L.control.scale({ imperial: false }).addTo(map);
-  tiles.once("tileerror", () => noTilesNote(map));
+  tiles.once("tileerror", () => noTiles(id));
   return { map, layer: L.layerGroup().addTo(map) };
 }
 
-// Without tiles the map is a blank plane: say so, so that nobody takes it for a broken page.
-function noTilesNote(map) {
-  const note = L.control({ position: "bottomleft" });
-  note.onAdd = () => {
-    const div = L.DomUtil.create("div", "no-tiles");
-    div.textContent = "Map background unavailable (no tiles): positions are drawn to scale on a blank map.";
-    return div;
-  };
-  note.addTo(map);
-  map.getContainer().classList.add("tiles-missing");
+// Without tiles the map is a blank plane: say so under it (never over the markers), so that nobody
+// takes it for a broken page.
+function noTiles(id) {
+  $(id).classList.add("tiles-missing");
+  const note = $(`${id}-note`);
+  note.textContent = "The map background (tiles) could not load: positions are drawn to scale on a blank grid.";
+  note.hidden = false;
 }
 
 const locateMap = makeMap("map");
@@ -256,8 +253,7 @@ function whereFrom(c, i, res) {
   if (est && c.distance_m != null) {
     return `${metres(c.distance_m)} from the estimate`;
   }
-  if (i > 0) return `${metres(haversine(c, res.candidates[0]))} from candidate 1`;
-  return "best match";
+  return i > 0 ? `${metres(haversine(c, res.candidates[0]))} from candidate 1` : "";
 }
 
 function candidateItem(c, i, res) {
@@ -269,11 +265,12 @@ function candidateItem(c, i, res) {
   img.alt = `Reference ${c.reference_id}${c.label ? ": " + c.label : ""}`;
   const text = document.createElement("div");
   text.className = "text";
+  const where = whereFrom(c, i, res);
   const inliers = c.inliers == null ? "" : `, ${c.inliers} matching points`;
   const file = name.file ? `${escapeHtml(name.file)} · ` : "";
   text.innerHTML = `<strong>${i + 1}. ${escapeHtml(name.title)}</strong>` +
     (i === 0 ? ' <span class="tag">best match</span>' : "") +
-    `<br>${escapeHtml(whereFrom(c, i, res))}<br>match score ${c.score.toFixed(3)}${inliers}` +
+    (where ? `<br>${escapeHtml(where)}` : "") + `<br>match score ${c.score.toFixed(3)}${inliers}` +
     `<br><small>${file}${position(c.lat, c.lon)}</small>`;
   li.append(img, text);
   if (locateMap) {
@@ -326,7 +323,7 @@ function drawLocate(res) {
       title: `Candidate ${i + 1}: ${name}`,
       alt: `Candidate ${i + 1}`,
       riseOnHover: true,
-    }).bindPopup(`${i + 1}. ${escapeHtml(name)}<br>${escapeHtml(whereFrom(c, i, res))}`);
+    }).bindPopup(`${i + 1}. ${escapeHtml(name)}<br>${escapeHtml(whereFrom(c, i, res) || "best match")}`);
   });
   candidateMarkers.slice().reverse().forEach((m) => m.addTo(layer));
   if (pts.length) map.fitBounds(pts, { padding: [30, 30], maxZoom: 18 });
