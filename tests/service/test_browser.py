@@ -196,6 +196,10 @@ def test_a_confident_answer_with_the_keyboard(browser, server, tile_png, viewpor
     screenshot(page, f"locate-likely-{viewport}.png")
     if viewport == "phone":
         no_horizontal_scroll(page)
+    # The service's own figures stay one keypress away.
+    page.focus("#tech-box summary")
+    page.keyboard.press("Enter")
+    assert re.search(r"Confidence\s+\d+ % of the candidates' weight agrees", page.inner_text("#tech"))
 
     # The tabs from the keyboard: each keeps its own status line.
     page.focus("#tab-locate")
@@ -207,11 +211,13 @@ def test_a_confident_answer_with_the_keyboard(browser, server, tile_png, viewpor
     assert "candidates in" not in page.inner_text("#view-refs")
     page.keyboard.press("ArrowLeft")
     assert page.locator("#locate-status").is_visible()
-    # The map's list button (keyboard too) opens the candidate's popup.
-    page.focus("#candidates li:nth-child(2) button")
+    # The list's Map button (keyboard too) opens the candidate's popup, which names the candidates hidden
+    # under it (the crops of the query's capture, at the same position).
+    page.focus("#candidates li:nth-child(1) button")
     page.keyboard.press("Enter")
     page.wait_for_selector(".leaflet-popup-content")
-    assert "2." in page.inner_text(".leaflet-popup-content")
+    popup = page.inner_text(".leaflet-popup-content")
+    assert popup.startswith("1. Reference #") and "Also at this spot: " in popup, popup
     assert not page.errors, page.errors
 
 

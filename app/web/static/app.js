@@ -7,6 +7,7 @@ const $ = (id) => document.getElementById(id);
 const hasLeaflet = typeof window.L !== "undefined";
 const PAGE = 20;
 let refsOffset = 0;
+let candidateMarkers = []; // the locate map's markers, by rank
 
 // -- API key: kept for this browser session only --------------------------------------------------
 $("api-key").value = sessionStorage.getItem("geoloc-key") || "";
@@ -132,13 +133,31 @@ function showPreview() {
   const file = $("locate-file").files[0];
   if (previewUrl) URL.revokeObjectURL(previewUrl);
   previewUrl = file ? URL.createObjectURL(file) : null;
+  $("preview").hidden = false;
   $("preview").src = previewUrl || "";
   $("preview").alt = file ? `Your photo: ${file.name}` : "";
+  $("preview-caption").textContent = "Your photo";
   $("preview-box").hidden = !file;
-  $("answer").hidden = true;
-  if (file) status("locate", "Press Locate to find where it was taken.");
+  clearAnswer();
+  showError("locate", "");
+  status("locate", file ? "Press Locate to find where it was taken." : "");
 }
 $("locate-file").addEventListener("change", showPreview);
+// A format the browser cannot draw (TIFF in most browsers) can still be located: say so instead of
+// showing a broken image.
+$("preview").addEventListener("error", () => {
+  if (!previewUrl) return;
+  $("preview").hidden = true;
+  $("preview-caption").textContent = "Your photo (this browser cannot show its format; it can still be located)";
+});
+
+// The answer, the candidates and the markers of the previous photo go as soon as another is chosen.
+function clearAnswer() {
+  $("answer").hidden = true;
+  $("candidates").replaceChildren();
+  if (locateMap) locateMap.layer.clearLayers();
+  candidateMarkers = [];
+}
 
 const drop = $("drop");
 ["dragenter", "dragover"].forEach((ev) => drop.addEventListener(ev, (e) => { e.preventDefault(); drop.classList.add("over"); }));
@@ -157,6 +176,7 @@ async function locate() {
   const file = $("locate-file").files[0];
   if (!file) { showError("locate", "Choose a photo first."); return; }
   showError("locate", "");
+  clearAnswer();
   status("locate", "Locating…");
   $("locate-btn").disabled = true;
   const form = new FormData();
@@ -285,7 +305,6 @@ function candidateItem(c, i, res) {
   return li;
 }
 
-let candidateMarkers = [];
 function focusCandidate(i) {
   const m = candidateMarkers[i];
   locateMap.map.setView(m.getLatLng(), Math.max(locateMap.map.getZoom(), 18));
@@ -299,6 +318,12 @@ function renderLocate(res) {
   drawLocate(res);
 }
 
+// Markers at one spot hide each other: each popup names the others there.
+function sameSpot(cands, i) {
+  const here = cands.map((c, j) => j).filter((j) => j !== i && haversine(cands[i], cands[j]) < 1);
+  return here.length ? `<br>Also at this spot: ${here.map((j) => j + 1).join(", ")}` : "";
+}
+
 // Marker 1 is drawn last and with the largest z-index offset, so it is on top of any later candidate at
 // the same spot; the others stack by rank too.
 function drawLocate(res) {
@@ -307,6 +332,7 @@ function drawLocate(res) {
   layer.clearLayers();
   const n = res.candidates.length;
   const est = res.estimate;
+  $("legend-est").hidden = !est;
   const pts = res.candidates.map((c) => [c.lat, c.lon]);
   if (est) {
     L.circle([est.lat, est.lon], { radius: est.radius_m, color: "#c92a2a", weight: 2, fillOpacity: 0.12 })
@@ -323,7 +349,8 @@ function drawLocate(res) {
       title: `Candidate ${i + 1}: ${name}`,
       alt: `Candidate ${i + 1}`,
       riseOnHover: true,
-    }).bindPopup(`${i + 1}. ${escapeHtml(name)}<br>${escapeHtml(whereFrom(c, i, res) || "best match")}`);
+    }).bindPopup(`${i + 1}. ${escapeHtml(name)}<br>${escapeHtml(whereFrom(c, i, res) || "best match")}` +
+      sameSpot(res.candidates, i));
   });
   candidateMarkers.slice().reverse().forEach((m) => m.addTo(layer));
   if (pts.length) map.fitBounds(pts, { padding: [30, 30], maxZoom: 18 });
