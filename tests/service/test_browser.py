@@ -214,7 +214,7 @@ def test_a_confident_answer_with_the_keyboard(browser, server, tile_png, viewpor
     # The list's Map button (keyboard too) opens the candidate's popup, which names the candidates hidden
     # under it (the crops of the query's capture, at the same position).
     page.focus("#candidates li:nth-child(1) button")
-    page.keyboard.press("Enter")
+    page.keyboard.press("Space")
     page.wait_for_selector(".leaflet-popup-content")
     popup = page.inner_text(".leaflet-popup-content")
     assert popup.startswith("1. Reference #") and "Also at this spot: " in popup, popup
@@ -262,6 +262,8 @@ def test_the_page_with_map_tiles_blocked(browser, server, viewport):
     check_best_marker_on_top(page, page.locator("#candidates li").count())
     assert page.locator("#map path.leaflet-interactive").count() >= 1  # the estimate's circle
     screenshot(page, f"locate-no-tiles-{viewport}.png")
+    if viewport == "phone":
+        no_horizontal_scroll(page)
     assert not page.errors, page.errors
 
 
@@ -288,6 +290,7 @@ def test_no_match(browser, server, tile_png):
     assert "no references in the region" in page.inner_text("#headline")
     assert page.locator("#candidates li").count() == 0 and page.locator("#map .num-marker").count() == 0
     screenshot(page, "locate-no-match-phone.png")
+    no_horizontal_scroll(page)
     assert not page.errors, page.errors
 
 

@@ -71,6 +71,7 @@ function spread(points) {
 function makeMap(id) {
   if (!hasLeaflet) {
     $(id).textContent = "The map library did not load; results are listed beside.";
+    document.querySelectorAll(".legend").forEach((e) => { e.hidden = true; });
     return null;
   }
   const map = L.map(id, { zoomControl: true }).setView([39.9522, -75.1932], 16);
