@@ -267,6 +267,21 @@ def test_the_page_with_map_tiles_blocked(browser, server, viewport):
     assert not page.errors, page.errors
 
 
+def test_the_page_without_the_map_library(browser, server):
+    """Leaflet missing (a broken install, a blocked file): the answer and the list still work."""
+    page = browser.new_page(viewport=VIEWPORTS["phone"])
+    errors = []
+    page.on("pageerror", lambda e: errors.append(str(e)))
+    page.route("**/vendor/leaflet/**", lambda route: route.abort())
+    page.goto(server.url + "/")
+    assert "did not load" in page.inner_text("#map") and page.locator(".legend").is_hidden()
+    page.set_input_files("#locate-file", str(server.query))
+    page.click("#locate-btn")
+    page.wait_for_selector("#answer:not([hidden])", timeout=60_000)
+    assert page.inner_text("#level") == "Likely" and page.locator("#candidates li").count() >= 3
+    assert not errors, errors
+
+
 def test_no_match(browser, server, tile_png):
     """An answer with no candidate (an empty collection, or a region holding none): said as such. The
     answer is the service's own shape for an empty region, served by the test so the shared collection
