@@ -304,6 +304,7 @@ def test_no_match(browser, server, tile_png):
     assert page.inner_text("#level") == "No match"
     assert "no references in the region" in page.inner_text("#headline")
     assert page.locator("#candidates li").count() == 0 and page.locator("#map .num-marker").count() == 0
+    assert page.locator("#legend").is_hidden()
     screenshot(page, "locate-no-match-phone.png")
     no_horizontal_scroll(page)
     assert not page.errors, page.errors

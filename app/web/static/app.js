@@ -71,7 +71,6 @@ function spread(points) {
 function makeMap(id) {
   if (!hasLeaflet) {
     $(id).textContent = "The map library did not load; results are listed beside.";
-    document.querySelectorAll(".legend").forEach((e) => { e.hidden = true; });
     return null;
   }
   const map = L.map(id, { zoomControl: true }).setView([39.9522, -75.1932], 16);
@@ -156,6 +155,7 @@ $("preview").addEventListener("error", () => {
 function clearAnswer() {
   $("answer").hidden = true;
   $("candidates").replaceChildren();
+  $("legend").hidden = true;
   if (locateMap) locateMap.layer.clearLayers();
   candidateMarkers = [];
 }
@@ -333,6 +333,7 @@ function drawLocate(res) {
   layer.clearLayers();
   const n = res.candidates.length;
   const est = res.estimate;
+  $("legend").hidden = n === 0;
   $("legend-est").hidden = !est;
   const pts = res.candidates.map((c) => [c.lat, c.lon]);
   if (est) {
