@@ -310,6 +310,46 @@ def test_no_match(browser, server, tile_png):
     assert not page.errors, page.errors
 
 
+def test_calibrated_probabilities_in_words(browser, server, tile_png):
+    """Where the answer carries each candidate's calibrated ``p_within_25m`` (the application core gives
+    it for the first 10), the page says it as a chance; served by the test, in the service's shape."""
+    refs = server.client.get("/references?limit=2").json()["items"]
+    answer = {
+        "candidates": [
+            {
+                "reference_id": r["id"],
+                "lat": r["lat"],
+                "lon": r["lon"],
+                "score": s,
+                "distance_m": None,
+                "label": r["label"],
+                "captured_at": None,
+                "heading": None,
+                "inliers": None,
+                "p_within_25m": p,
+            }
+            for r, s, p in zip(refs, (0.61, 0.55), (0.34, 0.12), strict=True)
+        ],
+        "estimate": None,
+        "reason": "ambiguous: the best group holds 40% of the candidates' weight; candidates disagree on the place",
+        "mode": "float",
+        "config": "hybrid-bin",
+        "features": {"extracted": 1200, "kept": 900},
+        "timings_ms": {"total": 12.0},
+        "index": {"size": len(server.rows), "version": 1},
+    }
+    page = open_page(browser, server, "desktop", tile_png)
+    page.route("**/locate", lambda route: route.fulfill(status=200, json=answer))
+    page.set_input_files("#locate-file", str(server.query))
+    page.click("#locate-btn")
+    page.wait_for_selector("#answer:not([hidden])")
+    assert page.inner_text("#level") == "Possible"
+    assert "34 % chance of lying within 25 m" in page.inner_text("#explain")
+    assert "12 % chance it is within 25 m" in page.locator("#candidates li").nth(1).inner_text()
+    assert page.inner_text("#features-used").startswith("Features used: 900 of the 1,200")
+    assert not page.errors, page.errors
+
+
 def test_references_view_at_phone_width_with_the_keyboard(browser, server):
     page = open_page(browser, server, "phone", None)
     page.focus("#tab-refs")

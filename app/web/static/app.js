@@ -221,11 +221,14 @@ function verdict(res, level) {
   if (level === "possible") {
     const best = cands[0];
     const top = cands.slice(0, 10);
+    const chance = best.p_within_25m == null ? "" :
+      ` The service gives it a ${Math.round(best.p_within_25m * 100)} % chance of lying within 25 m of where ` +
+      "your photo was taken.";
     return {
       headline: "The candidates disagree: no single place stands out.",
       explain: `The best match (candidate 1) is at ${position(best.lat, best.lon)}, but the top ` +
-        `${top.length} candidates are spread over ${metres(spread(top))}. Compare their photos with yours ` +
-        "below before trusting any of them.",
+        `${top.length} candidates are spread over ${metres(spread(top))}.${chance} Compare their photos ` +
+        "with yours below before trusting any of them.",
     };
   }
   const region = (res.reason || "").includes("region");
@@ -277,6 +280,13 @@ function whereFrom(c, i, res) {
   return i > 0 ? `${metres(haversine(c, res.candidates[0]))} from candidate 1` : "";
 }
 
+// The service's calibrated probability (when it gives one) that a candidate lies within 25 m of where the
+// photo was taken.
+function chanceInWords(c) {
+  if (c.p_within_25m == null) return "";
+  return `${Math.round(c.p_within_25m * 100)} % chance it is within 25 m of your photo's place`;
+}
+
 function candidateItem(c, i, res) {
   const li = document.createElement("li");
   li.className = i === 0 ? "candidate best" : "candidate";
@@ -288,10 +298,12 @@ function candidateItem(c, i, res) {
   text.className = "text";
   const where = whereFrom(c, i, res);
   const inliers = c.inliers == null ? "" : `, ${c.inliers} matching points`;
+  const chance = chanceInWords(c);
   const file = name.file ? `${escapeHtml(name.file)} · ` : "";
   text.innerHTML = `<strong>${i + 1}. ${escapeHtml(name.title)}</strong>` +
     (i === 0 ? ' <span class="tag">best match</span>' : "") +
-    (where ? `<br>${escapeHtml(where)}` : "") + `<br>match score ${c.score.toFixed(3)}${inliers}` +
+    (where ? `<br>${escapeHtml(where)}` : "") + (chance ? `<br>${chance}` : "") +
+    `<br>match score ${c.score.toFixed(3)}${inliers}` +
     `<br><small>${file}${position(c.lat, c.lon)}</small>`;
   li.append(img, text);
   if (locateMap) {
@@ -446,6 +458,8 @@ $("add-form").addEventListener("submit", async (e) => {
     status("refs", res.duplicates[0] ? `Already stored as reference ${res.reference_ids[0]}.`
                                      : `Accepted as reference ${res.reference_ids[0]}; encoding…`);
     await waitJob(res.job_id);
+    // A duplicate uploaded with other metadata keeps the stored one: the service says so in `notes`.
+    if (res.notes && res.notes.length) status("refs", `${$("refs-status").textContent} ${res.notes.join(" ")}`);
     loadRefs();
   } catch (err) {
     showError("refs", err.message);
