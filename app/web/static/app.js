@@ -284,7 +284,9 @@ function whereFrom(c, i, res) {
 // photo was taken.
 function chanceInWords(c) {
   if (c.p_within_25m == null) return "";
-  return `${Math.round(c.p_within_25m * 100)} % chance it is within 25 m of your photo's place`;
+  const p = Math.round(c.p_within_25m * 100);
+  return `<span title="The service's estimate of the chance that this reference lies within 25 m of where ` +
+    `your photo was taken">${p} % chance it is within 25 m</span>`;
 }
 
 function candidateItem(c, i, res) {
@@ -347,13 +349,13 @@ function drawLocate(res) {
   const est = res.estimate;
   $("legend").hidden = n === 0;
   $("legend-est").hidden = !est;
-  const pts = res.candidates.map((c) => [c.lat, c.lon]);
+  const bounds = L.latLngBounds(res.candidates.map((c) => [c.lat, c.lon]));
   if (est) {
-    L.circle([est.lat, est.lon], { radius: est.radius_m, color: "#c92a2a", weight: 2, fillOpacity: 0.12 })
+    const circle = L.circle([est.lat, est.lon], { radius: est.radius_m, color: "#c92a2a", weight: 2, fillOpacity: 0.12 })
       .bindTooltip(`Estimate: within ${metres(est.radius_m)}`).addTo(layer);
+    bounds.extend(circle.getBounds());
     L.circleMarker([est.lat, est.lon], { radius: 5, color: "#c92a2a", fillOpacity: 1, className: "estimate-marker" })
       .addTo(layer);
-    pts.push([est.lat, est.lon]);
   }
   candidateMarkers = res.candidates.map((c, i) => {
     const name = refName(c.reference_id, c.label).title;
@@ -367,7 +369,7 @@ function drawLocate(res) {
       sameSpot(res.candidates, i));
   });
   candidateMarkers.slice().reverse().forEach((m) => m.addTo(layer));
-  if (pts.length) map.fitBounds(pts, { padding: [30, 30], maxZoom: 18 });
+  if (bounds.isValid()) map.fitBounds(bounds, { padding: [30, 30], maxZoom: 18 });
 }
 
 // -- references -------------------------------------------------------------------------------------
