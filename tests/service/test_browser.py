@@ -120,10 +120,21 @@ def tab_to(page, element_id: str, presses: int = 30) -> None:
 
 def choose_with_keyboard(page, photo: Path) -> None:
     """Tab to the file input, open it with Space, pick the photo, Tab to Locate, press Enter."""
+    # The listener goes first, so that Playwright intercepts the chooser well before the key press (an
+    # expect_file_chooser() opened just before it missed the chooser once in a few runs on a busy machine).
+    choosers = []
+    page.on("filechooser", lambda chooser: choosers.append(chooser))
     tab_to(page, "locate-file")
-    with page.expect_file_chooser() as chooser:
+    for _ in range(3):
         page.keyboard.press("Space")
-    chooser.value.set_files(str(photo))
+        for _ in range(100):
+            if choosers:
+                break
+            page.wait_for_timeout(100)
+        if choosers:
+            break
+    assert choosers, "Space on the focused file input opened no file chooser"
+    choosers[0].set_files(str(photo))
     preview = page.locator("#preview")
     preview.wait_for(state="visible")
     page.wait_for_function("document.getElementById('preview').naturalWidth > 0")
