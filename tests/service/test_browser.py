@@ -1,15 +1,20 @@
-"""The page in a real browser: Debian's headless Chromium driven by Playwright (no browser download)."""
+"""The page in a real browser: Debian's headless Chromium driven by Playwright (no browser download).
 
+Every page here reaches only the service: map tiles are either answered with a plain generated tile
+(the "with tiles" screenshots, deterministic and offline) or refused (the "no tiles" ones), and any other
+host is refused. Screenshots go to out/screenshots/ at desktop and phone width."""
+
+import io
 import json
 import os
-import shutil
+import re
 from pathlib import Path
 from urllib.parse import urlparse
 
 import pytest
 
 from app.datasets import read_manifest
-from tests.conftest import REPO
+from tests.conftest import CHECK_IMAGES, REPO
 from tests.service.conftest import Server, wait_job
 
 pytestmark = pytest.mark.browser  # not in `make test-quick`
@@ -26,6 +31,23 @@ ARGS = [
     "--disable-sync",
     "--disable-quic",
 ]
+VIEWPORTS = {"desktop": {"width": 1280, "height": 900}, "phone": {"width": 375, "height": 812}}
+TILE_HOST = "tile.openstreetmap.org"
+UNRELATED = CHECK_IMAGES / "fox.jpg"  # not a street of the collection: candidates, but no agreement
+
+
+def plain_tile() -> bytes:
+    """A 256 px map tile stand-in (light ground, a faint grid): what the page looks like with tiles."""
+    from PIL import Image, ImageDraw
+
+    img = Image.new("RGB", (256, 256), (242, 239, 233))
+    draw = ImageDraw.Draw(img)
+    for x in range(0, 256, 64):
+        draw.line([(x, 0), (x, 255)], fill=(225, 221, 212))
+        draw.line([(0, x), (255, x)], fill=(225, 221, 212))
+    out = io.BytesIO()
+    img.save(out, "PNG")
+    return out.getvalue()
 
 
 @pytest.fixture(scope="module")
@@ -42,71 +64,325 @@ def browser():
 
 @pytest.fixture(scope="module")
 def server(tmp_path_factory, fitted_models, mini_manifest):
+    """The db photos, plus the crops of the first capture: three references at one spot, so that a query
+    with that capture's photo gets a confident estimate and markers 2 and 3 lie exactly under marker 1."""
     s = Server(tmp_path_factory.mktemp("web") / "data", fitted_models, api_key="web-key")
     s.wait_ready()
-    rows = [r for r in read_manifest(mini_manifest) if r.split == "db" and "/photos/" in str(r.image)]
+    db = [r for r in read_manifest(mini_manifest) if r.split == "db"]
+    photos = [r for r in db if "/photos/" in str(r.image)]
+    crops = [r for r in db if "/crops/" in str(r.image) and r.group == photos[0].group]
+    rows = photos + crops
     files = [("image", (r.image.name, r.image.read_bytes(), "image/jpeg")) for r in rows]
     meta = [{"lat": r.lat, "lon": r.lon, "label": r.image.name} for r in rows]
     res = s.client.post(
         "/references", files=files, data={"metadata": json.dumps(meta)}, headers={"X-API-Key": "web-key"}
     )
     wait_job(s.client, res.json()["job_id"])
-    s.rows = rows
+    s.rows, s.query = rows, photos[0].image
     yield s
     s.stop()
 
 
-def test_locate_a_photo_in_the_page(browser, server, tmp_path):
-    page = browser.new_page(viewport={"width": 1200, "height": 900})
-    errors = []
-    page.on("pageerror", lambda e: errors.append(str(e)))
+@pytest.fixture(scope="module")
+def tile_png():
+    return plain_tile()
+
+
+def open_page(browser, server, viewport: str, tiles: bytes | None):
+    """A page on the service; ``tiles`` None refuses every tile (no map background)."""
+    page = browser.new_page(viewport=VIEWPORTS[viewport])
+    page.errors = []
+    page.on("pageerror", lambda e: page.errors.append(str(e)))
+
+    def only_this_service(route):
+        host = urlparse(route.request.url).hostname
+        if host in ("127.0.0.1", "localhost"):
+            route.continue_()
+        elif host == TILE_HOST and tiles is not None:
+            route.fulfill(status=200, content_type="image/png", body=tiles)
+        else:
+            route.abort()
+
+    page.route("**/*", only_this_service)
     page.goto(server.url + "/")
     assert page.title().startswith("geoloc")
-    query = server.rows[0].image
-    page.set_input_files("#locate-file", str(query))
-    page.click("#locate-btn")
-    page.wait_for_selector("#candidates li", timeout=60_000)
+    return page
+
+
+def tab_to(page, element_id: str, presses: int = 30) -> None:
+    """Press Tab until ``element_id`` has the focus: it is reachable from the keyboard."""
+    for _ in range(presses):
+        page.keyboard.press("Tab")
+        if page.evaluate("document.activeElement && document.activeElement.id") == element_id:
+            return
+    raise AssertionError(f"#{element_id} is not reachable with Tab")
+
+
+def choose_with_keyboard(page, photo: Path) -> None:
+    """Tab to the file input, open it with Space, pick the photo, Tab to Locate, press Enter."""
+    # The listener goes first, so that Playwright intercepts the chooser well before the key press (an
+    # expect_file_chooser() opened just before it missed the chooser once in a few runs on a busy machine).
+    choosers = []
+    page.on("filechooser", lambda chooser: choosers.append(chooser))
+    tab_to(page, "locate-file")
+    for _ in range(3):
+        page.keyboard.press("Space")
+        for _ in range(100):
+            if choosers:
+                break
+            page.wait_for_timeout(100)
+        if choosers:
+            break
+    assert choosers, "Space on the focused file input opened no file chooser"
+    choosers[0].set_files(str(photo))
+    preview = page.locator("#preview")
+    preview.wait_for(state="visible")
+    page.wait_for_function("document.getElementById('preview').naturalWidth > 0")
+    assert photo.name in preview.get_attribute("alt")
+    tab_to(page, "locate-btn")
+    page.keyboard.press("Enter")
+    page.wait_for_selector("#answer:not([hidden])", timeout=60_000)
+
+
+def screenshot(page, name: str) -> None:
+    page.wait_for_function("[...document.querySelectorAll('#candidates img')].every((i) => i.complete)")
+    page.wait_for_timeout(300)  # the map's fit animation
+    SHOTS.mkdir(parents=True, exist_ok=True)
+    page.screenshot(path=str(SHOTS / name), full_page=True)
+
+
+def no_horizontal_scroll(page) -> None:
+    assert page.evaluate("document.documentElement.scrollWidth") <= page.viewport_size["width"]
+
+
+def markers(page) -> list[dict]:
+    return page.eval_on_selector_all(
+        "#map .num-marker",
+        """els => els.map(e => {
+            const r = e.getBoundingClientRect();
+            return {n: e.textContent.trim(), z: Number(e.style.zIndex), best: e.classList.contains('best'),
+                    x: r.x, y: r.y, w: r.width, h: r.height};
+        })""",
+    )
+
+
+def check_best_marker_on_top(page, count: int) -> None:
+    page.locator("#map").scroll_into_view_if_needed()
+    ms = markers(page)
+    assert len(ms) == count  # markers render whatever the tiles do
+    one = next(m for m in ms if m["n"] == "1")
+    assert one["best"] and not any(m["best"] for m in ms if m is not one)
+    assert all(one["z"] > m["z"] for m in ms if m is not one), ms
+    stacked = [
+        m for m in ms if m is not one and abs(m["x"] - one["x"]) < one["w"] and abs(m["y"] - one["y"]) < one["h"]
+    ]
+    assert stacked, "the test collection should put later candidates under marker 1"
+    cx, cy = one["x"] + one["w"] / 2, one["y"] + one["h"] / 2
+    on_top = page.evaluate(f"document.elementFromPoint({cx}, {cy}).closest('.num-marker').textContent.trim()")
+    assert on_top == "1"
+
+
+@pytest.mark.parametrize("viewport", ["desktop", "phone"])
+def test_a_confident_answer_with_the_keyboard(browser, server, tile_png, viewport):
+    page = open_page(browser, server, viewport, tile_png)
+    choose_with_keyboard(page, server.query)
+    assert page.inner_text("#level") == "Likely"
+    headline = page.inner_text("#headline")
+    assert re.search(r"within \d+ m of -?\d+\.\d{5}, -?\d+\.\d{5}", headline), headline
+    assert re.search(r"\d+ of the \d+ candidates lie within that radius", page.inner_text("#explain"))
+    assert re.fullmatch(
+        r"Features used: [\d,]+ of the [\d,]+ distinctive points found in your photo\.",
+        page.inner_text("#features-used"),
+    )
+    assert "%" not in page.inner_text("#answer")  # the weight share stays in the closed technical details
     items = page.locator("#candidates li")
     assert items.count() >= 3
-    assert query.name in items.first.inner_text()
-    assert page.locator(".num-marker").count() == items.count()  # markers render even without map tiles
-    alts = [a for a in page.locator("#candidates img").evaluate_all("els => els.map(e => e.alt)")]
+    first = items.first.inner_text()
+    assert "1. Reference #" in first and server.query.name in first and "best match" in first
+    assert "from the estimate" in items.nth(1).inner_text()
+    alts = page.locator("#candidates img").evaluate_all("els => els.map(e => e.alt)")
     assert all(a.startswith("Reference ") for a in alts)
-    assert "candidates in" in page.inner_text("#status")
-    SHOTS.mkdir(parents=True, exist_ok=True)
-    page.screenshot(path=str(SHOTS / "locate.png"), full_page=True)
-    shutil.copy(SHOTS / "locate.png", tmp_path / "locate.png")
+    assert "candidates in" in page.inner_text("#locate-status")
+    check_best_marker_on_top(page, items.count())
+    screenshot(page, f"locate-likely-{viewport}.png")
+    if viewport == "phone":
+        no_horizontal_scroll(page)
+    # The service's own figures stay one keypress away.
+    page.focus("#tech-box summary")
+    page.keyboard.press("Enter")
+    assert re.search(r"Confidence\s+\d+ % of the candidates' weight agrees", page.inner_text("#tech"))
 
-    # An error from the API is shown in words.
+    # The tabs from the keyboard: each keeps its own status line.
+    page.focus("#tab-locate")
+    page.keyboard.press("ArrowRight")
+    page.wait_for_selector("#refs li")
+    assert page.evaluate("document.activeElement.id") == "tab-refs"
+    assert page.locator("#locate-status").is_hidden() and page.locator("#view-locate").is_hidden()
+    assert page.locator("#refs-status").is_visible() or page.inner_text("#refs-status") == ""
+    assert "candidates in" not in page.inner_text("#view-refs")
+    page.keyboard.press("ArrowLeft")
+    assert page.locator("#locate-status").is_visible()
+    # The list's Map button (keyboard too) opens the candidate's popup, which names the candidates hidden
+    # under it (the crops of the query's capture, at the same position).
+    page.focus("#candidates li:nth-child(1) button")
+    page.keyboard.press("Space")
+    page.wait_for_selector(".leaflet-popup-content")
+    popup = page.inner_text(".leaflet-popup-content")
+    assert popup.startswith("1. Reference #") and "Also at this spot: " in popup, popup
+    assert not page.errors, page.errors
+
+
+@pytest.mark.parametrize("viewport", ["desktop", "phone"])
+def test_an_answer_without_estimate(browser, server, tile_png, viewport, tmp_path):
+    page = open_page(browser, server, viewport, tile_png)
+    page.set_input_files("#locate-file", str(UNRELATED))
+    assert page.locator("#preview").is_visible()
+    page.click("#locate-btn")
+    page.wait_for_selector("#answer:not([hidden])", timeout=60_000)
+    assert page.inner_text("#level") == "Possible"
+    assert "candidates disagree" in page.inner_text("#headline")
+    assert re.search(r"spread over \d", page.inner_text("#explain"))
+    assert "from candidate 1" in page.locator("#candidates li").nth(1).inner_text()
+    assert page.locator("#map path.leaflet-interactive").count() == 0  # no estimate circle
+    check_markers = markers(page)
+    one = next(m for m in check_markers if m["n"] == "1")
+    assert all(one["z"] > m["z"] for m in check_markers if m is not one)
+    screenshot(page, f"locate-possible-{viewport}.png")
+    if viewport == "phone":
+        no_horizontal_scroll(page)
+
+    # An error from the API is shown in words, on the locate tab.
     bad = tmp_path / "notes.jpg"
     bad.write_text("not a photo")
     page.set_input_files("#locate-file", str(bad))
     page.click("#locate-btn")
-    page.wait_for_selector("#error:not([hidden])")
-    assert "not a JPEG" in page.inner_text("#error")
+    page.wait_for_selector("#locate-error:not([hidden])")
+    assert "not a JPEG" in page.inner_text("#locate-error")
+    assert not page.errors, page.errors
+
+
+@pytest.mark.parametrize("viewport", ["desktop", "phone"])
+def test_the_page_with_map_tiles_blocked(browser, server, viewport):
+    page = open_page(browser, server, viewport, tiles=None)
+    page.set_input_files("#locate-file", str(server.query))
+    page.click("#locate-btn")
+    page.wait_for_selector("#answer:not([hidden])", timeout=60_000)
+    assert page.inner_text("#level") == "Likely"
+    page.wait_for_selector("#map-note:not([hidden])")
+    assert "tiles" in page.inner_text("#map-note") and "could not load" in page.inner_text("#map-note")
+    check_best_marker_on_top(page, page.locator("#candidates li").count())
+    assert page.locator("#map path.leaflet-interactive").count() >= 1  # the estimate's circle
+    screenshot(page, f"locate-no-tiles-{viewport}.png")
+    if viewport == "phone":
+        no_horizontal_scroll(page)
+    assert not page.errors, page.errors
+
+
+def test_the_page_without_the_map_library(browser, server):
+    """Leaflet missing (a broken install, a blocked file): the answer and the list still work."""
+    page = browser.new_page(viewport=VIEWPORTS["phone"])
+    errors = []
+    page.on("pageerror", lambda e: errors.append(str(e)))
+    page.route("**/vendor/leaflet/**", lambda route: route.abort())
+    page.goto(server.url + "/")
+    assert "did not load" in page.inner_text("#map") and page.locator(".legend").is_hidden()
+    page.set_input_files("#locate-file", str(server.query))
+    page.click("#locate-btn")
+    page.wait_for_selector("#answer:not([hidden])", timeout=60_000)
+    assert page.inner_text("#level") == "Likely" and page.locator("#candidates li").count() >= 3
     assert not errors, errors
 
 
+def test_no_match(browser, server, tile_png):
+    """An answer with no candidate (an empty collection, or a region holding none): said as such. The
+    answer is the service's own shape for an empty region, served by the test so the shared collection
+    stays as it is."""
+    page = open_page(browser, server, "phone", tile_png)
+    empty = {
+        "candidates": [],
+        "estimate": None,
+        "reason": "no references in the requested region",
+        "mode": "float",
+        "config": "hybrid-bin",
+        "features": {"extracted": 1000, "kept": 1000},
+        "timings_ms": {"total": 12.0},
+        "index": {"size": len(server.rows), "version": 1},
+    }
+    page.route("**/locate", lambda route: route.fulfill(status=200, json=empty))
+    page.set_input_files("#locate-file", str(server.query))
+    page.click("#locate-btn")
+    page.wait_for_selector("#answer:not([hidden])")
+    assert page.inner_text("#level") == "No match"
+    assert "no references in the region" in page.inner_text("#headline")
+    assert page.locator("#candidates li").count() == 0 and page.locator("#map .num-marker").count() == 0
+    assert page.locator("#legend").is_hidden()
+    screenshot(page, "locate-no-match-phone.png")
+    no_horizontal_scroll(page)
+    assert not page.errors, page.errors
+
+
+def test_calibrated_probabilities_in_words(browser, server, tile_png):
+    """Where the answer carries each candidate's calibrated ``p_within_25m`` (the application core gives
+    it for the first 10), the page says it as a chance; served by the test, in the service's shape."""
+    refs = server.client.get("/references?limit=2").json()["items"]
+    answer = {
+        "candidates": [
+            {
+                "reference_id": r["id"],
+                "lat": r["lat"],
+                "lon": r["lon"],
+                "score": s,
+                "distance_m": None,
+                "label": r["label"],
+                "captured_at": None,
+                "heading": None,
+                "inliers": None,
+                "p_within_25m": p,
+            }
+            for r, s, p in zip(refs, (0.61, 0.55), (0.34, 0.12), strict=True)
+        ],
+        "estimate": None,
+        "reason": "ambiguous: the best group holds 40% of the candidates' weight; candidates disagree on the place",
+        "mode": "float",
+        "config": "hybrid-bin",
+        "features": {"extracted": 1200, "kept": 900},
+        "timings_ms": {"total": 12.0},
+        "index": {"size": len(server.rows), "version": 1},
+    }
+    page = open_page(browser, server, "desktop", tile_png)
+    page.route("**/locate", lambda route: route.fulfill(status=200, json=answer))
+    page.set_input_files("#locate-file", str(server.query))
+    page.click("#locate-btn")
+    page.wait_for_selector("#answer:not([hidden])")
+    assert page.inner_text("#level") == "Possible"
+    assert "34 % chance of lying within 25 m" in page.inner_text("#explain")
+    assert "12 % chance it is within 25 m" in page.locator("#candidates li").nth(1).inner_text()
+    assert page.inner_text("#features-used").startswith("Features used: 900 of the 1,200")
+    assert not page.errors, page.errors
+
+
 def test_references_view_at_phone_width_with_the_keyboard(browser, server):
-    page = browser.new_page(viewport={"width": 390, "height": 844})
-    page.goto(server.url + "/")
+    page = open_page(browser, server, "phone", None)
     page.focus("#tab-refs")
     page.keyboard.press("Enter")
     page.wait_for_selector("#refs li")
     assert page.locator("#refs li").count() == len(server.rows)
     assert "of " + str(len(server.rows)) in page.inner_text("#refs-count")
+    first = page.locator("#refs li").first.inner_text()
+    assert "Reference #" in first and ".jpg" in first  # the file name as a detail, not as the title
     # Deleting without the key: refused, and said so.
     page.on("dialog", lambda d: d.accept())
     page.locator("#refs li button").first.click()
-    page.wait_for_selector("#error:not([hidden])")
-    assert "401" in page.inner_text("#error")
+    page.wait_for_selector("#refs-error:not([hidden])")
+    assert "401" in page.inner_text("#refs-error")
+    assert page.locator("#locate-error").is_hidden()
     # With the key (kept for this browser session): deleted.
     page.fill("#api-key", "web-key")
     page.locator("#refs li button").first.click()
     page.wait_for_function(f"document.querySelectorAll('#refs li').length == {len(server.rows) - 1}")
     assert page.evaluate("sessionStorage.getItem('geoloc-key')") == "web-key"
-    width = page.evaluate("document.documentElement.scrollWidth")
-    assert width <= 400  # no horizontal scrolling at phone width
+    assert "deleted" in page.inner_text("#refs-status")
+    no_horizontal_scroll(page)
     page.screenshot(path=str(SHOTS / "references-phone.png"), full_page=True)
 
 

@@ -7,18 +7,21 @@ const $ = (id) => document.getElementById(id);
 const hasLeaflet = typeof window.L !== "undefined";
 const PAGE = 20;
 let refsOffset = 0;
+let candidateMarkers = []; // the locate map's markers, by rank
 
 // -- API key: kept for this browser session only --------------------------------------------------
 $("api-key").value = sessionStorage.getItem("geoloc-key") || "";
 $("api-key").addEventListener("input", (e) => sessionStorage.setItem("geoloc-key", e.target.value));
 const keyHeaders = () => ($("api-key").value ? { "X-API-Key": $("api-key").value } : {});
 
-function showError(message) {
-  const box = $("error");
+// Each view has its own status line and error box ("locate" or "refs"), so a message never shows up
+// on the other tab.
+function showError(view, message) {
+  const box = $(`${view}-error`);
   box.textContent = message;
   box.hidden = !message;
 }
-function status(text) { $("status").textContent = text; }
+function status(view, text) { $(`${view}-status`).textContent = text; }
 
 async function api(path, options = {}) {
   let response;
@@ -36,6 +39,34 @@ async function api(path, options = {}) {
   return body;
 }
 
+// -- words ------------------------------------------------------------------------------------------
+function escapeHtml(s) {
+  return String(s).replace(/[&<>"']/g, (ch) => ({ "&": "&amp;", "<": "&lt;", ">": "&gt;", '"': "&quot;", "'": "&#39;" })[ch]);
+}
+const position = (lat, lon) => `${lat.toFixed(5)}, ${lon.toFixed(5)}`;
+const metres = (m) => (m < 1000 ? `${Math.round(m)} m` : `${(m / 1000).toFixed(1)} km`);
+
+// Labels are often the uploaded file's name (`geoloc ingest` uses it): that says nothing about the
+// place, so such a reference is called by its id and the file name is kept as a small detail (it is
+// still how its owner finds the photo on disk). A real label ("College Hall") is the title.
+const FILE_NAME = /^[^\s/\\]+\.(jpe?g|png|webp|tiff?|heic|heif|gif|bmp)$/i;
+function refName(id, label) {
+  if (label && !FILE_NAME.test(label.trim())) return { title: label, file: "" };
+  return { title: `Reference #${id}`, file: label || "" };
+}
+
+function haversine(a, b) {
+  const rad = Math.PI / 180, R = 6371008.8;
+  const dlat = (b.lat - a.lat) * rad, dlon = (b.lon - a.lon) * rad;
+  const h = Math.sin(dlat / 2) ** 2 + Math.cos(a.lat * rad) * Math.cos(b.lat * rad) * Math.sin(dlon / 2) ** 2;
+  return 2 * R * Math.asin(Math.min(1, Math.sqrt(h)));
+}
+function spread(points) {
+  let most = 0;
+  points.forEach((p, i) => points.slice(i + 1).forEach((q) => { most = Math.max(most, haversine(p, q)); }));
+  return most;
+}
+
 // -- maps -------------------------------------------------------------------------------------------
 function makeMap(id) {
   if (!hasLeaflet) {
@@ -43,34 +74,92 @@ function makeMap(id) {
     return null;
   }
   const map = L.map(id, { zoomControl: true }).setView([39.9522, -75.1932], 16);
-  L.tileLayer("https://tile.openstreetmap.org/{z}/{x}/{y}.png", {
+  const tiles = L.tileLayer("https://tile.openstreetmap.org/{z}/{x}/{y}.png", {
     maxZoom: 19,
     attribution: "&copy; OpenStreetMap contributors",
   }).addTo(map);
+  L.control.scale({ imperial: false }).addTo(map);
+  tiles.once("tileerror", () => noTiles(id));
   return { map, layer: L.layerGroup().addTo(map) };
 }
+
+// Without tiles the map is a blank plane: say so under it (never over the markers), so that nobody
+// takes it for a broken page.
+function noTiles(id) {
+  $(id).classList.add("tiles-missing");
+  const note = $(`${id}-note`);
+  note.textContent = "The map background (tiles) could not load: positions are drawn to scale on a blank grid.";
+  note.hidden = false;
+}
+
 const locateMap = makeMap("map");
 const refsMap = makeMap("refs-map");
 
-function numberedIcon(n) {
-  return L.divIcon({ className: "num-marker", html: `<span>${n}</span>`, iconSize: [26, 26] });
+function numberedIcon(n, best) {
+  const size = best ? 34 : 24;
+  return L.divIcon({
+    className: best ? "num-marker best" : "num-marker",
+    html: `<span>${n}</span>`,
+    iconSize: [size, size],
+  });
 }
 
-// -- tabs -------------------------------------------------------------------------------------------
-function select(tab) {
-  for (const [t, v] of [["tab-locate", "view-locate"], ["tab-refs", "view-refs"]]) {
+// -- tabs: buttons with the tab pattern (arrow keys move between them, Enter/Space activate) --------
+const TABS = [["tab-locate", "view-locate"], ["tab-refs", "view-refs"]];
+function select(tab, focus = false) {
+  for (const [t, v] of TABS) {
     const on = t === tab;
     $(t).setAttribute("aria-selected", String(on));
+    $(t).tabIndex = on ? 0 : -1;
     $(v).hidden = !on;
   }
-  showError("");
+  if (focus) $(tab).focus();
   if (tab === "tab-refs") loadRefs();
   setTimeout(() => [locateMap, refsMap].forEach((m) => m && m.map.invalidateSize()), 0);
 }
-$("tab-locate").addEventListener("click", () => select("tab-locate"));
-$("tab-refs").addEventListener("click", () => select("tab-refs"));
+TABS.forEach(([t], i) => {
+  $(t).addEventListener("click", () => select(t));
+  $(t).addEventListener("keydown", (e) => {
+    const to = { ArrowRight: i + 1, ArrowLeft: i - 1, Home: 0, End: TABS.length - 1 }[e.key];
+    if (to === undefined) return;
+    e.preventDefault();
+    select(TABS[(to + TABS.length) % TABS.length][0], true);
+  });
+});
 
-// -- locate -----------------------------------------------------------------------------------------
+// -- locate: the chosen photo -----------------------------------------------------------------------
+let previewUrl = null;
+function showPreview() {
+  const file = $("locate-file").files[0];
+  if (previewUrl) URL.revokeObjectURL(previewUrl);
+  previewUrl = file ? URL.createObjectURL(file) : null;
+  $("preview").hidden = false;
+  $("preview").src = previewUrl || "";
+  $("preview").alt = file ? `Your photo: ${file.name}` : "";
+  $("preview-caption").textContent = "Your photo";
+  $("preview-box").hidden = !file;
+  clearAnswer();
+  showError("locate", "");
+  status("locate", file ? "Press Locate to find where it was taken." : "");
+}
+$("locate-file").addEventListener("change", showPreview);
+// A format the browser cannot draw (TIFF in most browsers) can still be located: say so instead of
+// showing a broken image.
+$("preview").addEventListener("error", () => {
+  if (!previewUrl) return;
+  $("preview").hidden = true;
+  $("preview-caption").textContent = "Your photo (this browser cannot show its format; it can still be located)";
+});
+
+// The answer, the candidates and the markers of the previous photo go as soon as another is chosen.
+function clearAnswer() {
+  $("answer").hidden = true;
+  $("candidates").replaceChildren();
+  $("legend").hidden = true;
+  if (locateMap) locateMap.layer.clearLayers();
+  candidateMarkers = [];
+}
+
 const drop = $("drop");
 ["dragenter", "dragover"].forEach((ev) => drop.addEventListener(ev, (e) => { e.preventDefault(); drop.classList.add("over"); }));
 ["dragleave", "drop"].forEach((ev) => drop.addEventListener(ev, () => drop.classList.remove("over")));
@@ -78,74 +167,209 @@ drop.addEventListener("drop", (e) => {
   e.preventDefault();
   if (e.dataTransfer.files.length) {
     $("locate-file").files = e.dataTransfer.files;
+    showPreview();
     locate();
   }
 });
-drop.addEventListener("keydown", (e) => { if (e.key === "Enter" || e.key === " ") { e.preventDefault(); $("locate-file").click(); } });
 $("locate-form").addEventListener("submit", (e) => { e.preventDefault(); locate(); });
 
 async function locate() {
   const file = $("locate-file").files[0];
-  if (!file) { showError("Choose a photo first."); return; }
-  showError("");
-  status("Locating…");
+  if (!file) { showError("locate", "Choose a photo first."); return; }
+  showError("locate", "");
+  clearAnswer();
+  status("locate", "Locating…");
+  $("locate-btn").disabled = true;
   const form = new FormData();
   form.append("image", file);
   form.append("top_k", $("top-k").value || "10");
   try {
     const res = await api("/locate", { method: "POST", body: form, headers: keyHeaders() });
     renderLocate(res);
-    status(`${res.candidates.length} candidates in ${Math.round(res.timings_ms.total)} ms ` +
-           `(${res.features.kept} of ${res.features.extracted} features used).`);
+    status("locate", `${res.candidates.length} candidates in ${Math.round(res.timings_ms.total)} ms.`);
   } catch (e) {
-    status("");
-    showError(e.message);
+    status("locate", "");
+    showError("locate", e.message);
+  } finally {
+    $("locate-btn").disabled = false;
   }
+}
+
+// -- locate: the answer in words --------------------------------------------------------------------
+// The level comes from the answer itself: the service gives an estimate only when it is confident
+// (likely); candidates without one mean they point at different places (possible); none is no match.
+const LEVELS = { likely: "Likely", possible: "Possible", none: "No match" };
+function levelOf(res) {
+  if (res.estimate) return "likely";
+  return res.candidates.length ? "possible" : "none";
+}
+
+function verdict(res, level) {
+  const cands = res.candidates;
+  if (level === "likely") {
+    const est = res.estimate;
+    const inside = cands.filter((c) => c.distance_m != null && c.distance_m <= est.radius_m).length;
+    const outside = cands.filter((c) => c.distance_m != null && c.distance_m > est.radius_m);
+    const nearest = outside.length ? Math.min(...outside.map((c) => c.distance_m)) : null;
+    return {
+      headline: `Taken within ${metres(est.radius_m)} of ${position(est.lat, est.lon)}.`,
+      explain: `The best matches agree on this spot. ${inside} of the ${cands.length} candidates lie ` +
+        `within that radius` + (nearest == null ? "." : `; the nearest one outside it is ${metres(nearest)} away.`) +
+        " Each candidate's distance is listed below.",
+    };
+  }
+  if (level === "possible") {
+    const best = cands[0];
+    const top = cands.slice(0, 10);
+    const chance = best.p_within_25m == null ? "" :
+      ` The service gives it a ${Math.round(best.p_within_25m * 100)} % chance of lying within 25 m of where ` +
+      "your photo was taken.";
+    return {
+      headline: "The candidates disagree: no single place stands out.",
+      explain: `The best match (candidate 1) is at ${position(best.lat, best.lon)}, but the top ` +
+        `${top.length} candidates are spread over ${metres(spread(top))}.${chance} Compare their photos ` +
+        "with yours below before trusting any of them.",
+    };
+  }
+  const region = (res.reason || "").includes("region");
+  return {
+    headline: region ? "There are no references in the region searched." : "No reference could be compared with this photo.",
+    explain: region ? "Search a wider region, or add references there." : "The collection holds no references yet: add some on the References tab.",
+  };
+}
+
+function featuresInWords(f) {
+  if (!f.extracted) return "No features (distinctive points) were found in your photo: it may be blank, dark or blurred.";
+  return `Features used: ${f.kept.toLocaleString("en")} of the ${f.extracted.toLocaleString("en")} ` +
+    "distinctive points found in your photo.";
+}
+
+function technical(res) {
+  const rows = [
+    ["Confidence", res.estimate ? `${Math.round(res.estimate.confidence * 100)} % of the candidates' weight agrees` : "no confident estimate"],
+    ["Service's reason", res.reason || "none (confident)"],
+    ["Search", `${res.mode}, configuration ${res.config}, ${res.index.size} references`],
+    ["Time", `${Math.round(res.timings_ms.total)} ms`],
+  ];
+  $("tech").replaceChildren(...rows.flatMap(([k, v]) => {
+    const dt = document.createElement("dt"), dd = document.createElement("dd");
+    dt.textContent = k;
+    dd.textContent = v;
+    return [dt, dd];
+  }));
+}
+
+function renderAnswer(res) {
+  const level = levelOf(res);
+  const words = verdict(res, level);
+  $("level").textContent = LEVELS[level];
+  $("level").className = `level ${level}`;
+  $("headline").textContent = words.headline;
+  $("explain").textContent = words.explain;
+  $("features-used").textContent = featuresInWords(res.features);
+  technical(res);
+  $("answer").hidden = false;
+}
+
+// -- locate: the candidates -------------------------------------------------------------------------
+function whereFrom(c, i, res) {
+  const est = res.estimate;
+  if (est && c.distance_m != null) {
+    return `${metres(c.distance_m)} from the estimate`;
+  }
+  return i > 0 ? `${metres(haversine(c, res.candidates[0]))} from candidate 1` : "";
+}
+
+// The service's calibrated probability (when it gives one) that a candidate lies within 25 m of where the
+// photo was taken.
+function chanceInWords(c) {
+  if (c.p_within_25m == null) return "";
+  const p = Math.round(c.p_within_25m * 100);
+  return `<span title="The service's estimate of the chance that this reference lies within 25 m of where ` +
+    `your photo was taken">${p} % chance it is within 25 m</span>`;
+}
+
+function candidateItem(c, i, res) {
+  const li = document.createElement("li");
+  li.className = i === 0 ? "candidate best" : "candidate";
+  const name = refName(c.reference_id, c.label);
+  const img = document.createElement("img");
+  img.src = `/references/${c.reference_id}/image`;
+  img.alt = `Reference ${c.reference_id}${c.label ? ": " + c.label : ""}`;
+  const text = document.createElement("div");
+  text.className = "text";
+  const where = whereFrom(c, i, res);
+  const inliers = c.inliers == null ? "" : `, ${c.inliers} matching points`;
+  const chance = chanceInWords(c);
+  const file = name.file ? `${escapeHtml(name.file)} · ` : "";
+  text.innerHTML = `<strong>${i + 1}. ${escapeHtml(name.title)}</strong>` +
+    (i === 0 ? ' <span class="tag">best match</span>' : "") +
+    (where ? `<br>${escapeHtml(where)}` : "") + (chance ? `<br>${chance}` : "") +
+    `<br>match score ${c.score.toFixed(3)}${inliers}` +
+    `<br><small>${file}${position(c.lat, c.lon)}</small>`;
+  li.append(img, text);
+  if (locateMap) {
+    const show = document.createElement("button");
+    show.type = "button";
+    show.className = "show";
+    show.textContent = "Map";
+    show.setAttribute("aria-label", `Show candidate ${i + 1} on the map`);
+    show.addEventListener("click", () => focusCandidate(i));
+    li.append(show);
+  }
+  return li;
+}
+
+function focusCandidate(i) {
+  const m = candidateMarkers[i];
+  locateMap.map.setView(m.getLatLng(), Math.max(locateMap.map.getZoom(), 18));
+  m.openPopup();
+  $("map").scrollIntoView({ block: "nearest" });
 }
 
 function renderLocate(res) {
-  const list = $("candidates");
-  list.replaceChildren();
-  const est = res.estimate;
-  $("estimate").textContent = est
-    ? `Estimate: ${est.lat.toFixed(6)}, ${est.lon.toFixed(6)} within ${Math.round(est.radius_m)} m ` +
-      `(confidence ${(est.confidence * 100).toFixed(0)} %).`
-    : `No confident estimate: ${res.reason || "the candidates disagree"}.`;
-  res.candidates.forEach((c, i) => {
-    const li = document.createElement("li");
-    li.className = "candidate";
-    const img = document.createElement("img");
-    img.src = `/references/${c.reference_id}/image`;
-    img.alt = `Reference ${c.reference_id}${c.label ? ": " + c.label : ""}`;
-    const text = document.createElement("div");
-    const dist = c.distance_m == null ? "" : `, ${Math.round(c.distance_m)} m from the estimate`;
-    text.innerHTML = `<strong>${i + 1}. ${escapeHtml(c.label || "reference " + c.reference_id)}</strong>` +
-      `<br>score ${c.score.toFixed(3)}${dist}<br><small>${c.lat.toFixed(6)}, ${c.lon.toFixed(6)}</small>`;
-    li.append(img, text);
-    list.append(li);
-  });
+  renderAnswer(res);
+  $("candidates").replaceChildren(...res.candidates.map((c, i) => candidateItem(c, i, res)));
+  drawLocate(res);
+}
+
+// Markers at one spot hide each other: each popup names the others there.
+function sameSpot(cands, i) {
+  const here = cands.map((c, j) => j).filter((j) => j !== i && haversine(cands[i], cands[j]) < 1);
+  return here.length ? `<br>Also at this spot: ${here.map((j) => j + 1).join(", ")}` : "";
+}
+
+// Marker 1 is drawn last and with the largest z-index offset, so it is on top of any later candidate at
+// the same spot; the others stack by rank too.
+function drawLocate(res) {
   if (!locateMap) return;
   const { map, layer } = locateMap;
   layer.clearLayers();
-  const pts = [];
-  res.candidates.forEach((c, i) => {
-    L.marker([c.lat, c.lon], { icon: numberedIcon(i + 1), title: `Candidate ${i + 1}`, alt: `Candidate ${i + 1}` })
-      .bindPopup(`${i + 1}. ${escapeHtml(c.label || "reference " + c.reference_id)} (score ${c.score.toFixed(3)})`)
-      .addTo(layer);
-    pts.push([c.lat, c.lon]);
-  });
+  const n = res.candidates.length;
+  const est = res.estimate;
+  $("legend").hidden = n === 0;
+  $("legend-est").hidden = !est;
+  const bounds = L.latLngBounds(res.candidates.map((c) => [c.lat, c.lon]));
   if (est) {
-    L.circle([est.lat, est.lon], { radius: est.radius_m, color: "#d33", weight: 2, fillOpacity: 0.15 })
-      .bindTooltip("Estimate").addTo(layer);
-    L.circleMarker([est.lat, est.lon], { radius: 6, color: "#d33", fillOpacity: 1, className: "estimate-marker" })
+    const circle = L.circle([est.lat, est.lon], { radius: est.radius_m, color: "#c92a2a", weight: 2, fillOpacity: 0.12 })
+      .bindTooltip(`Estimate: within ${metres(est.radius_m)}`).addTo(layer);
+    bounds.extend(circle.getBounds());
+    L.circleMarker([est.lat, est.lon], { radius: 5, color: "#c92a2a", fillOpacity: 1, className: "estimate-marker" })
       .addTo(layer);
-    pts.push([est.lat, est.lon]);
   }
-  if (pts.length) map.fitBounds(pts, { padding: [30, 30], maxZoom: 18 });
-}
-
-function escapeHtml(s) {
-  return String(s).replace(/[&<>"']/g, (ch) => ({ "&": "&amp;", "<": "&lt;", ">": "&gt;", '"': "&quot;", "'": "&#39;" })[ch]);
+  candidateMarkers = res.candidates.map((c, i) => {
+    const name = refName(c.reference_id, c.label).title;
+    return L.marker([c.lat, c.lon], {
+      icon: numberedIcon(i + 1, i === 0),
+      zIndexOffset: i === 0 ? 100000 : (n - i) * 100,
+      title: `Candidate ${i + 1}: ${name}`,
+      alt: `Candidate ${i + 1}`,
+      riseOnHover: true,
+    }).bindPopup(`${i + 1}. ${escapeHtml(name)}<br>${escapeHtml(whereFrom(c, i, res) || "best match")}` +
+      sameSpot(res.candidates, i));
+  });
+  candidateMarkers.slice().reverse().forEach((m) => m.addTo(layer));
+  if (bounds.isValid()) map.fitBounds(bounds, { padding: [30, 30], maxZoom: 18 });
 }
 
 // -- references -------------------------------------------------------------------------------------
@@ -154,8 +378,30 @@ async function loadRefs() {
     const page = await api(`/references?offset=${refsOffset}&limit=${PAGE}`, { headers: keyHeaders() });
     renderRefs(page);
   } catch (e) {
-    showError(e.message);
+    showError("refs", e.message);
   }
+}
+
+function refItem(r) {
+  const li = document.createElement("li");
+  li.className = "ref";
+  const name = refName(r.id, r.label);
+  const img = document.createElement("img");
+  img.src = `/references/${r.id}/image`;
+  img.alt = `Reference ${r.id}${r.label ? ": " + r.label : ""}`;
+  img.loading = "lazy";
+  const text = document.createElement("div");
+  text.className = "text";
+  const file = name.file ? `<br><small>${escapeHtml(name.file)}</small>` : "";
+  text.innerHTML = `<strong>${escapeHtml(name.title)}</strong>${file}<br>` +
+    `<small>${position(r.lat, r.lon)} · ${escapeHtml(r.status)}</small>`;
+  const del = document.createElement("button");
+  del.type = "button";
+  del.textContent = "Delete";
+  del.setAttribute("aria-label", `Delete reference ${r.id}`);
+  del.addEventListener("click", () => deleteRef(r.id));
+  li.append(img, text, del);
+  return li;
 }
 
 function renderRefs(page) {
@@ -164,30 +410,12 @@ function renderRefs(page) {
     : "No references yet.";
   $("prev").disabled = page.offset === 0;
   $("next").disabled = page.offset + page.items.length >= page.total;
-  const ul = $("refs");
-  ul.replaceChildren();
-  for (const r of page.items) {
-    const li = document.createElement("li");
-    li.className = "ref";
-    const img = document.createElement("img");
-    img.src = `/references/${r.id}/image`;
-    img.alt = `Reference ${r.id}${r.label ? ": " + r.label : ""}`;
-    img.loading = "lazy";
-    const text = document.createElement("div");
-    text.innerHTML = `<strong>${escapeHtml(r.label || "reference " + r.id)}</strong><br>` +
-      `<small>${r.lat.toFixed(6)}, ${r.lon.toFixed(6)} · ${escapeHtml(r.status)}</small>`;
-    const del = document.createElement("button");
-    del.type = "button";
-    del.textContent = "Delete";
-    del.setAttribute("aria-label", `Delete reference ${r.id}`);
-    del.addEventListener("click", () => deleteRef(r.id));
-    li.append(img, text, del);
-    ul.append(li);
-  }
+  $("refs").replaceChildren(...page.items.map(refItem));
   if (refsMap) {
     refsMap.layer.clearLayers();
     const pts = page.items.map((r) => [r.lat, r.lon]);
-    page.items.forEach((r) => L.circleMarker([r.lat, r.lon], { radius: 5 }).bindTooltip(r.label || `#${r.id}`).addTo(refsMap.layer));
+    page.items.forEach((r) => L.circleMarker([r.lat, r.lon], { radius: 5 })
+      .bindTooltip(refName(r.id, r.label).title).addTo(refsMap.layer));
     if (pts.length) refsMap.map.fitBounds(pts, { padding: [30, 30], maxZoom: 18 });
   }
 }
@@ -196,11 +424,11 @@ async function deleteRef(id) {
   if (!confirm(`Delete reference ${id}? Its image, codes and metadata are removed.`)) return;
   try {
     await api(`/references/${id}`, { method: "DELETE", headers: keyHeaders() });
-    showError("");
-    status(`Reference ${id} deleted.`);
+    showError("refs", "");
+    status("refs", `Reference ${id} deleted.`);
     loadRefs();
   } catch (e) {
-    showError(e.message);
+    showError("refs", e.message);
   }
 }
 
@@ -220,21 +448,23 @@ if (refsMap) {
 $("add-form").addEventListener("submit", async (e) => {
   e.preventDefault();
   const file = $("add-file").files[0];
-  if (!file) { showError("Choose an image to add."); return; }
+  if (!file) { showError("refs", "Choose an image to add."); return; }
   const form = new FormData();
   form.append("image", file);
   for (const [id, name] of [["add-lat", "lat"], ["add-lon", "lon"], ["add-label", "label"]]) {
     if ($(id).value.trim()) form.append(name, $(id).value.trim());
   }
-  showError("");
+  showError("refs", "");
   try {
     const res = await api("/references", { method: "POST", body: form, headers: keyHeaders() });
-    status(res.duplicates[0] ? `Already stored as reference ${res.reference_ids[0]}.`
-                             : `Accepted as reference ${res.reference_ids[0]}; encoding…`);
+    status("refs", res.duplicates[0] ? `Already stored as reference ${res.reference_ids[0]}.`
+                                     : `Accepted as reference ${res.reference_ids[0]}; encoding…`);
     await waitJob(res.job_id);
+    // A duplicate uploaded with other metadata keeps the stored one: the service says so in `notes`.
+    if (res.notes && res.notes.length) status("refs", `${$("refs-status").textContent} ${res.notes.join(" ")}`);
     loadRefs();
   } catch (err) {
-    showError(err.message);
+    showError("refs", err.message);
   }
 });
 
@@ -242,7 +472,7 @@ async function waitJob(id) {
   for (let i = 0; i < 120; i++) {
     const job = await api(`/jobs/${id}`, { headers: keyHeaders() });
     if (job.status === "done" || job.status === "failed") {
-      status(job.status === "done" ? "Reference indexed." : `Encoding failed: ${job.items[0].error}`);
+      status("refs", job.status === "done" ? "Reference indexed." : `Encoding failed: ${job.items[0].error}`);
       return job;
     }
     await new Promise((r) => setTimeout(r, 500));
