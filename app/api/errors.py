@@ -22,6 +22,7 @@ from app.core import InvalidRequest
 from app.engine import errors as e
 from app.engine.configs import UnknownConfig
 from app.engine.search import UnsupportedMode
+from app.engine.svm_training import NothingToTrainOn
 from app.operations import OperationRefused
 from app.store import StorageUnavailable, is_storage_error
 
@@ -72,6 +73,7 @@ DOMAIN_CODES: dict[type[Exception], str] = {
     InvalidRequest: "invalid_request",
     StorageUnavailable: "storage_unavailable",
     OperationRefused: "invalid_request",  # CLI-only (backup/restore), listed so no domain error is unmapped
+    NothingToTrainOn: "invalid_request",  # CLI-only (fit/eval on a manifest that leaves nothing to fit)
 }
 
 #: Refusals raised by Starlette/FastAPI themselves (routing, multipart parsing, static files).
