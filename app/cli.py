@@ -109,7 +109,7 @@ def fit(
 
     cfg = get_config(config)
     rows = [r for r in read_manifest(manifest) if r.split in ("db", "train")]
-    pipe = Pipeline(cfg, cnn=_load_cnn(models_dir, cfg))
+    pipe = Pipeline(cfg, cnn=_load_cnn(models_dir, cfg), models_dir=models_dir)
     feats = [e.features for e in extract_all(pipe, rows, desc="extract")]
     typer.echo(f"fitting {cfg.name} on {len(feats)} images ...")
     pipe.fit(feats, seed=seed)
@@ -264,6 +264,7 @@ def eval_cmd(
         workers=workers,
         svm_bank=svm_bank,
         bank_kind=svm_bank_kind,
+        models_dir=models_dir,
     )
     typer.echo(format_summary(result))
     if json_out:

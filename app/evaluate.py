@@ -94,13 +94,15 @@ def evaluate(
     cache_dir: Path | None = None,
     svm_bank: str = "off",
     bank_kind: str = "contrastive",
+    models_dir: Path | None = None,
 ) -> dict:
-    """``svm_bank``: off (all features), positive (features the bank predicts useful) or negative (only
+    """``models_dir``: where learned local-feature models (XFeat) are.
+    ``svm_bank``: off (all features), positive (features the bank predicts useful) or negative (only
     the ones it predicts confusing): the thesis ablation. The bank is trained per fold on the train rows."""
     if svm_bank not in ("off", "positive", "negative"):
         raise ValueError(f"svm_bank must be off, positive or negative, not {svm_bank!r}")
     rows = read_manifest(manifest)
-    base = Pipeline(config, cnn=cnn)
+    base = Pipeline(config, cnn=cnn, models_dir=models_dir)
     extracted = extract_cached(base, rows, cache_dir, workers)
 
     query_sets = [[r.group for r in rows if r.split == "query"]] if folds <= 1 else assign_folds(rows, folds, seed)
@@ -120,7 +122,7 @@ def evaluate(
         q_idx = [i for i, r in enumerate(rows) if r.group in qset and r.split != "train"]
         db_idx = [i for i, r in enumerate(rows) if r.group not in qset and r.split != "train"]
         fit_idx = db_idx + [i for i, r in enumerate(rows) if r.split == "train"]
-        pipe = Pipeline(config, cnn=cnn)
+        pipe = Pipeline(config, cnn=cnn, models_dir=models_dir)
         pipe.fit([extracted[i].features for i in fit_idx], seed=seed + f)
         index = ReferenceIndex(config, pipe.float_dim, pipe.bits)
         codes = [

@@ -21,10 +21,12 @@ the same mapping, zeros outside the map, and PyTorch's bicubic kernel (A = -0.75
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import cv2
 import numpy as np
 
+from app.engine.local_features import LocalFeatures
 from app.engine.onnx_model import OnnxModel
 from app.engine.xfeat_onnx import DESCRIPTOR_OUTPUT, INPUT_NAME, KEYPOINT_OUTPUT, RELIABILITY_OUTPUT, STRIDE
 
@@ -188,3 +190,28 @@ def mutual_nn(d1: np.ndarray, d2: np.ndarray, min_cossim: float = -1.0) -> np.nd
     idx = np.arange(len(d1))
     keep = (m21[m12] == idx) & (sim[idx, m12] > min_cossim)
     return np.stack([idx[keep], m12[keep]], axis=1)
+
+
+class XFeatFeatures:
+    """XFeat as a pipeline's local-feature extractor: the image scaled down to ``long_side`` (never up),
+    the best ``max_keypoints`` keypoints, positions as fractions of the image size, 64-d unit descriptors."""
+
+    default_conf = {"max_keypoints": 4096, "long_side": 640, "detection_threshold": 0.05}
+    requires_model = True
+
+    def __init__(self, models_dir: Path, **conf):
+        self.conf = {**self.default_conf, **conf}
+        self.model = XFeat(Path(models_dir) / MODEL_FILENAME)
+
+    @property
+    def dim(self) -> int:
+        return 64
+
+    def __call__(self, rgb: np.ndarray) -> LocalFeatures:
+        h, w = rgb.shape[:2]
+        s = self.conf["long_side"] / max(h, w)
+        if s < 1:
+            rgb = cv2.resize(rgb, (round(w * s), round(h * s)), interpolation=cv2.INTER_AREA)
+            h, w = rgb.shape[:2]
+        out = self.model.detect_and_compute(rgb, self.conf["max_keypoints"], self.conf["detection_threshold"])
+        return LocalFeatures(out.keypoints / np.array([w, h], np.float32), out.descriptors)
