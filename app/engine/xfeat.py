@@ -123,13 +123,19 @@ def _cubic_weights(t: np.ndarray, a: float = -0.75) -> np.ndarray:
 
 def sample_bicubic(fmap: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
     """(h, w, C) map at float positions (u, v) in map cells: (N, C), zeros outside the map."""
+    h, w, c = fmap.shape
     x0, y0 = np.floor(u).astype(np.int64), np.floor(v).astype(np.int64)
-    wx, wy = _cubic_weights(u - x0), _cubic_weights(v - y0)
+    weights = (_cubic_weights(v - y0)[:, :, None] * _cubic_weights(u - x0)[:, None, :]).reshape(-1, 1, 16)
+    weights = weights.astype(fmap.dtype)
+    # Zero-pad by 2 so the 4x4 taps of any position within 1 cell of the map need no bounds checks;
+    # positions further out (never produced by detection) are clipped onto the zero border.
+    padded = np.pad(fmap, ((2, 2), (2, 2), (0, 0)))
     taps = np.arange(-1, 3)
-    ys = (y0[:, None] + taps)[:, :, None]  # (N, 4, 1)
-    xs = (x0[:, None] + taps)[:, None, :]  # (N, 1, 4)
-    vals = _gather(fmap, np.broadcast_to(ys, (len(u), 4, 4)), np.broadcast_to(xs, (len(u), 4, 4)))
-    return np.einsum("nijc,ni,nj->nc", vals, wy, wx)
+    ys = np.clip(y0[:, None] + taps + 2, 0, h + 3)
+    xs = np.clip(x0[:, None] + taps + 2, 0, w + 3)
+    flat = (ys[:, :, None] * (w + 4) + xs[:, None, :]).reshape(-1)
+    vals = np.take(padded.reshape(-1, c), flat, axis=0).reshape(-1, 16, c)
+    return (weights @ vals)[:, 0]
 
 
 def l2_rows(x: np.ndarray, axis: int = -1) -> np.ndarray:
