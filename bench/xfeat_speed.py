@@ -8,6 +8,7 @@ both extractors run on it back to back, in alternating order, with the settings 
 configurations is timed the same way. Prints medians and the XFeat / RootSIFT ratio.
 
     python -m bench.xfeat_speed [--photos ../shared/data/penn-campus-gps/photos] [--repeat 2] [--extract]
+                                [--set max_keypoints=2048] [--set local_long_side=480]
 """
 
 from __future__ import annotations
@@ -38,9 +39,11 @@ def main() -> None:
     ap.add_argument("--limit", type=int, default=0, help="first N photos (0: all)")
     ap.add_argument("--repeat", type=int, default=2, help="timed runs per photo and extractor")
     ap.add_argument("--extract", action="store_true", help="also time Pipeline.extract of both configurations")
+    ap.add_argument("--set", dest="overrides", action="append", default=[], help="vary hybrid-xfeat: k=v")
     args = ap.parse_args()
 
-    sift_cfg, xfeat_cfg = get_config("hybrid"), get_config("hybrid-xfeat")
+    overrides = dict(o.split("=", 1) for o in args.overrides)
+    sift_cfg, xfeat_cfg = get_config("hybrid"), get_config("hybrid-xfeat").with_overrides(overrides)
     stages = {
         "rootsift": build_extractor("sift", max_keypoints=sift_cfg.max_keypoints, long_side=sift_cfg.local_long_side),
         "xfeat": build_extractor(
@@ -66,7 +69,8 @@ def main() -> None:
     h, w = rgbs[0].shape[:2]
     print(
         f"{len(rgbs)} photos ({w}x{h} px first), {args.repeat} runs each, interleaved; "
-        f"GEOLOC_ORT_THREADS={os.environ.get('GEOLOC_ORT_THREADS', 'unset (all cores)')}, {os.cpu_count()} cores"
+        f"{xfeat_cfg.name}; GEOLOC_ORT_THREADS={os.environ.get('GEOLOC_ORT_THREADS', 'unset (all cores)')}, "
+        f"{os.cpu_count()} cores"
     )
     med = {k: median_ms(v) for k, v in times.items()}
     for k, v in med.items():
