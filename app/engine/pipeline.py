@@ -99,6 +99,14 @@ class Pipeline:
         if config.uses_cnn and cnn is None:
             raise ModelNotReady(f"configuration {config.name} needs the SqueezeNet model")
 
+    def load_models(self) -> None:
+        """Load every ONNX model now (a service wants a missing file at start-up, not at its first query)."""
+        if self.cnn is not None:
+            self.cnn.load()
+        model = getattr(self._local, "model", None)  # learned extractors hold an OnnxModel
+        if model is not None:
+            model.load()
+
     # -- stage 1: features ----------------------------------------------------------------------------
     def extract(self, rgb: np.ndarray) -> Features:
         c = self.config
@@ -268,4 +276,6 @@ def load_pipeline(models_dir: Path, config_name: str) -> Pipeline:
     cnn = cnn_mod.SqueezeNet(models_dir / cnn_mod.MODEL_FILENAME) if config.uses_cnn else None
     if cnn is not None:
         cnn.load()
-    return Pipeline.load(pipeline_dir(models_dir, config_name), cnn, models_dir)
+    pipe = Pipeline.load(pipeline_dir(models_dir, config_name), cnn, models_dir)
+    pipe.load_models()
+    return pipe

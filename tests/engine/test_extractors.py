@@ -9,7 +9,7 @@ from app.engine.errors import ModelNotReady
 from app.engine.extractors import REGISTRY, build_extractor
 from app.engine.imageio import load_image
 from app.engine.local_features import RootSift
-from app.engine.pipeline import Pipeline
+from app.engine.pipeline import Pipeline, load_pipeline, pipeline_dir
 from app.engine.xfeat import XFeatFeatures
 from tests.conftest import penn_photo
 
@@ -65,6 +65,11 @@ def test_xfeat_configurations_fit_save_and_load(name, mini_manifest, squeezenet,
     assert np.array_equal(loaded.encode_features(feats[0]).float_, base.encode_features(feats[0]).float_)
     with pytest.raises(ModelNotReady):
         Pipeline(get_config(name), cnn=squeezenet)  # no models dir: XFeat cannot be built
+    # A service loads every model at start-up: a models dir without the ONNX files fails there.
+    empty = tmp_path / "empty-models"
+    base.save(pipeline_dir(empty, name))
+    with pytest.raises(ModelNotReady, match="is missing"):
+        load_pipeline(empty, name)
 
 
 def test_existing_configurations_are_unchanged():
