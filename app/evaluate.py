@@ -145,8 +145,10 @@ def evaluate(
     rerank: bool = False,
     region_radius_m: float | None = None,
     bank_source: str = "train",
+    models_dir: Path | None = None,
 ) -> dict:
-    """``svm_bank``: off (all features), positive (features the bank predicts useful) or negative (only
+    """``models_dir``: where learned local-feature models (XFeat) are.
+    ``svm_bank``: off (all features), positive (features the bank predicts useful) or negative (only
     the ones it predicts confusing): the thesis ablation. The bank is trained per fold, never on that
     fold's queries: ``bank_source`` train (the train rows only) or collection (the fold's db rows as
     training photos, plus the train rows: the rule ``geoloc fit`` serves). ``rerank`` and
@@ -159,7 +161,7 @@ def evaluate(
     rows = read_manifest(manifest)
     query_sets = [[r.group for r in rows if r.split == "query"]] if folds <= 1 else assign_folds(rows, folds, seed)
     check_folds(manifest, rows, query_sets)  # before the expensive extraction
-    base = Pipeline(config, cnn=cnn)
+    base = Pipeline(config, cnn=cnn, models_dir=models_dir)
     extracted = extract_cached(base, rows, cache_dir, workers)
 
     lat = np.array([r.lat for r in rows])
@@ -173,7 +175,7 @@ def evaluate(
         q_idx = [i for i, r in enumerate(rows) if r.group in qset and r.split != "train"]
         db_idx = [i for i, r in enumerate(rows) if r.group not in qset and r.split != "train"]
         fit_idx = db_idx + [i for i, r in enumerate(rows) if r.split == "train"]
-        pipe = Pipeline(config, cnn=cnn)
+        pipe = Pipeline(config, cnn=cnn, models_dir=models_dir)
         pipe.fit([extracted[i].features for i in fit_idx], seed=seed + f)
         index = ReferenceIndex(config, pipe.float_dim, pipe.bits)
         codes = [

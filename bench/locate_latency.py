@@ -16,9 +16,9 @@ import httpx
 from app.datasets import Row
 from app.engine.cnn import MODEL_FILENAME, SqueezeNet
 from app.engine.configs import PipelineConfig
+from app.engine.extractors import build_extractor
 from app.engine.geo import haversine_m
 from app.engine.imageio import ImageLimits, load_image
-from app.engine.local_features import EXTRACTORS
 from app.settings import Settings
 from bench.common import is_photo, median_ms, percentiles, post_references
 
@@ -61,7 +61,9 @@ class Floor:
         self.config = config
         self.cnn = SqueezeNet(models_dir / MODEL_FILENAME)
         self.cnn.load()
-        self.local = EXTRACTORS[config.local](max_keypoints=config.max_keypoints, long_side=config.local_long_side)
+        self.local = build_extractor(
+            config.local, models_dir, max_keypoints=config.max_keypoints, long_side=config.local_long_side
+        )
         self.limits: ImageLimits = Settings().image_limits()
 
     def __call__(self, data: bytes) -> dict[str, float]:

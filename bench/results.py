@@ -149,6 +149,7 @@ def main() -> None:
             workers=1,
             svm_bank=bank,
             bank_kind=kind,
+            models_dir=args.models_dir,
         )
         tag = cfg.name + (f"-{mode}" if mode else "") + (f"-svm-{kind}-{bank}" if bank != "off" else "")
         write_report(r, args.out / f"{tag}.json")

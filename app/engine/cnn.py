@@ -1,20 +1,16 @@
 """SqueezeNet 1.1 (ONNX) as a feature extractor: the fire9 map as local descriptors, GeM as a global one.
 
-The model follows one load/predict lifecycle (after immich's ML service): ``load()`` is idempotent and
-guarded by a lock because two requests may race to load it; ``predict`` loads on first use.
+The model follows the one ONNX lifecycle of ``app.engine.onnx_model`` (load under a lock, predict).
 """
 
 from __future__ import annotations
 
-import threading
 from dataclasses import dataclass
-from pathlib import Path
 
 import cv2
 import numpy as np
 
-from app.engine.errors import ModelNotReady
-from app.engine.ort import create_session
+from app.engine.onnx_model import OnnxModel
 from app.engine.squeezenet_onnx import FIRE9_OUTPUT, INPUT_NAME, LOGITS_OUTPUT
 
 MODEL_FILENAME = "squeezenet1_1.onnx"
@@ -29,31 +25,15 @@ class CnnOutput:
     input_hw: tuple[int, int]
 
 
-class SqueezeNet:
+class SqueezeNet(OnnxModel):
     """The built ONNX SqueezeNet."""
 
-    def __init__(self, model_path: Path):
-        self.model_path = Path(model_path)
-        self._session = None
-        self._lock = threading.Lock()
-
-    def load(self) -> None:
-        with self._lock:
-            if self._session is None:
-                if not self.model_path.exists():
-                    raise ModelNotReady(f"{self.model_path} is missing: run `geoloc models build` first")
-                self._session = create_session(self.model_path)
-
-    @property
-    def loaded(self) -> bool:
-        return self._session is not None
+    filename = MODEL_FILENAME
 
     def run(self, rgb: np.ndarray) -> CnnOutput:
         """Run the net on an RGB uint8 image at its own size (resize first if you want another)."""
-        if self._session is None:
-            self.load()
         x = np.ascontiguousarray(rgb.astype(np.float32).transpose(2, 0, 1)[None])
-        fire9, logits = self._session.run([FIRE9_OUTPUT, LOGITS_OUTPUT], {INPUT_NAME: x})
+        fire9, logits = self.predict({INPUT_NAME: x}, [FIRE9_OUTPUT, LOGITS_OUTPUT])
         return CnnOutput(fire9=fire9[0].transpose(1, 2, 0), logits=logits[0], input_hw=rgb.shape[:2])
 
     def features(self, rgb: np.ndarray, short_side: int) -> CnnOutput:

@@ -25,7 +25,7 @@ class PipelineConfig(BaseModel):
     name: str
     description: str
     #: Local handcrafted features, or None for a CNN-only pipeline.
-    local: Literal["sift", "orb"] | None = "sift"
+    local: Literal["sift", "orb", "xfeat"] | None = "sift"
     local_long_side: int = 640
     max_keypoints: int = 1000
     #: CNN (SqueezeNet fire9): used as local descriptors (hybrid) and/or as a pooled global descriptor.
@@ -95,6 +95,9 @@ class PipelineConfig(BaseModel):
 
 
 _HYBRID = dict(local="sift", cnn_local_weight=1.0, cnn_global_weight=1.0, codebook="minibatch", k=64, pca_dim=256)
+# XFeat (learned, 64-d) in place of RootSIFT; keypoints and image size chosen with --folds 5 on
+# penn-campus-gps (docs/RESULTS.md, "XFeat local features").
+_XFEAT = dict(local="xfeat", local_long_side=640, max_keypoints=1024)
 
 CONFIGS: dict[str, PipelineConfig] = {
     c.name: c
@@ -151,6 +154,19 @@ CONFIGS: dict[str, PipelineConfig] = {
             binary="itq",
             bits=256,
             **_HYBRID,
+        ),
+        PipelineConfig(
+            name="xfeat-mbvlad",
+            description="XFeat descriptors (learned, 64-d) MBVLAD, PCA-whitened floats",
+            codebook="minibatch",
+            whiten_power=0.25,
+            **_XFEAT,
+        ),
+        PipelineConfig(
+            name="hybrid-xfeat",
+            description="Feature-level hybrid with XFeat in place of RootSIFT (fire9 sampled at XFeat keypoints) "
+            "MBVLAD, joined with fire9 GeM, PCA-whitened floats",
+            **{**_HYBRID, **_XFEAT},
         ),
     ]
 }

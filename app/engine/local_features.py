@@ -1,6 +1,7 @@
 """Handcrafted local features: SIFT turned into RootSIFT, and ORB.
 
-One small class per extractor with its default configuration (the hloc shape). Both work on a copy of
+One small class per extractor with its default configuration (the hloc shape); ``extractors`` registers
+them by name beside the learned ones. Both work on a copy of
 the image resized to ``long_side`` and keep the strongest ``max_keypoints``: the cap bounds time and the
 VLAD cost, and the strongest responses are the repeatable ones. Keypoint positions are returned as
 fractions of the image size so that other stages (the CNN map) can sample at them whatever their size.
@@ -101,6 +102,3 @@ class Orb:
             )
         bits = np.unpackbits(desc, axis=1).astype(np.float32)
         return LocalFeatures(_positions(kps, gray.shape), bits, desc)
-
-
-EXTRACTORS = {"sift": RootSift, "orb": Orb}

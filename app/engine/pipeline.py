@@ -20,7 +20,7 @@ from app.engine.artifacts import atomic_write_bytes, library_versions
 from app.engine.codes import Binariser
 from app.engine.configs import PipelineConfig, get_config
 from app.engine.errors import IncompatibleArtifact, ModelNotReady
-from app.engine.local_features import EXTRACTORS
+from app.engine.extractors import build_extractor
 from app.engine.pca import PcaWhitening, l2_normalize
 from app.engine.svm_bank import SvmBank
 from app.engine.vlad import Codebook, vlad
@@ -78,7 +78,9 @@ class Pipeline:
         binariser: Binariser | None = None,
         manifest: dict | None = None,
         bank: SvmBank | None = None,
+        models_dir: Path | None = None,
     ):
+        """``models_dir`` holds the learned local-feature models (XFeat); handcrafted ones need none."""
         self.config = config
         self.cnn = cnn
         self.codebook = codebook
@@ -88,12 +90,22 @@ class Pipeline:
         self.bank = bank  # SVM bank: which local features to aggregate (None = all)
         self.bank_select = "positive"  # or "negative" (the thesis ablation)
         self._local = (
-            EXTRACTORS[config.local](max_keypoints=config.max_keypoints, long_side=config.local_long_side)
+            build_extractor(
+                config.local, models_dir, max_keypoints=config.max_keypoints, long_side=config.local_long_side
+            )
             if config.local
             else None
         )
         if config.uses_cnn and cnn is None:
             raise ModelNotReady(f"configuration {config.name} needs the SqueezeNet model")
+
+    def load_models(self) -> None:
+        """Load every ONNX model now (a service wants a missing file at start-up, not at its first query)."""
+        if self.cnn is not None:
+            self.cnn.load()
+        model = getattr(self._local, "model", None)  # learned extractors hold an OnnxModel
+        if model is not None:
+            model.load()
 
     # -- stage 1: features ----------------------------------------------------------------------------
     def extract(self, rgb: np.ndarray) -> Features:
@@ -220,7 +232,7 @@ class Pipeline:
         atomic_write_bytes(directory / PIPELINE_MANIFEST, json.dumps(manifest, indent=1).encode())
 
     @classmethod
-    def load(cls, directory: Path, cnn: cnn_mod.SqueezeNet | None) -> Pipeline:
+    def load(cls, directory: Path, cnn: cnn_mod.SqueezeNet | None, models_dir: Path | None = None) -> Pipeline:
         mpath = directory / PIPELINE_MANIFEST
         if not mpath.exists():
             raise ModelNotReady(f"no fitted pipeline in {directory}: run `geoloc fit` first")
@@ -244,6 +256,7 @@ class Pipeline:
             binariser=Binariser.load(directory) if c.binary else None,
             manifest=manifest,
             bank=SvmBank.load(directory) if SvmBank.exists(directory) else None,
+            models_dir=models_dir,
         )
 
     @property
@@ -265,4 +278,6 @@ def load_pipeline(models_dir: Path, config_name: str) -> Pipeline:
     cnn = cnn_mod.SqueezeNet(models_dir / cnn_mod.MODEL_FILENAME) if config.uses_cnn else None
     if cnn is not None:
         cnn.load()
-    return Pipeline.load(pipeline_dir(models_dir, config_name), cnn)
+    pipe = Pipeline.load(pipeline_dir(models_dir, config_name), cnn, models_dir)
+    pipe.load_models()
+    return pipe

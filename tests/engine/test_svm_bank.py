@@ -155,3 +155,39 @@ def test_definitions_saved_before_the_bank_field_still_match():
         assert (PipelineConfig(**old) == config) == config.svm_bank, name
     a, b = get_config("hybrid").model_dump(), get_config("hybrid-nobank").model_dump()
     assert {k for k in a if a[k] != b[k]} == {"name", "description", "svm_bank"}
+
+
+def test_xfeat_descriptors_label_the_pattern_and_train_a_bank(models_dir, xfeat, tmp_path):
+    """The bank is descriptor-agnostic: with XFeat (64-d learned) features the pasted pattern is labelled
+    confusing, and a bank trained on those labels keeps the building's features over the pattern's."""
+    from app.engine.extractors import build_extractor
+
+    extractor = build_extractor("xfeat", models_dir, max_keypoints=1500, long_side=640)
+    patch = _pattern()
+    train_img = _paste(_photo("img_00000.jpg"), patch, 40, 40)
+    positive = cv2.resize(_photo("img_00000.jpg"), (train_img.shape[1], train_img.shape[0]))
+    confusers = [_paste(_photo(n), patch, 200, 150) for n in ("img_00050.jpg", "img_00090.jpg")]
+    f = extractor(train_img)
+    assert f.descriptors.shape[1] == 64
+    labels = label_features(
+        f.descriptors,
+        [extractor(positive).descriptors],
+        [extractor(c).descriptors for c in confusers],
+        BankParams(kind="contrastive"),
+    )
+    h, w = train_img.shape[:2]
+    px, py = f.xy[:, 0] * w, f.xy[:, 1] * h
+    on_pattern = (px > 45) & (px < 255) & (py > 45) & (py < 255)
+    print("on pattern", on_pattern.sum(), "-1 there", (labels[on_pattern] == -1).mean(),
+          "+1 off", (labels[~on_pattern] == 1).mean(), "-1 off", (labels[~on_pattern] == -1).mean())  # fmt: skip
+    assert on_pattern.sum() > 30
+    assert (labels[on_pattern] == -1).mean() > 0.7
+    assert (labels[~on_pattern] == 1).mean() > 0.5
+    assert (labels[~on_pattern] == -1).mean() < 0.1
+
+    labelled = labels != 0
+    bank = SvmBank.train(f.descriptors[labelled], labels[labelled], BankParams(n_clusters=2, hard_rounds=2, C=1.0))
+    bank.save(tmp_path)
+    again = SvmBank.load(tmp_path)
+    d = again.decision(f.descriptors)
+    assert np.median(d[~on_pattern]) > np.median(d[on_pattern])

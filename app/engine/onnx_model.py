@@ -1,0 +1,56 @@
+"""One lifecycle for every ONNX model (after immich's ``InferenceModel``): load under a lock, predict, unload.
+
+Why one base: two requests may race to load a model, a missing file must say how to build it, and the
+session options (threads, arena, spinning) must be the same for every model, so sessions are only ever
+made by ``app.engine.ort.create_session``. A model subclass names its file and turns arrays into results.
+"""
+
+from __future__ import annotations
+
+import threading
+from pathlib import Path
+from typing import ClassVar
+
+import numpy as np
+
+from app.engine.errors import ModelNotReady
+from app.engine.ort import create_session
+
+
+class OnnxModel:
+    """A built ONNX file and its session, loaded on first use (or eagerly with ``load``)."""
+
+    #: File name inside the models dir (``cls(models_dir / cls.filename)``).
+    filename: ClassVar[str]
+
+    def __init__(self, model_path: Path, intra_threads: int | None = None):
+        self.model_path = Path(model_path)
+        self.intra_threads = intra_threads
+        self._session = None
+        self._lock = threading.Lock()
+
+    @classmethod
+    def from_models_dir(cls, models_dir: Path, **kwargs) -> OnnxModel:
+        return cls(Path(models_dir) / cls.filename, **kwargs)
+
+    def load(self) -> None:
+        """Idempotent and thread-safe: the first caller builds the session, the others wait for it."""
+        with self._lock:
+            if self._session is None:
+                if not self.model_path.exists():
+                    raise ModelNotReady(f"{self.model_path} is missing: run `geoloc models build` first")
+                self._session = create_session(self.model_path, self.intra_threads)
+
+    def unload(self) -> None:
+        with self._lock:
+            self._session = None
+
+    @property
+    def loaded(self) -> bool:
+        return self._session is not None
+
+    def predict(self, inputs: dict[str, np.ndarray], outputs: list[str]) -> list[np.ndarray]:
+        """Run the graph (loading it first if needed); onnxruntime sessions are safe to share across threads."""
+        if self._session is None:
+            self.load()
+        return self._session.run(outputs, inputs)
