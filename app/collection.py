@@ -37,10 +37,9 @@ class SnapshotPolicy:
     every_changes: int = 5_000
     every_seconds: float = 300.0
 
-    def due(self, pending_changes: int, seconds_since_snapshot: float) -> bool:
-        return pending_changes >= self.every_changes or (
-            pending_changes > 0 and seconds_since_snapshot >= self.every_seconds
-        )
+    def due(self, pending_changes: int, seconds_pending: float) -> bool:
+        """``seconds_pending``: since the oldest change not yet in a snapshot."""
+        return pending_changes >= self.every_changes or (pending_changes > 0 and seconds_pending >= self.every_seconds)
 
 
 @dataclass
@@ -104,6 +103,7 @@ class Collection:
         self.lock = threading.RLock()
         self.stats = IndexStats()
         self._snapshot_lock = threading.Lock()
+        self._first_pending_at: float | None = None  # when the oldest change not in a snapshot was applied
         self.rebuilt = False  # loaded by a full rebuild: a snapshot is due as soon as a writer can take it
         self.index, self.version = self._load()
 
@@ -154,6 +154,8 @@ class Collection:
             apply_changes(self.index, changes)
             self.version = changes[-1].version
             self.stats.changes_applied += len(changes)
+            if self._first_pending_at is None:
+                self._first_pending_at = time.time()
             return len(changes)
 
     @property
@@ -176,8 +178,11 @@ class Collection:
     def snapshot_due(self) -> bool:
         if self.rebuilt:
             return True
-        age = time.time() - (self.stats.snapshot_written_at or 0.0)
-        return self.policy.due(self.pending_changes(), age)
+        pending = self.pending_changes()
+        if pending and self._first_pending_at is None:  # replayed at start: count from then
+            self._first_pending_at = time.time()
+        waited = time.time() - self._first_pending_at if self._first_pending_at is not None else 0.0
+        return self.policy.due(pending, waited)
 
     def write_snapshot(self) -> bool:
         """Copy under the lock, compact and write without it, then swap the compacted copy in (after
@@ -207,6 +212,7 @@ class Collection:
                 self.rebuilt = False
             self.stats.snapshot_writes += 1
             self.stats.snapshot_version = v0
+            self._first_pending_at = time.time() if self.version > v0 else None
             self.stats.snapshot_written_at = manifest["written_at"]
             log.info(
                 "snapshot of version %d written (%d references) in %.2f s", v0, copy.size, time.perf_counter() - t0

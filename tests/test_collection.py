@@ -118,3 +118,18 @@ def test_snapshot_write_keeps_changes_that_arrive_meanwhile(tmp_path, fitted):  
     col.store.changes_since = original
     assert json.loads((tmp_path / MANIFEST).read_text())["version"] == v0
     assert col.size == 5 and col.version == v0 + 2
+
+
+def test_the_time_rule_counts_from_the_first_change_not_in_a_snapshot(tmp_path, fitted):  # noqa: F811
+    import time
+
+    pipe, rows, codes = fitted
+    col = Collection(ReferenceStore(tmp_path), pipe, SnapshotPolicy(every_changes=1000, every_seconds=0.5))
+    col.write_snapshot()
+    time.sleep(0.6)  # an old snapshot alone makes nothing due
+    assert not col.snapshot_due()
+    _fill(col.store, rows, codes, 1)
+    col.catch_up()
+    assert not col.snapshot_due()  # one change, just now
+    time.sleep(0.6)
+    assert col.snapshot_due() and col.write_snapshot() and not col.snapshot_due()
