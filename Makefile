@@ -28,24 +28,24 @@ STEP := $(PYTHON) app/steps.py
 $(VENV)/.installed: pyproject.toml
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	@$(STEP) install -- $(BIN)/python -m pip install -q -e '.[dev]'
-	touch $@
+	@touch $@
 
 # Leaflet (the page's map) and Swagger UI (/docs) from the npm registry, served by the app itself (never from
 # a CDN). --ignore-scripts: neither needs one, and swagger-ui-dist's dependency @scarf/scarf would phone home.
 $(NPM_STAMP): web/package.json web/package-lock.json
 	@$(STEP) npm -- npm ci --prefix web --no-audit --no-fund --silent --ignore-scripts
-	touch $@
+	@touch $@
 
 $(SWAGGER): $(NPM_STAMP)
-	mkdir -p app/web/static/vendor/swagger-ui
-	cd web/node_modules/swagger-ui-dist && cp swagger-ui-bundle.js swagger-ui.css LICENSE NOTICE \
+	@mkdir -p app/web/static/vendor/swagger-ui
+	@cd web/node_modules/swagger-ui-dist && cp swagger-ui-bundle.js swagger-ui.css LICENSE NOTICE \
 	  ../../../app/web/static/vendor/swagger-ui/
-	touch $@
+	@touch $@
 
 $(LEAFLET): $(NPM_STAMP)
-	mkdir -p app/web/static/vendor/leaflet
-	cp -r web/node_modules/leaflet/dist/. app/web/static/vendor/leaflet/
-	touch $@
+	@mkdir -p app/web/static/vendor/leaflet
+	@cp -r web/node_modules/leaflet/dist/. app/web/static/vendor/leaflet/
+	@touch $@
 
 # The browser test drives Debian's Chromium (no browser download): install it when it is missing.
 browser:
