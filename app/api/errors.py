@@ -23,6 +23,7 @@ from app.engine import errors as e
 from app.engine.configs import UnknownConfig
 from app.engine.search import UnsupportedMode
 from app.engine.svm_training import NothingToTrainOn
+from app.evaluate import ManifestCannotBeEvaluated
 from app.operations import OperationRefused
 from app.store import StorageUnavailable, is_storage_error
 
@@ -74,6 +75,7 @@ DOMAIN_CODES: dict[type[Exception], str] = {
     StorageUnavailable: "storage_unavailable",
     OperationRefused: "invalid_request",  # CLI-only (backup/restore), listed so no domain error is unmapped
     NothingToTrainOn: "invalid_request",  # CLI-only (fit/eval on a manifest that leaves nothing to fit)
+    ManifestCannotBeEvaluated: "invalid_request",  # CLI-only (eval on a manifest whose folds are empty)
 }
 
 #: Refusals raised by Starlette/FastAPI themselves (routing, multipart parsing, static files).
