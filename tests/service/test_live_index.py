@@ -26,6 +26,13 @@ def metric(server, name: str) -> float:
     return float(m.group(1))
 
 
+def _snapshot_version(data) -> int:
+    try:
+        return json.loads((data / "index.json").read_text())["version"]
+    except (FileNotFoundError, ValueError):
+        return -1  # not written yet (or being replaced)
+
+
 def _upload(client, rows):
     files = [("image", (r.image.name, r.image.read_bytes(), "image/jpeg")) for r in rows]
     meta = [{"lat": r.lat, "lon": r.lon, "label": r.image.name} for r in rows]
@@ -51,7 +58,7 @@ def test_incremental_updates_across_processes_and_restarts(tmp_path, fitted_mode
     with Server(data, fitted_models, api_key=KEY, extra_env=policy) as a:
         wait_job(a.client, _upload(a.client, rows[:12])["job_id"])
         deadline = time.time() + 60  # >= 10 changes pending: the writer takes a snapshot within its 2 s check
-        while json.loads((data / "index.json").read_text())["version"] < 8 and time.time() < deadline:
+        while _snapshot_version(data) < 8 and time.time() < deadline:
             time.sleep(0.3)
         writes, rebuilds = metric(a, "geoloc_snapshot_writes"), metric(a, "geoloc_index_full_rebuilds")
         faiss_files = sorted(p.name for p in data.glob("*.faiss"))
@@ -74,7 +81,7 @@ def test_incremental_updates_across_processes_and_restarts(tmp_path, fitted_mode
             assert metric(b, "geoloc_index_tombstones") == 1
         # Killed (no clean stop): the restart replays the log over the last snapshot.
         version = a.client.get("/ready").json()["version"]
-        snapshot_version = json.loads((data / "index.json").read_text())["version"]
+        snapshot_version = _snapshot_version(data)
         assert 8 <= snapshot_version <= version - 2  # written by the policy, not for the upload or the delete
         a.kill()
     with Server(data, fitted_models, api_key=KEY) as again:
