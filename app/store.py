@@ -307,8 +307,11 @@ class ReferenceStore:
 
     @property
     def version(self) -> int:
-        """The index version: the change log's last entry. Pending uploads do not move it."""
-        return int(self.db.execute("SELECT COALESCE(MAX(version), 0) FROM changes").fetchone()[0])
+        """The index version: the change log's last entry. Pending uploads do not move it. Read under the
+        store's lock: on the connection this process shares between threads, a read inside another thread's
+        open write transaction would see changes that may yet roll back."""
+        with self._lock:
+            return int(self.db.execute("SELECT COALESCE(MAX(version), 0) FROM changes").fetchone()[0])
 
     # -- adding ---------------------------------------------------------------------------------------
     def image_path_for(self, sha: str, ext: str) -> Path:
@@ -550,13 +553,14 @@ class ReferenceStore:
     # -- what the index is built from -----------------------------------------------------------------
     def changes_since(self, version: int) -> list[Change]:
         """The index changes after ``version``, oldest first, each add with its codes (NULL when the row was
-        deleted since: a later delete entry follows)."""
-        rows = self.db.execute(
-            "SELECT c.version, c.ref_id, c.op, r.float_code, r.binary_code FROM changes c "
-            "LEFT JOIN refs r ON r.id = c.ref_id AND r.status = 'indexed' AND c.op = 'add' "
-            "WHERE c.version > ? ORDER BY c.version",
-            (version,),
-        ).fetchall()
+        deleted since: a later delete entry follows). Under the lock, like ``version``."""
+        with self._lock:
+            rows = self.db.execute(
+                "SELECT c.version, c.ref_id, c.op, r.float_code, r.binary_code FROM changes c "
+                "LEFT JOIN refs r ON r.id = c.ref_id AND r.status = 'indexed' AND c.op = 'add' "
+                "WHERE c.version > ? ORDER BY c.version",
+                (version,),
+            ).fetchall()
         return [Change(*r) for r in rows]
 
     def all_codes(self) -> tuple[int, np.ndarray, list[bytes | None], list[bytes | None]]:
