@@ -41,22 +41,24 @@ def _paste(rgb: np.ndarray, patch: np.ndarray, x: int, y: int) -> np.ndarray:
     return out
 
 
-def test_a_pattern_seen_at_far_away_places_is_labelled_negative():
-    extractor = RootSift(max_keypoints=1500, long_side=640)
+def _pattern_scene(extractor):
+    """A photo with a pattern pasted in, the same place without it, and two far-away photos carrying the same
+    pattern: the training photo's features, their labels, which of them lie on the pattern, and the far-away
+    photos' descriptors."""
     patch = _pattern()
     train_img = _paste(_photo("img_00000.jpg"), patch, 40, 40)
     positive = cv2.resize(_photo("img_00000.jpg"), (train_img.shape[1], train_img.shape[0]))  # same place, no pattern
     confusers = [_paste(_photo(n), patch, 200, 150) for n in ("img_00050.jpg", "img_00090.jpg")]
     f = extractor(train_img)
-    labels = label_features(
-        f.descriptors,
-        [extractor(positive).descriptors],
-        [extractor(c).descriptors for c in confusers],
-        BankParams(kind="contrastive"),
-    )
+    far = [extractor(c).descriptors for c in confusers]
+    labels = label_features(f.descriptors, [extractor(positive).descriptors], far, BankParams(kind="contrastive"))
     h, w = train_img.shape[:2]
     px, py = f.xy[:, 0] * w, f.xy[:, 1] * h
-    on_pattern = (px > 45) & (px < 255) & (py > 45) & (py < 255)
+    return f, labels, (px > 45) & (px < 255) & (py > 45) & (py < 255), far
+
+
+def test_a_pattern_seen_at_far_away_places_is_labelled_negative():
+    f, labels, on_pattern, far = _pattern_scene(RootSift(max_keypoints=1500, long_side=640))
     assert on_pattern.sum() > 30
     assert (labels[on_pattern] == -1).mean() > 0.7  # the pasted pattern: confusing
     assert (labels[~on_pattern] == 1).mean() > 0.5  # the building: matches the right place
@@ -65,7 +67,7 @@ def test_a_pattern_seen_at_far_away_places_is_labelled_negative():
     conf = label_features(
         f.descriptors,
         [],
-        [extractor(c).descriptors for c in confusers],
+        far,
         BankParams(kind="confusers", confuser_quantile=0.93),
     )
     assert (conf[on_pattern] == -1).mean() > 0.7 and (conf[~on_pattern] == 1).mean() > 0.9
@@ -163,23 +165,8 @@ def test_xfeat_descriptors_label_the_pattern_and_train_a_bank(models_dir, xfeat,
     from app.engine.extractors import build_extractor
 
     extractor = build_extractor("xfeat", models_dir, max_keypoints=1500, long_side=640)
-    patch = _pattern()
-    train_img = _paste(_photo("img_00000.jpg"), patch, 40, 40)
-    positive = cv2.resize(_photo("img_00000.jpg"), (train_img.shape[1], train_img.shape[0]))
-    confusers = [_paste(_photo(n), patch, 200, 150) for n in ("img_00050.jpg", "img_00090.jpg")]
-    f = extractor(train_img)
+    f, labels, on_pattern, _ = _pattern_scene(extractor)
     assert f.descriptors.shape[1] == 64
-    labels = label_features(
-        f.descriptors,
-        [extractor(positive).descriptors],
-        [extractor(c).descriptors for c in confusers],
-        BankParams(kind="contrastive"),
-    )
-    h, w = train_img.shape[:2]
-    px, py = f.xy[:, 0] * w, f.xy[:, 1] * h
-    on_pattern = (px > 45) & (px < 255) & (py > 45) & (py < 255)
-    print("on pattern", on_pattern.sum(), "-1 there", (labels[on_pattern] == -1).mean(),
-          "+1 off", (labels[~on_pattern] == 1).mean(), "-1 off", (labels[~on_pattern] == -1).mean())  # fmt: skip
     assert on_pattern.sum() > 30
     assert (labels[on_pattern] == -1).mean() > 0.7
     assert (labels[~on_pattern] == 1).mean() > 0.5
