@@ -439,6 +439,11 @@ def encode_one(pipeline: Pipeline, limits: ImageLimits, ref_id: int, path: Path)
     except OSError as e:
         log.warning("reference %d: cannot read its image now (%s); it stays queued", ref_id, e)
         return Encoded(ref_id, None, None, retry=True)
+    return encode_data(pipeline, limits, ref_id, data)
+
+
+def encode_data(pipeline: Pipeline, limits: ImageLimits, ref_id: int, data: bytes) -> Encoded:
+    """Image bytes to codes; a bad image is a permanent failure of that row, never an exception."""
     try:
         codes = pipeline.encode_image(load_image(data, limits).rgb)
     except GeolocError as e:

@@ -89,6 +89,7 @@ class Pipeline:
         self.manifest = manifest or {}
         self.bank = bank  # SVM bank: which local features to aggregate (None = all)
         self.bank_select = "positive"  # or "negative" (the thesis ablation)
+        self.source: PipelineSource | None = None  # set when loaded from disk (see PipelineSource)
         self._local = (
             build_extractor(
                 config.local, models_dir, max_keypoints=config.max_keypoints, long_side=config.local_long_side
@@ -273,11 +274,32 @@ def pipeline_dir(models_dir: Path, config_name: str) -> Path:
     return models_dir / "pipelines" / config_name
 
 
+@dataclass(frozen=True)
+class PipelineSource:
+    """Where a fitted pipeline is loaded from: the ONNX models dir and the fitted pipeline's folder.
+
+    Why a value of its own: whatever encodes away from the process that chose the pipeline (an encoder
+    thread pool, a Ray actor on another machine, a re-index into a new generation) is handed this small,
+    picklable value and loads exactly the same pipeline from it."""
+
+    models_dir: Path
+    directory: Path
+    config: str
+
+    @classmethod
+    def default(cls, models_dir: Path, config_name: str) -> PipelineSource:
+        return cls(Path(models_dir), pipeline_dir(Path(models_dir), config_name), config_name)
+
+    def load(self) -> Pipeline:
+        config = get_config(self.config)
+        cnn = cnn_mod.SqueezeNet(self.models_dir / cnn_mod.MODEL_FILENAME) if config.uses_cnn else None
+        if cnn is not None:
+            cnn.load()
+        pipe = Pipeline.load(self.directory, cnn, self.models_dir)
+        pipe.load_models()
+        pipe.source = self
+        return pipe
+
+
 def load_pipeline(models_dir: Path, config_name: str) -> Pipeline:
-    config = get_config(config_name)
-    cnn = cnn_mod.SqueezeNet(models_dir / cnn_mod.MODEL_FILENAME) if config.uses_cnn else None
-    if cnn is not None:
-        cnn.load()
-    pipe = Pipeline.load(pipeline_dir(models_dir, config_name), cnn, models_dir)
-    pipe.load_models()
-    return pipe
+    return PipelineSource.default(models_dir, config_name).load()

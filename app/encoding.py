@@ -1,0 +1,90 @@
+"""Encoding engines: where the expensive step of ingestion (decode, local features, CNN, aggregation) runs.
+
+Why an engine boundary: encoding is the one cost that outgrows a machine, so the bulk paths (``geoloc
+ingest``, re-indexing) hand their rows to an engine and complete what comes back in batches, while the
+rest of the path (accept -> pending rows -> complete, one writer of the data dir) stays the core's. The
+local engine is a thread pool in this process; the Ray engine (``app/ray_engine.py``) runs the same
+``encode_data`` in actors of a Ray cluster. Both take ``EncodeItem`` values and yield ``Encoded`` results
+in any order.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from itertools import islice
+from pathlib import Path
+from typing import Protocol
+
+from app.core import Encoded, GeolocService, encode_data, encode_one
+from app.engine.imageio import ImageLimits
+from app.engine.pipeline import Pipeline
+
+
+@dataclass(frozen=True)
+class EncodeItem:
+    """One stored reference to encode. ``data``: its image bytes when the driver read them (shipped to
+    workers that share no filesystem with it); None: the worker reads ``path`` itself."""
+
+    ref_id: int
+    path: Path
+    data: bytes | None = None
+
+
+class EncodeEngine(Protocol):
+    def run(self, items: Iterable[EncodeItem]) -> Iterator[Encoded]: ...
+
+    def close(self) -> None: ...
+
+
+class LocalEngine:
+    """A thread pool in this process over one loaded pipeline (ONNX Runtime and OpenCV release the GIL)."""
+
+    def __init__(self, pipeline: Pipeline, limits: ImageLimits, threads: int = 1):
+        self.pipeline = pipeline
+        self.limits = limits
+        self.threads = max(1, threads)
+
+    def _one(self, item: EncodeItem) -> Encoded:
+        if item.data is not None:
+            return encode_data(self.pipeline, self.limits, item.ref_id, item.data)
+        return encode_one(self.pipeline, self.limits, item.ref_id, item.path)
+
+    def run(self, items: Iterable[EncodeItem]) -> Iterator[Encoded]:
+        if self.threads == 1:
+            yield from map(self._one, items)
+            return
+        with ThreadPoolExecutor(max_workers=self.threads) as pool:
+            # bounded look-ahead: at most 4 items per thread in flight, so memory stays flat on 10^6 rows
+            it = iter(items)
+            window = list(islice(it, 4 * self.threads))
+            while window:
+                yield from pool.map(self._one, window)
+                window = list(islice(it, 4 * self.threads))
+
+    def close(self) -> None:
+        pass
+
+
+def batched(items: Iterable, size: int) -> Iterator[list]:
+    it = iter(items)
+    while chunk := list(islice(it, size)):
+        yield chunk
+
+
+def encode_and_complete(
+    service: GeolocService,
+    items: Iterable[EncodeItem],
+    engine: EncodeEngine,
+    batch: int = 32,
+    on_batch: Callable[[Sequence[Encoded]], None] | None = None,
+) -> int:
+    """Run ``items`` through ``engine`` and complete the results in batches of ``batch`` (one transaction
+    each, by this process: the one writer). Returns how many rows were completed."""
+    done = 0
+    for results in batched(engine.run(items), batch):
+        done += len(service.complete(results))
+        if on_batch is not None:
+            on_batch(results)
+    return done
