@@ -88,3 +88,18 @@ def encode_and_complete(
         if on_batch is not None:
             on_batch(results)
     return done
+
+
+def make_engine(
+    service: GeolocService, ray: str | None = None, workers: int = 1, shared_fs: bool = False
+) -> EncodeEngine:
+    """The engine a bulk command asked for: ``ray`` is None (local threads), ``"local"`` (start a Ray
+    instance on this machine), ``"auto"`` or a cluster address such as ``ray://head:10001``."""
+    if ray is None:
+        return LocalEngine(service.pipeline, service.limits, workers)
+    from app.ray_engine import RayEngine  # optional dependency: pip install geoloc[ray]
+
+    source = service.pipeline.source
+    if source is None:
+        raise ValueError("the pipeline was not loaded from disk: a Ray worker cannot load it")
+    return RayEngine(source, service.limits, address=ray, workers=workers, shared_fs=shared_fs)
