@@ -29,7 +29,9 @@ COPY app ./app
 COPY --from=web /web/node_modules/leaflet/dist ./app/web/static/vendor/leaflet
 COPY --from=web /web/node_modules/swagger-ui-dist/swagger-ui-bundle.js /web/node_modules/swagger-ui-dist/swagger-ui.css \
      /web/node_modules/swagger-ui-dist/LICENSE /web/node_modules/swagger-ui-dist/NOTICE ./app/web/static/vendor/swagger-ui/
-RUN pip install .
+# With the ray extra: the compose file's ray-head and ray-worker run this same image, so the Python and Ray
+# versions of the driver (geoloc ingest/refit --ray) and of the cluster always match.
+RUN pip install ".[ray]"
 
 COPY --from=weights . /tmp/weights
 RUN geoloc models build --from /tmp/weights --models-dir /app/models && rm -rf /tmp/weights \

@@ -66,3 +66,22 @@ def test_env_example_lists_every_setting_and_compose_reads_env():
     for service in compose["services"].values():
         assert {"path": ".env", "required": False} in service["env_file"]
     assert ".env" in (REPO / ".dockerignore").read_text().split()  # a key in .env never enters an image
+
+
+def test_compose_ray_profile_runs_the_same_image():
+    """The optional Ray cluster: head and scalable workers from the service's own image (Python and Ray
+    versions match the driver), only under the ``ray`` profile, the head holding the data volume."""
+    compose = yaml.safe_load((REPO / "docker-compose.yml").read_text())
+    services = compose["services"]
+    head, worker = services["ray-head"], services["ray-worker"]
+    image = services["api"]["image"]
+    assert head["image"] == worker["image"] == image
+    assert head["profiles"] == worker["profiles"] == ["ray"]
+    assert "profiles" not in services["api"] and "profiles" not in services["worker"]  # `up` alone: no Ray
+    assert head["command"][:3] == ["ray", "start", "--head"] and "--block" in head["command"]
+    assert worker["command"][:2] == ["ray", "start"] and "--address=ray-head:6379" in worker["command"]
+    assert "container_name" not in worker and "ports" not in worker  # --scale ray-worker=N must work
+    assert "geoloc-data:/data" in head["volumes"]
+    assert any(r'pip install ".[ray]"' in rest for op, rest in _instructions() if op == "RUN")
+    pyproject = (REPO / "pyproject.toml").read_text()
+    assert re.search(r'^ray = \["ray\[data\]', pyproject, re.M)
