@@ -28,7 +28,7 @@ from app.engine.configs import DEFAULT_CONFIG, get_config
 from app.server_process import ServerProcess
 from bench import baseline as baseline_mod
 from bench import search_scaling
-from bench.common import MANIFEST, REPO, is_photo, machine, penn_rows
+from bench.common import MANIFEST, REPO, is_photo, machine, marked_sections, penn_rows
 from bench.load import format_report, run_load
 from bench.locate_latency import Floor, collection_rows, full_size_queries, ingest, measure_locate
 
@@ -302,6 +302,14 @@ def render(fig: dict) -> str:
     return "\n".join(L)
 
 
+def write_kept(out: Path, text: str) -> None:
+    """Write the rendered figures, keeping the marked sections other benchmarks own (bench/scale.py,
+    bench/ingest_speed.py, bench/compare_configs.py) as they are in the current file."""
+    old = out.read_text() if out.exists() else ""
+    kept = [s for s in marked_sections(old) if s not in text]
+    out.write_text(text.rstrip() + "\n" + "".join(f"\n{s}\n" for s in kept))
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--config", default=DEFAULT_CONFIG)
@@ -319,7 +327,7 @@ def main() -> None:
         fig = json.loads(args.json.read_text())
         scaling = [search_scaling.SearchFigures(**f) for f in fig["search"]]
         fig["projected"] = projected(fig["baseline"], scaling)
-        args.out.write_text(render(fig))
+        write_kept(args.out, render(fig))
         print(f"rendered {args.out} from {args.json}")
         return
     os.environ.setdefault("GEOLOC_FAISS_THREADS", "1")
@@ -344,7 +352,7 @@ def main() -> None:
     fig["elapsed_min"] = (time.time() - t0) / 60
     args.json.parent.mkdir(parents=True, exist_ok=True)
     args.json.write_text(json.dumps(fig, indent=1))
-    args.out.write_text(render(fig))
+    write_kept(args.out, render(fig))
     print(f"wrote {args.out} and {args.json} in {fig['elapsed_min']:.1f} min")
 
 

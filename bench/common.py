@@ -108,3 +108,32 @@ def synthetic_reference(photo: np.ndarray, rng: np.random.Generator, long_side: 
     if not ok:
         raise RuntimeError("JPEG encoding failed")
     return buf.tobytes()
+
+
+BENCHMARKS_DOC = REPO / "docs" / "BENCHMARKS.md"
+
+
+def _markers(name: str) -> tuple[str, str]:
+    return f"<!-- {name}:begin -->", f"<!-- {name}:end -->"
+
+
+def write_section(name: str, body: str, doc: Path = BENCHMARKS_DOC) -> None:
+    """Replace (or append) one marked section of a results document, leaving the others as they are.
+
+    Why markers: several benchmarks write into docs/BENCHMARKS.md on their own schedules (`make bench`,
+    bench/scale.py, bench/ingest_speed.py); each owns its section, so no run erases another's figures."""
+    begin, end = _markers(name)
+    section = f"{begin}\n{body.strip()}\n{end}"
+    text = doc.read_text() if doc.exists() else ""
+    if begin in text and end in text:
+        text = text[: text.index(begin)] + section + text[text.index(end) + len(end) :]
+    else:
+        text = text.rstrip() + "\n\n" + section + "\n"
+    doc.write_text(text)
+
+
+def marked_sections(text: str) -> list[str]:
+    """Every ``<!-- name:begin -->...<!-- name:end -->`` block of ``text``, in order."""
+    import re
+
+    return [m.group(0) for m in re.finditer(r"<!-- ([\w-]+):begin -->.*?<!-- \1:end -->", text, re.S)]

@@ -22,12 +22,12 @@ from pathlib import Path
 import httpx
 
 from app.server_process import ServerProcess, wait_job
+from bench.common import write_section
 from bench.seed import placeholder, seed
 
 REPO = Path(__file__).resolve().parents[1]
 PENN = REPO.parent / "shared" / "data" / "penn-campus-gps" / "photos"
 DOC = REPO / "docs" / "BENCHMARKS.md"
-BEGIN, END = "<!-- scale:begin -->", "<!-- scale:end -->"
 
 
 def _ms(f) -> float:
@@ -179,17 +179,13 @@ def table(results: list[dict]) -> str:
 
 
 def write_doc(text: str, command: str) -> None:
-    section = (
-        f"{BEGIN}\n## The service at scale\n\n`{command}` ({time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, "
+    write_section(
+        "scale",
+        f"## The service at scale\n\n`{command}` ({time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, "
         "synthetic codes through bench/seed.py, real 1600 px photos for /locate and uploads; times in ms unless "
-        "marked s; medians):\n\n" + text + f"\n{END}"
+        "marked s; medians):\n\n" + text,
+        DOC,
     )
-    doc = DOC.read_text() if DOC.exists() else ""
-    if BEGIN in doc:
-        doc = doc[: doc.index(BEGIN)] + section + doc[doc.index(END) + len(END) :]
-    else:
-        doc = doc.rstrip() + "\n\n" + section + "\n"
-    DOC.write_text(doc)
 
 
 def main() -> None:
