@@ -124,7 +124,12 @@ results: $(MODEL) $(XFEAT_MODEL) $(MANIFEST)
 	$(BIN)/python bench/results.py --manifest $(MANIFEST) --folds $(FOLDS) --out out/eval
 
 # Regenerate docs/BENCHMARKS.md: server stage latencies vs the floor, ingestion, load, baseline, search scaling.
-bench: fit
+# make bench also compares /locate of the default with hybrid-xfeat, so both pipelines must be fitted.
+XFEAT_PIPELINE := models/pipelines/hybrid-xfeat/pipeline.json
+$(XFEAT_PIPELINE): $(MODEL) $(XFEAT_MODEL) $(MANIFEST)
+	@$(STEP) fit-xfeat -- $(GEOLOC) fit --manifest $(MANIFEST) --config hybrid-xfeat
+
+bench: fit $(XFEAT_PIPELINE)
 	$(BIN)/python -m bench.benchmarks
 
 # N concurrent clients mixing /locate and /references against a server started on a temporary data dir.

@@ -6,6 +6,7 @@
    POST /references, then /locate on the 12 MP originals and on 1600 px photos, interleaved with the floor
    (decode + SqueezeNet + local features alone) in this process;
 2. a short bounded load run against that server (bench/load.py);
+   then /locate of the default against hybrid-xfeat on two servers, interleaved (bench/compare_configs.py);
 3. the thesis-style baseline against our pipelines on penn-campus-gps (recall and time per query);
 4. search latency and bytes per reference at 1k to 1M references (synthetic codes of production size).
 
@@ -27,13 +28,14 @@ from pathlib import Path
 from app.engine.configs import DEFAULT_CONFIG, get_config
 from app.server_process import ServerProcess
 from bench import baseline as baseline_mod
-from bench import search_scaling
-from bench.common import MANIFEST, REPO, is_photo, machine, marked_sections, penn_rows
+from bench import compare_configs, search_scaling
+from bench.common import MANIFEST, REPO, is_photo, machine, marked_sections, penn_rows, write_section
 from bench.load import format_report, run_load
 from bench.locate_latency import Floor, collection_rows, full_size_queries, ingest, measure_locate
 
 SHARED = REPO.parent / "shared"
 COMMAND = ".venv/bin/python -m bench.benchmarks"
+COMPARED = "hybrid-xfeat"  # issue 11's speed goal: its /locate p50 against the default's, in this run
 BINARY = "hybrid-bin"  # the same descriptor with a Hamming shortlist: what to run at 10^5-10^6 references
 
 
@@ -344,6 +346,8 @@ def main() -> None:
     fig["service"] = service_figures(
         rows, args.models_dir, args.config, args.reps_full, args.reps_1600, args.load_seconds
     )
+    print(f"/locate of {args.config} against {COMPARED}, interleaved on two servers ...")
+    fig["configs"] = compare_configs.run(args.models_dir, [args.config, COMPARED], reps=2)
     fig["baseline"] = baseline_mod.run(MANIFEST, args.models_dir, args.folds)
     sizes = tuple(int(x) for x in args.sizes.split(","))
     scaling = search_scaling.run(sizes)
@@ -353,6 +357,7 @@ def main() -> None:
     args.json.parent.mkdir(parents=True, exist_ok=True)
     args.json.write_text(json.dumps(fig, indent=1))
     write_kept(args.out, render(fig))
+    write_section("configs", compare_configs.render(fig["configs"], fig["command"]), args.out)
     print(f"wrote {args.out} and {args.json} in {fig['elapsed_min']:.1f} min")
 
 
