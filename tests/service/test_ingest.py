@@ -13,6 +13,7 @@ from pathlib import Path
 import cv2
 import pytest
 
+from app.store import NewReference, ReferenceStore
 from tests.conftest import PENN
 from tests.service.conftest import CONFIG, Server
 
@@ -133,6 +134,31 @@ def test_a_csv_of_rows_with_paths_relative_to_it(tmp_path, fitted_models):
     assert got["img_00011_0.jpg"][:2] == (39.9518, -75.1922) and got["img_00011_0.jpg"][2] is None
     skipped = report(out.stdout)
     assert "out of range" in skipped["img_00012_0.jpg"] and "cannot read the file" in skipped["missing.jpg"]
+
+    store = ReferenceStore(data)  # a reference deleted since: its journal entry no longer counts
+    (deleted,) = [r.id for r in store.list()[0] if r.label == "north gate"]
+    assert store.delete(deleted)
+    store.close()
+    again = ingest(src / "list.csv", data, fitted_models)
+    assert "ingested 1 new references (1 already present, 2 skipped)" in again.stdout
+    assert "1 files unchanged since an earlier run" in again.stdout and "north gate" in rows(data)
+
+
+def test_rows_a_crashed_run_left_claimed_are_encoded_once_the_lease_is_over(tmp_path, fitted_models):
+    data = tmp_path / "data"
+    store = ReferenceStore(data)
+    crops = [PENN / "crops" / f"img_0002{n}_0.jpg" for n in range(3)]
+    ids = [i for i, _ in store.add_many([NewReference(p.read_bytes(), "jpeg", 39.95, -75.19) for p in crops])[0]]
+    store.claim(ids[:2], "a-run-that-crashed", lease_s=0)  # its lease is over
+    store.claim(ids[2:], "a-run-still-going", lease_s=600)
+    store.close()
+    empty = tmp_path / "empty.csv"
+    empty.write_text("image,lat,lon\n")
+    out = ingest(empty, data, fitted_models)
+    assert "also encoded 2 rows left pending by earlier runs" in out.stdout
+    store = ReferenceStore(data)
+    assert [store.get(i).status for i in ids] == ["indexed", "indexed", "pending"]  # the live claim is kept
+    store.close()
 
 
 def test_a_running_server_sees_what_the_run_encodes(tmp_path, fitted_models, mini_manifest):
