@@ -8,7 +8,6 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
-from tqdm import tqdm
 
 from app.engine.errors import GeolocError
 from app.runtime import tune_malloc
@@ -183,73 +182,84 @@ def _train_bank(pipe, rows, feats, kind: str, seed: int, source: str = "collecti
 
 @app.command()
 def ingest(
-    manifest: ManifestOpt,
-    split: Annotated[str, typer.Option(help="which rows to ingest")] = "db",
+    source: Annotated[
+        Path | None,
+        typer.Argument(
+            help="a folder of photos (recursively; position from EXIF GPS), a CSV of "
+            "image,lat,lon[,heading,captured_at,label] (paths relative to it), or a manifest (a CSV with split)"
+        ),
+    ] = None,
+    manifest: Annotated[
+        Path | None, typer.Option("--manifest", "-m", help="the same as SOURCE (older spelling)")
+    ] = None,
+    split: Annotated[str, typer.Option(help="a manifest's rows to ingest")] = "db",
     config: ConfigOpt = _S.config,
     data_dir: DataDir = _S.data_dir,
     models_dir: ModelsDir = _S.models_dir,
-    batch: Annotated[int, typer.Option(help="rows accepted and encoded per transaction")] = 32,
-    workers: Annotated[int, typer.Option(help="encoding threads")] = 1,
+    batch: Annotated[int, typer.Option(min=1, help="encoded rows completed per transaction")] = 32,
+    chunk: Annotated[int, typer.Option(min=1, help="files read, validated and accepted per transaction")] = 128,
+    workers: Annotated[int, typer.Option(min=1, help="reading and encoding threads, or Ray actors with --ray")] = 1,
+    ray: Annotated[
+        str | None,
+        typer.Option("--ray", help="encode on Ray: local (start Ray here), auto, or an address (ray://head:10001)"),
+    ] = None,
+    shared_fs: Annotated[
+        bool, typer.Option("--shared-fs", help="Ray workers read the data dir's images themselves")
+    ] = False,
 ) -> None:
-    """Add the manifest's rows through the same path as POST /references: accepted in bulk as pending rows
-    with a job, then encoded here (when no other worker runs on the data dir) or by the running server's
-    worker, which this command then follows. Identical images are stored once; a re-run resumes."""
-    from app.core import GeolocService, Upload, prepare_upload
-    from app.datasets import read_manifest
+    """Add photos through the same path as POST /references (the API's size and pixel limits): accepted in
+    chunks as pending rows, claimed by this run, encoded and completed in batches. Resumable: files stored by
+    an earlier run (same path, size and mtime) are not read again, and identical images are stored once.
+    Files that cannot be used are skipped and listed in a CSV report; a completed run exits 0."""
+    from app.core import GeolocService
+    from app.ingest.progress import Progress
+    from app.ingest.run import IngestOptions, IngestRun
+    from app.ingest.sources import SourceError, open_source
     from app.worker import IngestWorker, WorkerLock
 
-    rows = [r for r in read_manifest(manifest) if r.split == split]
-    service = GeolocService.open(data_dir, models_dir, config)
-    prepared, skipped = [], 0
-    for r in tqdm(rows, desc="validate", unit="img", disable=None):
-        try:
-            data = r.image.read_bytes()
-            upload = Upload(data, r.image.name, r.lat, r.lon, label=r.image.name)
-            prepared.append(prepare_upload(upload, service.limits, len(prepared), source="manifest"))
-        except (OSError, GeolocError) as e:
-            skipped += 1
-            typer.secho(f"skipped {r.image}: {e}", fg=typer.colors.YELLOW, err=True)
-    jobs, created = [], 0
-    for start in range(0, len(prepared), batch):
-        accepted = service.accept_prepared(prepared[start : start + batch])
-        jobs.append(accepted.job_id)
-        created += sum(not d for d in accepted.duplicates)
+    try:
+        src = open_source(source, manifest, split)
+    except SourceError as e:
+        _fail(str(e))
+    service = GeolocService.open(data_dir, models_dir, config, limits=_S.image_limits())
     lock = WorkerLock(data_dir)
-    if lock.acquire():
+    holds_lock = lock.acquire()
+    if not holds_lock:
+        typer.echo("a server's worker runs on this data dir: this run encodes its own rows, the server follows")
+    try:
+        progress = Progress(src.count(), desc=f"ingest {src.kind}")
         try:
-            todo = service.store.count("pending")
-            with tqdm(total=todo, desc="encode", unit="img", disable=None) as bar:
-                worker = IngestWorker(service, batch, workers=workers, on_batch=lambda d, f: bar.update(d + f))
-                while worker.run_once():
-                    pass
-            service.collection.write_snapshot()
+            options = IngestOptions(chunk=chunk, batch=batch, workers=workers, ray=ray, shared_fs=shared_fs)
+            summary = IngestRun(service, src, options, progress).run()
         finally:
-            lock.release()
-    else:
-        typer.echo("another worker runs on this data dir: following its progress")
-        _follow_jobs(service, jobs)
-    failed = sum(service.job(j)["failed"] for j in jobs)
+            progress.close()
+        left = 0
+        if holds_lock:  # rows left pending by earlier runs (crashed, or storage retries): encode them too
+            worker = IngestWorker(service, batch, workers=workers)
+            while done := worker.run_once():
+                left += done
+            service.collection.write_snapshot()
+    finally:
+        lock.release()
+    _print_summary(service, summary, left)
+
+
+def _print_summary(service, summary, left: int) -> None:
+    skipped = sum(summary.skipped.values())
     typer.echo(
-        f"ingested {created} new references ({len(prepared) - created} already present"
-        + (f", {failed} failed" if failed else "")
+        f"ingested {summary.added} new references ({summary.present} already present"
+        + (f", {summary.failed} failed" if summary.failed else "")
         + (f", {skipped} skipped" if skipped else "")
         + f"); index size {service.collection.size}, config {service.pipeline.config.name}"
     )
-
-
-def _follow_jobs(service, jobs: list[str], poll: float = 0.5) -> None:
-    import time
-
-    total = sum(service.job(j)["total"] for j in jobs)
-    with tqdm(total=total, desc="encode (by the server)", unit="img", disable=None) as bar:
-        while True:
-            states = [service.job(j) for j in jobs]
-            done = sum(s["total"] - s["pending"] for s in states)
-            bar.update(done - bar.n)
-            if done >= total:
-                break
-            time.sleep(poll)
-    service.collection.catch_up()
+    if summary.unchanged:
+        typer.echo(f"{summary.unchanged} files unchanged since an earlier run were not read again (journal)")
+    if left:
+        typer.echo(f"also encoded {left} rows left pending by earlier runs")
+    if skipped:
+        typer.echo("skipped: " + ", ".join(f"{n} {why}" for why, n in summary.skipped.most_common()))
+    if summary.report is not None:
+        typer.echo(f"report of the files not ingested: {summary.report}")
 
 
 def _region_option(lat: float | None, lon: float | None, radius_m: float | None, bbox: str | None):

@@ -398,11 +398,15 @@ def label_from(filename: str | None) -> str | None:
     return name[:200] or None
 
 
-def prepare_upload(u: Upload, limits: ImageLimits, n: int = 0, source: str = "api") -> NewReference:
-    """Validate one upload completely (decodable, within limits, with a position) before anything is stored."""
+def prepare_upload(
+    u: Upload, limits: ImageLimits, n: int = 0, source: str = "api", exif_heading: bool = False
+) -> NewReference:
+    """Validate one upload completely (decodable, within limits, with a position) before anything is stored.
+    ``exif_heading``: with no heading given, take the photo's EXIF GPSImgDirection (bulk ingestion of a
+    folder of photos, where EXIF is the only metadata there is)."""
     img = load_image(u.data, limits)
     lat, lon = _position(u, img, n)
-    hd = u.heading
+    hd = u.heading if u.heading is not None or not exif_heading else img.heading
     if hd is not None and (
         isinstance(hd, bool) or not (isinstance(hd, int | float) and math.isfinite(hd) and 0 <= hd < 360)
     ):

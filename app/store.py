@@ -73,6 +73,16 @@ CREATE TABLE IF NOT EXISTS changes (
     op TEXT NOT NULL CHECK (op IN ('add', 'delete', 'move'))
 );
 """
+#: Claims: pending rows a bulk run (``geoloc ingest``) encodes itself. A worker skips them until the lease
+#: ends, so the rows of a run that crashed go back to the queue by themselves.
+CLAIMS_SCHEMA = """
+CREATE TABLE IF NOT EXISTS claims (
+    ref_id INTEGER PRIMARY KEY,
+    owner TEXT NOT NULL,
+    expires REAL NOT NULL
+);
+CREATE INDEX IF NOT EXISTS claims_owner ON claims(owner);
+"""
 
 
 class StorageUnavailable(GeolocError):
@@ -249,6 +259,7 @@ class ReferenceStore:
             self.db.execute("PRAGMA cache_size=-65536")
             if not read_only:
                 self.db.executescript(SCHEMA)
+                self.db.executescript(CLAIMS_SCHEMA)
 
     def close(self) -> None:
         self.db.close()
@@ -501,11 +512,35 @@ class ReferenceStore:
 
     # -- the ingestion queue: pending rows are the durable queue ---------------------------------------
     def pending(self, limit: int, after: int = 0) -> list[tuple[int, Path]]:
+        """The next pending rows in id order, except those another run claimed and whose lease still runs."""
         rows = self.db.execute(
-            "SELECT id, sha256, image_ext FROM refs WHERE status='pending' AND id > ? ORDER BY id LIMIT ?",
-            (after, limit),
+            "SELECT r.id, r.sha256, r.image_ext FROM refs r LEFT JOIN claims c ON c.ref_id = r.id "
+            "WHERE r.status='pending' AND r.id > ? AND (c.expires IS NULL OR c.expires <= ?) ORDER BY r.id LIMIT ?",
+            (after, time.time(), limit),
         ).fetchall()
         return [(r[0], self.image_path_for(r[1], r[2])) for r in rows]
+
+    def claim(self, ids: Sequence[int], owner: str, lease_s: float) -> None:
+        """Claim rows for ``owner`` for ``lease_s`` seconds (one statement for the whole list); a claim held
+        by another owner is taken over only once its lease has ended."""
+        with self.transaction() as db:
+            db.execute(
+                "INSERT INTO claims(ref_id, owner, expires) SELECT value, ?, ? FROM json_each(?) WHERE true "
+                "ON CONFLICT(ref_id) DO UPDATE SET owner=excluded.owner, expires=excluded.expires "
+                "WHERE claims.owner = excluded.owner OR claims.expires <= ?",
+                (owner, time.time() + lease_s, _ids_json(ids), time.time()),
+            )
+
+    def release(self, owner: str, ids: Sequence[int] | None = None) -> None:
+        """Drop ``owner``'s claims on ``ids`` (all of them when None): done rows, or the end of a run."""
+        with self.transaction() as db:
+            if ids is None:
+                db.execute("DELETE FROM claims WHERE owner=?", (owner,))
+            else:
+                db.execute(
+                    "DELETE FROM claims WHERE owner=? AND ref_id IN (SELECT value FROM json_each(?))",
+                    (owner, _ids_json(ids)),
+                )
 
     def complete(self, results: Sequence[tuple[int, np.ndarray | None, np.ndarray | None, str | None]]) -> list[int]:
         """Record encoded codes (or an error) for pending rows, in one transaction, logging each newly indexed

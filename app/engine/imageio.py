@@ -30,6 +30,7 @@ except ImportError:  # pragma: no cover - depends on the environment
 GPS_IFD = 0x8825
 EXIF_IFD = 0x8769
 DATETIME_ORIGINAL = 0x9003
+GPS_IMG_DIRECTION = 17
 
 
 @dataclass(frozen=True)
@@ -50,6 +51,7 @@ class LoadedImage:
     original_size: tuple[int, int]  # (width, height) as stored, before orientation and downscale
     gps: tuple[float, float] | None
     captured_at: str | None
+    heading: float | None = None  # EXIF GPSImgDirection in [0, 360), when the camera wrote one
 
 
 def sniff_format(data: bytes) -> str | None:
@@ -102,6 +104,7 @@ def load_image(data: bytes, limits: ImageLimits | None = None, decode_long_side:
     if getattr(img, "n_frames", 1) > 1 and img.format not in ("MPO", "TIFF"):
         raise UnsupportedImageFormat("animated images are not supported; send a single photo")
     gps, captured_at = read_exif_gps(img)
+    heading = read_exif_heading(img)
     target = decode_long_side or limits.decode_long_side
     try:
         if img.format in ("JPEG", "MPO") and max(w, h) > 2 * target:
@@ -114,7 +117,7 @@ def load_image(data: bytes, limits: ImageLimits | None = None, decode_long_side:
         raise ImageTooLarge(str(e)) from None
     except (OSError, ValueError, SyntaxError) as e:
         raise UnreadableImage(f"the {kind} data is damaged or truncated: {e}") from None
-    return LoadedImage(rgb=rgb, format=kind, original_size=(w, h), gps=gps, captured_at=captured_at)
+    return LoadedImage(rgb=rgb, format=kind, original_size=(w, h), gps=gps, captured_at=captured_at, heading=heading)
 
 
 def _to_rgb(img: Image.Image) -> np.ndarray:
@@ -167,3 +170,18 @@ def read_exif_gps(img: Image.Image) -> tuple[tuple[float, float] | None, str | N
     if lat == 0.0 and lon == 0.0:  # "null island": cameras write zeros when they had no fix
         return None, captured_at
     return (lat, lon), captured_at
+
+
+def read_exif_heading(img: Image.Image) -> float | None:
+    """The direction the camera faced (EXIF GPSImgDirection, degrees from true or magnetic north), or None.
+    A broken or out-of-range value is None: a wrong heading is worse than none."""
+    try:
+        raw = img.getexif().get_ifd(GPS_IFD).get(GPS_IMG_DIRECTION)
+        if raw is None:
+            return None
+        value = float(raw)
+    except Exception:
+        return None
+    if not math.isfinite(value) or not 0 <= value <= 360:
+        return None
+    return value % 360.0

@@ -143,3 +143,10 @@ def test_format_is_sniffed_from_bytes():
     assert sniff_format(_encode(Image.new("RGB", (8, 8)), "PNG")) == "PNG"
     assert sniff_format(b"\0\0\0\x18ftypheic" + b"\0" * 8) == "HEIC"
     assert sniff_format(b"hello") is None
+
+
+def test_heading_is_read_from_exif_gps_img_direction():
+    with_direction = load_image((PENN / "photos" / "img_00033.jpg").read_bytes())
+    assert with_direction.heading == pytest.approx(39.2569847, abs=1e-6)
+    assert load_image((PENN / "photos" / "img_00000.jpg").read_bytes()).heading is None  # no GPSImgDirection
+    assert load_image((PENN / "crops" / "img_00000_0.jpg").read_bytes()).heading is None  # no EXIF at all

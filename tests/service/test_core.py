@@ -121,20 +121,6 @@ def test_check_backup_restore(ingested, fitted_models, tmp_path):
     assert get_config(CONFIG).float_codes and np.isfinite(0)
 
 
-def test_ingest_follows_a_running_servers_worker(tmp_path, fitted_models, mini_manifest):
-    """With a server's worker holding the data dir, `geoloc ingest` only enqueues and follows the jobs."""
-    data = tmp_path / "data"
-    with Server(data, fitted_models) as s:
-        out = geoloc(
-            "ingest", "--manifest", str(mini_manifest), "--split", "train", "--config", CONFIG,
-            "--data-dir", str(data), "--models-dir", str(fitted_models),
-        )  # fmt: skip
-        assert "following its progress" in out.stdout and "ingested 9 new references" in out.stdout
-        assert s.client.get("/ready").json()["index_size"] == 9
-        listed = s.client.get("/references").json()
-        assert listed["total"] == 9 and {r["source"] for r in listed["items"]} == {"manifest"}
-
-
 def test_locate_command_with_rerank_and_regions(ingested, fitted_models):
     photo = PENN / "photos" / "img_00000.jpg"
     base = ["--data-dir", str(ingested), "--models-dir", str(fitted_models), "--top-k", "3"]

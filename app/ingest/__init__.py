@@ -1,0 +1,1 @@
+"""Bulk ingestion (`geoloc ingest SOURCE`): sources, the resumable run, its progress."""
