@@ -220,7 +220,9 @@ class RayEngine:
                 log.warning(
                     "%d encoder actors asked, the cluster has %d CPUs: some may never start", self.workers, cpus
                 )
-            payload = source if shared_fs else ray.put(PipelinePackage.of(source))
+            # held for the engine's life: a restarted actor is built again from the same object
+            self._payload = source if shared_fs else ray.put(PipelinePackage.of(source))
+            payload = self._payload
             actor_cls = ray.remote(EncoderActor).options(
                 num_cpus=1, max_restarts=max_restarts, max_task_retries=max_task_retries
             )
@@ -297,8 +299,11 @@ class RayEngine:
                     ) from e
                 yield from results
         finally:
-            for ref in in_flight:  # an abandoned run (error, caller stopped) leaves nothing running
-                ray.cancel(ref)
+            for ref in in_flight:  # an abandoned run (error, caller stopped) leaves nothing queued
+                try:
+                    ray.cancel(ref)
+                except (RayError, TypeError, ValueError) as e:  # already finished, or not cancellable
+                    log.debug("batch not cancelled: %s", e)
 
     def close(self) -> None:
         """Stop the pool (removing the actors' unpacked models) and shut down Ray if this engine started it."""

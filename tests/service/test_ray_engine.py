@@ -122,7 +122,7 @@ def test_a_pool_larger_than_the_cluster_times_out_with_a_clear_error(ray_cluster
 
     source = PipelineSource.default(fitted_models, CONFIG)
     with pytest.raises(RayEngineError, match="timed out .* the encoder pool to start .* 2 CPUs"):
-        RayEngine(source, ImageLimits(), address="local", workers=3, shared_fs=True, start_timeout_s=15)
+        RayEngine(source, ImageLimits(), address="local", workers=3, shared_fs=True, start_timeout_s=8)
     # the pool was removed: the 2 CPUs are free again for the next engine
     with RayEngine(source, ImageLimits(), address="local", workers=2, shared_fs=True) as engine:
         assert len(engine.actor_pids()) == 2
