@@ -171,6 +171,10 @@ class EncoderActor:
     def pid(self) -> int:
         return os.getpid()
 
+    def cpu_seconds(self) -> float:
+        """CPU time this actor's process has used (all its threads): what a batch costs, whatever the load."""
+        return time.process_time()
+
     def encode(self, items: list[EncodeItem]) -> list[Encoded]:
         return [
             encode_data(self.pipeline, self.limits, i.ref_id, i.data)
@@ -249,6 +253,10 @@ class RayEngine:
     def actor_pids(self) -> list[int]:
         """The encoder processes now (after restarts, new ones): for monitoring and the fault tests."""
         return self._get([a.pid.remote() for a in self.actors], self.batch_timeout_s, "the actors' pids")
+
+    def cpu_seconds(self) -> float:
+        """CPU time used by the pool's processes so far (for benchmarks: independent of the machine's load)."""
+        return float(sum(self._get([a.cpu_seconds.remote() for a in self.actors], self.batch_timeout_s, "CPU times")))
 
     def run(self, items: Iterable[EncodeItem]) -> Iterator[Encoded]:
         """Results in completion order, as they come back; at most ``2 x workers`` batches in flight."""

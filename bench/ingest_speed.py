@@ -27,7 +27,10 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
-os.environ.setdefault("GEOLOC_ORT_THREADS", "1")  # before any session: the local path is one worker too
+# Before numpy and any session are loaded: the local path is one worker too (1 CPU), as Ray's actors are
+# (Ray sets OMP_NUM_THREADS to the CPUs an actor holds; BLAS would otherwise spin on both cores here).
+for _var in ("GEOLOC_ORT_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
 
 import cv2  # noqa: E402
 
@@ -77,15 +80,20 @@ def fresh(root: Path, models_dir: Path, config: str, images: list[Upload]) -> tu
     return service, [EncodeItem(i, p) for i, p in service.store.pending(len(images) + 1)]
 
 
-def timed_run(service: GeolocService, items: list[EncodeItem], engine) -> tuple[float, float]:
-    """(images/s, writer share) of one ``encode_and_complete`` over ``items``."""
+def timed_run(service: GeolocService, items: list[EncodeItem], engine) -> tuple[float, float, float]:
+    """(images/s, writer share, CPU ms per image) of one ``encode_and_complete`` over ``items``. CPU time is
+    this process's (driver, writer, local threads) plus the Ray actors': what an image costs whatever the
+    load, so it tells Ray's overhead apart from the shared machine's noise."""
     writer = TimedWriter(service)
+    actors_cpu = getattr(engine, "cpu_seconds", lambda: 0.0)
+    c0, a0 = time.process_time(), actors_cpu()
     t0 = time.perf_counter()
     done = encode_and_complete(writer, items, engine, batch=32)
     total = time.perf_counter() - t0
+    cpu = time.process_time() - c0 + actors_cpu() - a0
     if done != len(items):
         raise SystemExit(f"only {done} of {len(items)} rows were completed")
-    return len(items) / total, writer.seconds / total
+    return len(items) / total, writer.seconds / total, cpu * 1000 / len(items)
 
 
 def cost_split(service: GeolocService, items: list[EncodeItem]) -> dict[str, float]:
@@ -125,6 +133,7 @@ def measure(kind: str, n: int, args, root: Path) -> dict:
     variants = {"local": None, **{f"ray {w}": w for w in args.workers}}
     speed: dict[str, list[float]] = {v: [] for v in variants}
     share: dict[str, list[float]] = {v: [] for v in variants}
+    cpu: dict[str, list[float]] = {v: [] for v in variants}
     start_s: list[float] = []
     for rep in range(args.repeat):
         for name, workers in variants.items():
@@ -136,13 +145,16 @@ def measure(kind: str, n: int, args, root: Path) -> dict:
                 engine = RayEngine(service.pipeline.source, service.limits, address="local", workers=workers)
                 start_s.append(time.perf_counter() - t0)
             try:
-                ips, ws = timed_run(service, items, engine)
+                ips, ws, cpu_ms = timed_run(service, items, engine)
             finally:
                 engine.close()
                 service.store.close()
             speed[name].append(ips)
             share[name].append(ws)
-            print(f"  {kind} rep {rep + 1} {name}: {ips:.2f} img/s, writer {ws:.1%}", flush=True)
+            cpu[name].append(cpu_ms)
+            print(
+                f"  {kind} rep {rep + 1} {name}: {ips:.2f} img/s, writer {ws:.1%}, {cpu_ms:.0f} CPU ms/img", flush=True
+            )
     med = {v: statistics.median(s) for v, s in speed.items()}
     return {
         "kind": kind,
@@ -150,6 +162,7 @@ def measure(kind: str, n: int, args, root: Path) -> dict:
         "split": split,
         "speed": med,
         "writer": {v: statistics.median(s) for v, s in share.items()},
+        "cpu_ms": {v: statistics.median(s) for v, s in cpu.items()},
         "pool_start_s": statistics.median(start_s) if start_s else float("nan"),
     }
 
@@ -170,10 +183,13 @@ def projection(split: dict[str, float], efficiency: float, cores: Sequence[int],
 
 
 def report(results: list[dict], args, load: tuple[float, float]) -> str:
-    w = args.workers
+    import ray
+
+    ray_version, w = ray.__version__, args.workers
     lines = [
-        f"Command: `PYTHONPATH=$PWD python -m bench.ingest_speed --photos {args.photos} --crops {args.crops} "
-        f"--repeat {args.repeat}` (config {args.config}); load average {load[0]:.1f} before, {load[1]:.1f} "
+        f"Command: `PYTHONPATH=$PWD python -m bench.ingest_speed --models-dir {args.models_dir} --photos "
+        f"{args.photos} --crops {args.crops} --repeat {args.repeat}` (config {args.config}, Ray {ray_version}); "
+        f"load average {load[0]:.1f} before, {load[1]:.1f} "
         f"after (2 cores shared with other jobs). Medians over {args.repeat} interleaved repetitions.",
         "",
         "| images | n | local img/s | " + " | ".join(f"Ray {k} img/s (vs local)" for k in w)
@@ -189,6 +205,16 @@ def report(results: list[dict], args, load: tuple[float, float]) -> str:
             f"| {r['kind']} | {r['n']} | {s['local']:.2f} | {ray_cells} | {up:.2f}x ({up / 2:.0%}) | {writer} "
             f"| {r['pool_start_s']:.1f} s |"
         )
+    lines += [
+        "",
+        "CPU ms per image (driver + writer + actors; independent of the load; ratio vs local):",
+        "",
+        "| images | " + " | ".join(results[0]["cpu_ms"]) + " |",
+        "|---|" + "---|" * len(results[0]["cpu_ms"]) if results else "",
+    ]
+    for r in results:
+        c = r["cpu_ms"]
+        lines.append(f"| {r['kind']} | " + " | ".join(f"{v:.0f} ({v / c['local']:.2f}x)" for v in c.values()) + " |")
     lines += ["", "Per-image cost (median ms, one thread):", ""]
     lines += ["| images | " + " | ".join(STAGES) + " | total |", "|---|" + "---|" * (len(STAGES) + 1)]
     for r in results:

@@ -126,3 +126,16 @@ def test_a_pool_larger_than_the_cluster_times_out_with_a_clear_error(ray_cluster
     # the pool was removed: the 2 CPUs are free again for the next engine
     with RayEngine(source, ImageLimits(), address="local", workers=2, shared_fs=True) as engine:
         assert len(engine.actor_pids()) == 2
+
+
+def test_the_shipped_package_loads_the_same_pipeline(tmp_path, fitted_models):
+    from app.engine.pipeline import PipelineSource
+    from app.ray_engine import PipelinePackage, model_files
+
+    source = PipelineSource.default(fitted_models, CONFIG)
+    package = PipelinePackage.of(source)
+    assert "squeezenet1_1.onnx" in package.files and f"pipelines/{CONFIG}/pipeline.json" in package.files
+    unpacked = package.unpack(tmp_path / "actor")
+    assert unpacked.load().fingerprint == source.load().fingerprint
+    with pytest.raises(RayEngineError, match="no fitted pipeline"):
+        model_files(PipelineSource.default(fitted_models, "hybrid"))  # never fitted in the test models dir
