@@ -49,6 +49,15 @@ class RayEngineError(RuntimeError):
     """Ray could not be reached, the pool could not start, or a batch failed after its retries."""
 
 
+def _import_ray():
+    """Ray is an optional dependency: say how to get it instead of a bare ModuleNotFoundError."""
+    try:
+        import ray
+    except ModuleNotFoundError:
+        raise RayEngineError("encoding on Ray needs the ray extra: pip install 'geoloc[ray]'") from None
+    return ray
+
+
 # -- connecting --------------------------------------------------------------------------------------------
 @contextmanager
 def _deadline(timeout_s: float, what: str) -> Iterator[None]:
@@ -77,7 +86,7 @@ def connect(address: str, num_cpus: int | None = None, timeout_s: float = START_
     ``"local"`` starts a fresh instance on this machine bound to 127.0.0.1 with ``num_cpus`` CPUs (all of
     them when None); ``"auto"`` or ``ray://head:10001`` connect to a running cluster. When this process is
     already connected (a test, a notebook), that connection is used and left alone."""
-    import ray
+    ray = _import_ray()
 
     if ray.is_initialized():
         return False
@@ -208,10 +217,12 @@ class RayEngine:
     ):
         """``workers``: actors in the pool (None or 0: one per CPU of the cluster). ``shared_fs``: the actors
         read the models and the images from the paths themselves instead of receiving them."""
-        import ray
+        ray = _import_ray()
 
         if batch_size < 1:
             raise ValueError("batch_size must be at least 1")
+        if workers is not None and workers < 0:
+            raise ValueError("workers must be a positive number of actors (0 or None: one per CPU)")
         self.shared_fs = shared_fs
         self.batch_size = batch_size
         self.batch_timeout_s = batch_timeout_s
@@ -322,7 +333,9 @@ class RayEngine:
         self._closed = True
         actors = getattr(self, "actors", [])
         if actors and ray.is_initialized():
-            done, _ = ray.wait([a.cleanup.remote() for a in actors], num_returns=len(actors), timeout=10)
+            # a pool that never started has actors that will not answer: do not wait long for them
+            wait_s = 10 if getattr(self, "_pids", None) else 2
+            ray.wait([a.cleanup.remote() for a in actors], num_returns=len(actors), timeout=wait_s)
             for a in actors:
                 ray.kill(a, no_restart=True)
         if self._owned and ray.is_initialized():
