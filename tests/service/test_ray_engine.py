@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from app.core import GeolocService, Upload
-from app.encoding import EncodeItem, LocalEngine, encode_and_complete
+from app.encoding import EncodeItem, LocalEngine, encode_and_complete, make_engine
 from tests.conftest import PENN
 from tests.service.conftest import CONFIG
 
@@ -101,13 +101,43 @@ def test_an_encoder_killed_mid_job_still_indexes_each_reference_once(ray_cluster
     assert sorted(adds) == ids and set(adds.values()) == {1}
 
 
+def test_a_batch_lost_for_good_raises_after_completing_what_came_back(ray_cluster, service, penn_index):
+    """No restarts: the killed actor's batches fail, the job raises, and nothing that came back is lost;
+    a second run completes the rest, so every reference ends indexed exactly once."""
+    service.accept(crops(penn_index, 16, skip=50))
+    items = pending_items(service)
+    with RayEngine(service.pipeline.source, service.limits, address="local", workers=2, batch_size=2,
+                   max_restarts=0, max_task_retries=0) as engine:  # fmt: skip
+        pids = engine.actor_pids()
+
+        def feed() -> Iterator[EncodeItem]:
+            for n, item in enumerate(items):
+                if n == 8:  # one batch has come back, four are in flight
+                    os.kill(pids[0], signal.SIGKILL)
+                yield item
+
+        with pytest.raises(RayEngineError, match="failed after its retries"):
+            encode_and_complete(service, feed(), engine, batch=1)  # each result completed as it arrives
+    first = service.store.count("indexed")
+    assert 0 < first < len(items) and service.store.count("pending") == len(items) - first
+    with RayEngine(service.pipeline.source, service.limits, address="local", workers=2) as engine:
+        assert encode_and_complete(service, pending_items(service), engine) == len(items) - first
+    adds = collections.Counter(c.ref_id for c in service.store.changes_since(0) if c.op == "add")
+    assert sorted(adds) == sorted(i.ref_id for i in items) and set(adds.values()) == {1}
+    assert service.collection.size == len(items)
+
+
 def test_a_bad_image_becomes_a_failed_row(ray_cluster, service, penn_index):
     accepted = service.accept(crops(penn_index, 6, skip=40))
     corrupt, missing, *good = accepted.reference_ids
     service.image_path(corrupt).write_bytes(b"this is not a JPEG")
     service.image_path(missing).unlink()
-    with RayEngine(service.pipeline.source, service.limits, address="local", workers=2, batch_size=2) as engine:
+    engine = make_engine(service, ray="local", workers=2)  # what `geoloc ingest --ray local` builds
+    try:
+        assert isinstance(engine, RayEngine) and len(engine.actor_pids()) == 2
         done = encode_and_complete(service, pending_items(service), engine, batch=4)
+    finally:
+        engine.close()
     assert done == len(good)
     rows = service.store.get_many(accepted.reference_ids)
     assert rows[corrupt].status == "failed" and rows[corrupt].error
