@@ -305,11 +305,12 @@ def render(fig: dict) -> str:
 
 
 def write_kept(out: Path, text: str) -> None:
-    """Write the rendered figures, keeping the marked sections other benchmarks own (bench/scale.py,
-    bench/ingest_speed.py, bench/compare_configs.py) as they are in the current file."""
+    """Write the rendered figures, keeping what other benchmarks own as it is: everything from the first
+    marked section on (bench/scale.py, bench/ingest_speed.py, bench/compare_configs.py, and their notes)."""
     old = out.read_text() if out.exists() else ""
-    kept = [s for s in marked_sections(old) if s not in text]
-    out.write_text(text.rstrip() + "\n" + "".join(f"\n{s}\n" for s in kept))
+    first = marked_sections(old)
+    tail = old[old.index(first[0]) :] if first else ""
+    out.write_text(text.rstrip() + ("\n\n" + tail if tail else "\n"))
 
 
 def main() -> None:

@@ -15,7 +15,8 @@ def test_sections_are_replaced_in_place_and_kept_by_the_full_render(tmp_path):
     assert text.index("## Scale") < text.index("## Ingestion")  # replaced where it was
     assert [s.splitlines()[1] for s in marked_sections(text)] == ["## Scale", "## Ingestion"]
 
+    doc.write_text(doc.read_text() + "\nNotes on ingestion, written by hand.\n")
     write_kept(doc, "# Benchmarks\n\nnew figures\n")
     text = doc.read_text()
     assert "new figures" in text and "old figures" not in text
-    assert "second" in text and "rate 5" in text
+    assert "second" in text and "rate 5" in text and "written by hand" in text
