@@ -188,3 +188,8 @@ def test_an_interrupted_reindex_leaves_the_old_generation_and_a_rerun_continues(
     assert meta["generation"] == "1" and meta["fingerprint"] == target.fingerprint
     cli = json.loads(geoloc("locate", str(photo), "--data-dir", str(data), "--models-dir", str(fitted_models)).stdout)
     assert cli["index"]["generation"] == 1 and cli["candidates"][0]["score"] > 0.99
+    # A backup carries the re-fitted pipeline: the restored copy checks clean on generation 1.
+    geoloc("backup", str(tmp_path / "backup"), "--data-dir", str(data))
+    geoloc("restore", str(tmp_path / "backup"), "--data-dir", str(tmp_path / "restored"))
+    check = geoloc("check", "--data-dir", str(tmp_path / "restored"), "--models-dir", str(fitted_models)).stdout
+    assert f"pipelines/{CONFIG}-g1, generation 1" in check and "ok:" in check
