@@ -315,7 +315,10 @@ def refit(
                 n, failed = reindex(store, target, engine, options.batch, on_batch=lambda r: bar.update(len(r)))
             summary.reencoded += n
             summary.failed += failed
-            if switch(store, target) is not None:
+            t1 = time.perf_counter()
+            switched = switch(store, target)
+            summary.seconds["switch"] = time.perf_counter() - t1  # the one write transaction
+            if switched is not None:
                 break
             already = 0  # uploads indexed between the last pass and the switch: one more pass
     finally:
