@@ -20,7 +20,7 @@ import numpy as np
 from app.collection import pipeline_source
 from app.engine.errors import GeolocError
 from app.snapshots import MANIFEST, SnapshotInvalid, load_snapshot, read_manifest, snapshot_files
-from app.store import DB_NAME, IMAGES, ReferenceStore
+from app.store import CODES, DB_NAME, IMAGES, ReferenceStore
 
 BACKUP_MANIFEST = "backup.json"
 PIPELINES = "pipelines"  # the data dir's re-fitted pipelines, one folder per generation
@@ -49,7 +49,10 @@ def check_data_dir(data_dir: Path, models_dir: Path, config: str | None) -> Chec
     store = ReferenceStore(data_dir, read_only=True)
     counts = {s: store.count(s) for s in ("indexed", "pending", "failed")}
     r.lines.append(f"rows: {counts['indexed']} indexed, {counts['pending']} pending, {counts['failed']} failed")
-    rows = store.db.execute("SELECT id, sha256, image_ext, status, float_code, binary_code FROM refs").fetchall()
+    rows = store.db.execute(
+        f"SELECT r.id, r.sha256, r.image_ext, r.status, {CODES} FROM refs r "
+        "LEFT JOIN switched_codes s ON s.ref_id = r.id"
+    ).fetchall()
     named = {f"{sha}.{ext}" for _, sha, ext, *_ in rows}
     on_disk = {p.name for p in (data_dir / IMAGES).iterdir() if not p.name.startswith(".")}
     missing = [i for i, sha, ext, *_ in rows if f"{sha}.{ext}" not in on_disk]

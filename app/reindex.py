@@ -6,8 +6,10 @@ sample of the stored references and saved in the data dir (``pipelines/<config>-
 temporary folder and renamed); the new codes go into a table of their own (``next_codes``), one
 transaction per batch, resumable; uploads indexed meanwhile by the old pipeline are picked up by the next
 pass and deletions are ignored by the join; then one write transaction re-checks completeness and switches
-codes, pipeline, generation and fingerprint together. Every process notices the new generation in its
-next catch-up (the same read as the index version) and swaps pipeline and index together. An interrupted
+pipeline, generation and fingerprint together, and makes the new codes the ones every reader sees by
+renaming their table (constant time; they are copied into ``refs`` afterwards in short transactions).
+Every process notices the new generation in its next catch-up (the same read as the index version) and
+swaps pipeline and index together. An interrupted
 re-index never switched: the old generation keeps serving, and a re-run continues where it stopped.
 """
 
@@ -324,6 +326,10 @@ def refit(
     finally:
         engine.close()
     summary.seconds["reindex"] = time.perf_counter() - t0
+    t1 = time.perf_counter()
+    while store.migrate_switched():  # the new codes into refs, a few thousand per short transaction
+        pass
+    summary.seconds["copy"] = time.perf_counter() - t1
     lock = WorkerLock(data_dir)
     if lock.acquire():  # no server or worker writes snapshots here now: write the new generation's one
         try:

@@ -77,7 +77,7 @@ CREATE TABLE IF NOT EXISTS changes (
 # switch copies them into ``refs`` in one transaction. Meta keys: ``generation`` (the number in use, 0 before
 # any re-fit), ``pipeline`` (the fitted pipeline in use: ``models:<config>`` or ``pipelines/<config>-g<N>``
 # under the data dir) and ``reindex_target`` (JSON: the generation being built, while a re-index runs).
-GENERATIONS_SCHEMA = """
+NEXT_CODES = """
 CREATE TABLE IF NOT EXISTS next_codes (
     ref_id INTEGER PRIMARY KEY,
     float_code BLOB,
@@ -85,6 +85,25 @@ CREATE TABLE IF NOT EXISTS next_codes (
     error TEXT
 );
 """
+# After the switch the filled table is renamed ``switched_codes`` (O(1), in the switch transaction) and its
+# codes win over those in ``refs`` until they are copied there in small transactions: the switch itself
+# never holds the write lock for a time that grows with the collection.
+GENERATIONS_SCHEMA = (
+    NEXT_CODES
+    + """
+CREATE TABLE IF NOT EXISTS switched_codes (
+    ref_id INTEGER PRIMARY KEY,
+    float_code BLOB,
+    binary_code BLOB,
+    error TEXT
+);
+"""
+)
+#: A reference's codes of the generation in use: its row in ``switched_codes`` when there is one.
+CODES = (
+    "CASE WHEN s.ref_id IS NULL THEN r.float_code ELSE s.float_code END, "
+    "CASE WHEN s.ref_id IS NULL THEN r.binary_code ELSE s.binary_code END"
+)
 
 
 class StorageUnavailable(GeolocError):
@@ -577,8 +596,9 @@ class ReferenceStore:
         deleted since: a later delete entry follows). Under the lock, like ``version``."""
         with self._lock:
             rows = self.db.execute(
-                "SELECT c.version, c.ref_id, c.op, r.float_code, r.binary_code FROM changes c "
+                f"SELECT c.version, c.ref_id, c.op, {CODES} FROM changes c "
                 "LEFT JOIN refs r ON r.id = c.ref_id AND r.status = 'indexed' AND c.op = 'add' "
+                "LEFT JOIN switched_codes s ON s.ref_id = r.id "
                 "WHERE c.version > ? ORDER BY c.version",
                 (version,),
             ).fetchall()
@@ -589,7 +609,8 @@ class ReferenceStore:
         with self.read_snapshot() as db:
             version = int(db.execute("SELECT COALESCE(MAX(version), 0) FROM changes").fetchone()[0])
             rows = db.execute(
-                "SELECT id, float_code, binary_code FROM refs WHERE status='indexed' ORDER BY id"
+                f"SELECT r.id, {CODES} FROM refs r LEFT JOIN switched_codes s ON s.ref_id = r.id "
+                "WHERE r.status='indexed' ORDER BY r.id"
             ).fetchall()
         return version, np.array([r[0] for r in rows], np.int64), [r[1] for r in rows], [r[2] for r in rows]
 
@@ -628,7 +649,8 @@ class ReferenceStore:
             gen = db.execute("SELECT value FROM meta WHERE key='generation'").fetchone()
             version = int(db.execute("SELECT COALESCE(MAX(version), 0) FROM changes").fetchone()[0])
             rows = db.execute(
-                "SELECT id, float_code, binary_code FROM refs WHERE status='indexed' ORDER BY id"
+                f"SELECT r.id, {CODES} FROM refs r LEFT JOIN switched_codes s ON s.ref_id = r.id "
+                "WHERE r.status='indexed' ORDER BY r.id"
             ).fetchall()
         ids = np.array([r[0] for r in rows], np.int64)
         return int(gen[0]) if gen else 0, version, ids, [r[1] for r in rows], [r[2] for r in rows]
@@ -641,6 +663,8 @@ class ReferenceStore:
         """Make ``target`` the generation being built. The same target again continues (its codes so far are
         kept); another one starts over. Returns how many references already have their new codes."""
         value = json.dumps(target, sort_keys=True)
+        while self.migrate_switched():  # the previous switch's codes first (an interrupted refit)
+            pass
         with self.transaction() as db:
             row = db.execute("SELECT value FROM meta WHERE key='reindex_target'").fetchone()
             if row is None or row[0] != value:
@@ -693,9 +717,11 @@ class ReferenceStore:
 
     def switch_generation(self, target: dict, fingerprint: str, config: str) -> int | None:
         """Switch to ``target`` in one write transaction: re-check that every indexed reference has its new
-        code (uploads indexed meanwhile may not: then nothing changes and None is returned), copy the codes
-        into ``refs`` (references the new pipeline could not encode become failed), record the pipeline,
-        generation and fingerprint, and drop the table. Returns the new generation."""
+        code (uploads indexed meanwhile may not: then nothing changes and None is returned), mark failed the
+        references the new pipeline could not encode, rename ``next_codes`` to ``switched_codes`` (whose
+        codes every reader takes over those in ``refs``: constant time, whatever the collection's size) and
+        record the pipeline, generation and fingerprint. ``migrate_switched`` then copies the codes into
+        ``refs`` in short transactions. Returns the new generation."""
         value = json.dumps(target, sort_keys=True)
         with self.transaction() as db:
             row = db.execute("SELECT value FROM meta WHERE key='reindex_target'").fetchone()
@@ -707,14 +733,16 @@ class ReferenceStore:
             ).fetchone()[0]
             if missing:
                 return None
-            db.execute(
-                "UPDATE refs SET float_code=n.float_code, binary_code=n.binary_code FROM next_codes n "
-                "WHERE refs.id = n.ref_id AND refs.status='indexed' AND n.error IS NULL"
-            )
+            if db.execute("SELECT 1 FROM switched_codes LIMIT 1").fetchone():
+                raise StaleReindex("the previous switch's codes are still being copied: run `geoloc refit` again")
             db.execute(
                 "UPDATE refs SET status='failed', error='re-index: ' || n.error, float_code=NULL, binary_code=NULL "
-                "FROM next_codes n WHERE refs.id = n.ref_id AND refs.status='indexed' AND n.error IS NOT NULL"
+                "FROM (SELECT ref_id, error FROM next_codes WHERE error IS NOT NULL) n "
+                "WHERE refs.id = n.ref_id AND refs.status='indexed'"
             )
+            db.execute("DROP TABLE switched_codes")
+            db.execute("ALTER TABLE next_codes RENAME TO switched_codes")
+            db.execute(NEXT_CODES.strip().rstrip(";"))
             meta = {
                 "generation": str(int(target["generation"])),
                 "pipeline": str(target["pipeline"]),
@@ -726,8 +754,23 @@ class ReferenceStore:
                 list(meta.items()),
             )
             db.execute("DELETE FROM meta WHERE key='reindex_target'")
-            db.execute("DELETE FROM next_codes")
         return int(target["generation"])
+
+    def migrate_switched(self, batch: int = 5000) -> int:
+        """Copy up to ``batch`` of the last switch's codes into ``refs`` in one short transaction (readers see
+        the same codes before and after); returns how many rows it handled (0: nothing left)."""
+        with self.transaction() as db:
+            rows = db.execute(
+                "SELECT ref_id, float_code, binary_code FROM switched_codes ORDER BY ref_id LIMIT ?", (batch,)
+            ).fetchall()
+            if not rows:
+                return 0
+            db.executemany(
+                "UPDATE refs SET float_code=?, binary_code=? WHERE id=? AND status='indexed'",
+                [(f, b, i) for i, f, b in rows],
+            )
+            db.execute("DELETE FROM switched_codes WHERE ref_id <= ?", (rows[-1][0],))
+        return len(rows)
 
 
 class StaleReindex(GeolocError):
