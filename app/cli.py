@@ -516,6 +516,73 @@ def restore(
     typer.echo(f"restored {summary['references']} references into {data_dir}")
 
 
+@app.command()
+def refit(
+    config: Annotated[
+        str | None, typer.Option("--config", "-c", help="configuration of the new generation; default: the data dir's")
+    ] = None,
+    train_manifest: Annotated[
+        Path | None,
+        typer.Option("--train-manifest", help="CSV of geotagged training photos (its train rows) for the SVM bank"),
+    ] = None,
+    sample: Annotated[int, typer.Option(help="stored references the codebook, PCA and binariser are fitted on")] = 2000,
+    svm_bank: Annotated[
+        str | None,
+        typer.Option(
+            "--svm-bank",
+            help="collection (each sampled reference against the others, its own capture excluded), train (the "
+            "train manifest's photos) or none; default: train with --train-manifest, else collection",
+        ),
+    ] = None,
+    svm_bank_kind: Annotated[str, typer.Option("--svm-bank-kind", help="contrastive or confusers")] = "contrastive",
+    ray: Annotated[
+        str | None, typer.Option("--ray", help="re-encode on Ray: local, auto or a cluster address (ray://head:10001)")
+    ] = None,
+    workers: Annotated[int, typer.Option(help="extraction and encoding threads (or Ray workers)")] = 1,
+    batch: Annotated[int, typer.Option(help="references re-encoded per transaction")] = 32,
+    fresh: Annotated[
+        bool, typer.Option("--fresh", help="discard an interrupted re-index instead of continuing it")
+    ] = False,
+    data_dir: DataDir = _S.data_dir,
+    models_dir: ModelsDir = _S.models_dir,
+    seed: int = 0,
+) -> None:
+    """Fit a new pipeline generation on a sample of the stored references, re-encode every reference from its
+    stored image into it and switch to it atomically. Servers keep answering from the old generation until
+    the switch and then answer from the new one, without a restart; an interrupted run changes nothing, and
+    running it again continues where it stopped."""
+    import logging
+
+    from app.reindex import RefitOptions
+    from app.reindex import refit as run_refit
+
+    logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    if sample < 2:
+        _fail("--sample must be at least 2")
+    if batch < 1 or workers < 1:
+        _fail("--batch and --workers must be at least 1")
+    options = RefitOptions(
+        config=config,
+        train_manifest=train_manifest,
+        sample=sample,
+        svm_bank=svm_bank,
+        bank_kind=svm_bank_kind,
+        seed=seed,
+        workers=workers,
+        batch=batch,
+        fresh=fresh,
+    )
+    s = run_refit(data_dir, models_dir, options, ray=ray, limits=_S.image_limits())
+    secs = ", ".join(f"{k} {v:.1f} s" for k, v in s.seconds.items())
+    typer.echo(
+        f"switched {data_dir} to generation {s.generation} ({s.config}, pipeline {data_dir / s.pipeline}"
+        + (", continued an interrupted re-index" if s.resumed else f", fitted on {s.fitted_on} references")
+        + f", SVM bank: {s.bank}); {s.reencoded} references re-encoded"
+        + (f" ({s.failed} could not be and are now failed)" if s.failed else "")
+        + f"; {secs}"
+    )
+
+
 def _parse_overrides(items: list[str]) -> dict:
     out = {}
     for item in items:

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from app.engine.pipeline import Pipeline, load_pipeline
+from app.engine.pipeline import Pipeline, PipelineSource
 from app.engine.search import ReferenceIndex
 from app.snapshots import SnapshotInvalid, load_snapshot, write_snapshot
 from app.store import Change, ReferenceStore
@@ -93,28 +93,80 @@ def index_from_codes(pipeline: Pipeline, ids: np.ndarray, fcodes: list, bcodes: 
     return index
 
 
+DEFAULT_PIPELINE = "models:"  # meta ``pipeline`` prefix: the models dir's pipelines/<config>
+
+
+def pipeline_source(data_dir: Path, models_dir: Path, pipeline_ref: str | None, config: str) -> PipelineSource:
+    """Where the data dir's recorded pipeline is: the models dir's (``models:<config>``, or nothing recorded
+    yet) or a re-fitted one in the data dir (``pipelines/<config>-g<N>``)."""
+    if not pipeline_ref or pipeline_ref.startswith(DEFAULT_PIPELINE):
+        name = pipeline_ref[len(DEFAULT_PIPELINE) :] if pipeline_ref else config
+        return PipelineSource.default(Path(models_dir), name or config)
+    return PipelineSource(Path(models_dir), Path(data_dir) / pipeline_ref, config)
+
+
+@dataclass(frozen=True)
+class View:
+    """One generation's pipeline and index, taken together for one request (``Searchable``)."""
+
+    collection: Collection
+    pipeline: Pipeline
+    index: ReferenceIndex
+    generation: int
+
+    def check_mode(self, mode: str | None) -> str:
+        return self.index.check_mode(mode)
+
+    def search(self, float_code, binary_code, k: int, mode: str | None = None, allowed: np.ndarray | None = None):
+        with self.collection.lock:
+            return self.index.search(float_code, binary_code, k, mode, allowed)
+
+
 class Collection:
     """One per process and data dir. ``search`` and every change of ``index`` hold ``lock``."""
 
-    def __init__(self, store: ReferenceStore, pipeline: Pipeline, policy: SnapshotPolicy | None = None):
+    def __init__(
+        self,
+        store: ReferenceStore,
+        pipeline: Pipeline,
+        policy: SnapshotPolicy | None = None,
+        generation: int = 0,
+        models_dir: Path | None = None,
+    ):
         self.store = store
         self.pipeline = pipeline
+        self.generation = generation
+        self.models_dir = models_dir  # where a new generation's ONNX models are loaded from
         self.policy = policy or SnapshotPolicy()
         self.lock = threading.RLock()
         self.stats = IndexStats()
         self._snapshot_lock = threading.Lock()
+        self._reload_lock = threading.Lock()
+        self._reloader: threading.Thread | None = None
+        self.reload_error: str | None = None  # why the last attempt to load a newer generation failed
         self._first_pending_at: float | None = None  # when the oldest change not in a snapshot was applied
         self.rebuilt = False  # loaded by a full rebuild: a snapshot is due as soon as a writer can take it
         self.index, self.version = self._load()
 
     @classmethod
     def open(cls, data_dir: Path, models_dir: Path, config: str | None, policy: SnapshotPolicy | None = None):
-        """The data dir's own configuration wins over ``config``: its codes were made by that pipeline."""
+        """The data dir's own configuration and pipeline win over ``config``: its codes were made by them."""
         store = ReferenceStore(data_dir)
-        name = store.get_meta("config") or config or "hybrid"
-        pipeline = load_pipeline(models_dir, name)
+        for _ in range(3):  # a re-fit switching between the read and the load: read again
+            generation, ref, name = store.generation_state()
+            name = name or config or "hybrid"
+            pipeline = pipeline_source(data_dir, models_dir, ref, name).load()
+            if store.generation_state()[0] == generation:
+                break
         store.bind(pipeline)
-        return cls(store, pipeline, policy)
+        if ref is None and not store.read_only:
+            store.set_meta("pipeline", DEFAULT_PIPELINE + name)
+        return cls(store, pipeline, policy, generation, Path(models_dir))
+
+    def view(self) -> View:
+        """The current generation's pipeline and index, for one request."""
+        with self.lock:
+            return View(self, self.pipeline, self.index, self.generation)
 
     # -- loading --------------------------------------------------------------------------------------
     def _load(self) -> tuple[ReferenceIndex, int]:
@@ -142,13 +194,74 @@ class Collection:
         log.info("index rebuilt from %d stored codes in %.1f s", len(ids), time.perf_counter() - t0)
         return index, version
 
+    # -- switching generation -------------------------------------------------------------------------
+    def _load_generation(self) -> bool:
+        """Load the data dir's current generation (pipeline, then its snapshot or a rebuild from SQLite)
+        without the lock, then swap pipeline, index and version together. True when it swapped."""
+        if self.models_dir is None:
+            raise RuntimeError("this collection was not opened from a models dir: it cannot load a new generation")
+        generation, ref, name = self.store.generation_state()
+        if generation == self.generation:
+            return False
+        t0 = time.perf_counter()
+        pipeline = pipeline_source(self.store.data_dir, self.models_dir, ref, name or self.pipeline.config.name).load()
+        try:
+            index, manifest = load_snapshot(self.store.data_dir, pipeline)
+            if int(manifest.get("generation", -1)) != generation:
+                raise SnapshotInvalid("the snapshot is of another generation")
+            version, rebuilt = int(manifest["version"]), False
+        except SnapshotInvalid:
+            gen, version, ids, fcodes, bcodes = self.store.generation_codes()
+            if gen != generation:  # switched again while we loaded: the next catch-up loads that one
+                return False
+            index, rebuilt = index_from_codes(pipeline, ids, fcodes, bcodes), True
+        with self.lock:
+            if self.generation >= generation:
+                return False
+            self.pipeline, self.index, self.version, self.generation = pipeline, index, version, generation
+            self.rebuilt = rebuilt
+            self.stats.snapshot_version = None if rebuilt else version
+            if rebuilt:
+                self.stats.full_rebuilds += 1
+        log.info("switched to generation %d (%s) in %.1f s", generation, ref, time.perf_counter() - t0)
+        self.catch_up()
+        return True
+
+    def _reload_loop(self) -> None:
+        try:
+            self._load_generation()
+            self.reload_error = None
+        except Exception as e:  # keep answering from the generation we hold; the next catch-up tries again
+            log.exception("loading the new generation failed")
+            self.reload_error = str(e)
+
+    def refresh_generation(self, wait: bool = False, timeout: float = 600.0) -> None:
+        """Start loading the data dir's newer generation in the background (one loader at a time); ``wait``:
+        return once it is loaded (the ingestion worker, which must not encode with a stale pipeline)."""
+        with self._reload_lock:
+            if self._reloader is None or not self._reloader.is_alive():
+                self._reloader = threading.Thread(target=self._reload_loop, name="geoloc-generation", daemon=True)
+                self._reloader.start()
+            thread = self._reloader
+        if wait:
+            thread.join(timeout)
+
     # -- keeping current ------------------------------------------------------------------------------
     def catch_up(self) -> int:
-        """Apply the changes other processes (or this one's worker) logged since our version; returns how many."""
-        if self.store.version == self.version:
+        """Apply the changes other processes (or this one's worker) logged since our version; returns how many.
+        One read gives the version and the generation; a newer generation is loaded in the background and,
+        until it is swapped in, the old index takes no change (those logged after the switch are the new
+        generation's codes)."""
+        version, generation = self.store.head()
+        if generation != self.generation:
+            self.refresh_generation()
+            return 0
+        if version == self.version:
             return 0
         with self.lock:
-            changes = self.store.changes_since(self.version)
+            if generation != self.generation:
+                return 0
+            changes = [c for c in self.store.changes_since(self.version) if c.version <= version]
             if not changes:
                 return 0
             apply_changes(self.index, changes)
@@ -192,20 +305,24 @@ class Collection:
             with self.lock:
                 if self.stats.snapshot_version == self.version and not self.rebuilt:
                     return False
-                v0 = self.version
+                v0, gen0, pipeline = self.version, self.generation, self.pipeline
                 parts = {
                     k: (idx.to_bytes(), set(idx.tombstones))
                     for k, idx in (("float", self.index.float), ("binary", self.index.binary))
                     if idx is not None
                 }
-            copy = ReferenceIndex(self.pipeline.config, self.pipeline.float_dim, self.pipeline.bits)
+            copy = ReferenceIndex(pipeline.config, pipeline.float_dim, pipeline.bits)
             for k, (data, tombs) in parts.items():
                 getattr(copy, k).load_bytes(data, tombs)
             del parts
             copy.compact()
             t0 = time.perf_counter()
-            manifest = write_snapshot(self.store.data_dir, copy, self.pipeline, v0)
+            if self.store.head()[1] != gen0:  # a re-fit switched meanwhile: this generation is done with
+                return False
+            manifest = write_snapshot(self.store.data_dir, copy, pipeline, v0, gen0)
             with self.lock:
+                if self.generation != gen0:  # swapped while we wrote: the new generation's index stays
+                    return False
                 later = [c for c in self.store.changes_since(v0) if c.version <= self.version]
                 apply_changes(copy, later)
                 self.index = copy

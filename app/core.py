@@ -139,6 +139,7 @@ class LocateAnswer:
     timings_ms: dict[str, float] = field(default_factory=dict)
     index_size: int = 0
     index_version: int = 0
+    index_generation: int = 0
 
     @property
     def confident_estimate(self) -> Estimate | None:
@@ -171,7 +172,7 @@ class LocateAnswer:
             "config": self.config,
             "features": {"extracted": self.features_extracted, "kept": self.features_kept},
             "timings_ms": {k: round(v, 3) for k, v in self.timings_ms.items()},
-            "index": {"size": self.index_size, "version": self.index_version},
+            "index": {"size": self.index_size, "version": self.index_version, "generation": self.index_generation},
         }
 
 
@@ -431,6 +432,7 @@ class Encoded:
     binary_code: np.ndarray | None
     error: str | None = None  # a permanent failure (the row becomes failed)
     retry: bool = False  # a storage failure: the row stays pending and is tried again later
+    fingerprint: str | None = None  # the pipeline that made the codes (a re-fit may switch meanwhile)
 
 
 def encode_one(pipeline: Pipeline, limits: ImageLimits, ref_id: int, path: Path) -> Encoded:
@@ -451,8 +453,8 @@ def encode_data(pipeline: Pipeline, limits: ImageLimits, ref_id: int, data: byte
     try:
         codes = pipeline.encode_image(load_image(data, limits).rgb)
     except GeolocError as e:
-        return Encoded(ref_id, None, None, str(e))
-    return Encoded(ref_id, codes.float_, codes.binary)
+        return Encoded(ref_id, None, None, str(e), fingerprint=pipeline.fingerprint)
+    return Encoded(ref_id, codes.float_, codes.binary, fingerprint=pipeline.fingerprint)
 
 
 # -- the service ------------------------------------------------------------------------------------------
@@ -497,11 +499,17 @@ class GeolocService:
         return img, self.pipeline.extract(img.rgb), decode_ms
 
     def locate_extracted(self, img: LoadedImage, features: Features, options: LocateOptions) -> LocateAnswer:
+        """Search with one generation's pipeline and index taken together (a re-fit may swap them at any
+        moment); features extracted under another configuration are extracted again."""
         col = self.collection
         col.catch_up()
-        col.check_mode(options.mode)
-        answer = locate_features(self.pipeline, col, self.refs, features, options, img.rgb, self.limits)
-        answer.index_size, answer.index_version = col.size, col.version
+        view = col.view()
+        view.check_mode(options.mode)
+        if features.config is not None and features.config != view.pipeline.config.name:
+            features = view.pipeline.extract(img.rgb)
+        answer = locate_features(view.pipeline, view, self.refs, features, options, img.rgb, self.limits)
+        answer.index_size, answer.index_generation = view.index.size, view.generation
+        answer.index_version = col.version if col.generation == view.generation else 0
         return answer
 
     def locate(self, data: bytes, options: LocateOptions) -> LocateAnswer:
@@ -572,9 +580,22 @@ class GeolocService:
             return list(pool.map(lambda b: encode_one(self.pipeline, self.limits, *b), batch))
 
     def complete(self, results: Sequence[Encoded]) -> list[int]:
-        """Record a batch in one transaction (storage failures stay pending) and bring the index up to date."""
-        final = [(r.ref_id, r.float_code, r.binary_code, r.error) for r in results if not r.retry]
-        done = self.store.complete(final) if final else []
+        """Record a batch in one transaction (storage failures stay pending) and bring the index up to date.
+        Results made by a pipeline the data dir no longer uses (a re-fit switched while they were encoded)
+        are not recorded: their rows stay pending, and this process loads the new generation before
+        returning, so the next batch is encoded by it."""
+        by_pipeline: dict[str | None, list] = {}
+        for r in results:
+            if not r.retry:
+                by_pipeline.setdefault(r.fingerprint, []).append((r.ref_id, r.float_code, r.binary_code, r.error))
+        done: list[int] = []
+        stale = False
+        for fingerprint, final in by_pipeline.items():
+            recorded = self.store.complete(final, fingerprint)
+            stale |= fingerprint is not None and not recorded and any(e is None for *_, e in final)
+            done += recorded
+        if stale and self.store.get_meta("fingerprint") != self.pipeline.fingerprint:
+            self.collection.refresh_generation(wait=True)
         self.collection.catch_up()
         return done
 

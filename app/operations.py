@@ -17,12 +17,13 @@ from pathlib import Path
 
 import numpy as np
 
+from app.collection import pipeline_source
 from app.engine.errors import GeolocError
-from app.engine.pipeline import load_pipeline
 from app.snapshots import MANIFEST, SnapshotInvalid, load_snapshot, read_manifest, snapshot_files
-from app.store import DB_NAME, IMAGES, ReferenceStore
+from app.store import CODES, DB_NAME, IMAGES, ReferenceStore
 
 BACKUP_MANIFEST = "backup.json"
+PIPELINES = "pipelines"  # the data dir's re-fitted pipelines, one folder per generation
 
 
 class OperationRefused(GeolocError):
@@ -48,7 +49,10 @@ def check_data_dir(data_dir: Path, models_dir: Path, config: str | None) -> Chec
     store = ReferenceStore(data_dir, read_only=True)
     counts = {s: store.count(s) for s in ("indexed", "pending", "failed")}
     r.lines.append(f"rows: {counts['indexed']} indexed, {counts['pending']} pending, {counts['failed']} failed")
-    rows = store.db.execute("SELECT id, sha256, image_ext, status, float_code, binary_code FROM refs").fetchall()
+    rows = store.db.execute(
+        f"SELECT r.id, r.sha256, r.image_ext, r.status, {CODES} FROM refs r "
+        "LEFT JOIN switched_codes s ON s.ref_id = r.id"
+    ).fetchall()
     named = {f"{sha}.{ext}" for _, sha, ext, *_ in rows}
     on_disk = {p.name for p in (data_dir / IMAGES).iterdir() if not p.name.startswith(".")}
     missing = [i for i, sha, ext, *_ in rows if f"{sha}.{ext}" not in on_disk]
@@ -59,7 +63,8 @@ def check_data_dir(data_dir: Path, models_dir: Path, config: str | None) -> Chec
     if orphans:
         r.problems.append(f"image files no row names: {_sample(orphans)}")
     name = store.get_meta("config") or config or "hybrid"
-    pipeline = load_pipeline(models_dir, name)
+    pipeline = pipeline_source(data_dir, models_dir, store.get_meta("pipeline"), name).load()
+    r.lines.append(f"pipeline: {store.get_meta('pipeline') or 'models:' + name}, generation {store.head()[1]}")
     fsize = 4 * (pipeline.float_dim or 0)
     bsize = (pipeline.bits or 0) // 8
     bad_codes = [
@@ -118,6 +123,8 @@ def backup_data_dir(data_dir: Path, dest: Path) -> dict:
             copied += 1
         except FileNotFoundError:  # deleted since the database copy was taken
             missing += 1
+    if (data_dir / PIPELINES).is_dir():  # re-fitted pipelines (`geoloc refit`): the codes need theirs
+        shutil.copytree(data_dir / PIPELINES, dest / PIPELINES, ignore=shutil.ignore_patterns(".*"))
     version = None
     try:
         for path in snapshot_files(data_dir):
@@ -151,6 +158,8 @@ def restore_data_dir(source: Path, data_dir: Path) -> dict:
         src.close()
         dst.close()
     shutil.copytree(source / IMAGES, data_dir / IMAGES, dirs_exist_ok=True)
+    if (source / PIPELINES).is_dir():
+        shutil.copytree(source / PIPELINES, data_dir / PIPELINES, dirs_exist_ok=True)
     for path in source.glob("*-v*.faiss"):
         shutil.copy2(path, data_dir / path.name)
     if (source / MANIFEST).exists():

@@ -27,11 +27,15 @@ class SnapshotInvalid(Exception):
     """No usable snapshot: the caller rebuilds the index from the codes in SQLite."""
 
 
-def write_snapshot(data_dir: Path, index: ReferenceIndex, pipeline: Pipeline, version: int) -> dict:
+def write_snapshot(
+    data_dir: Path, index: ReferenceIndex, pipeline: Pipeline, version: int, generation: int = 0
+) -> dict:
+    """Files named by generation and version (two generations at one version never share a file name); the
+    manifest carries the pipeline's fingerprint, so one generation's snapshot is never loaded for another."""
     files: dict[str, dict] = {}
     for kind, idx in (("float", index.float), ("binary", index.binary)):
         if idx is not None:
-            name = f"{kind}-v{version}.faiss"
+            name = f"{kind}-g{generation}-v{version}.faiss"
             data = idx.to_bytes()
             atomic_write_bytes(data_dir / name, data)
             files[kind] = {
@@ -43,6 +47,7 @@ def write_snapshot(data_dir: Path, index: ReferenceIndex, pipeline: Pipeline, ve
     manifest = {
         "format": FORMAT,
         "version": version,
+        "generation": generation,
         "size": index.size,
         "config": pipeline.config.name,
         "fingerprint": pipeline.fingerprint,

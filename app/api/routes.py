@@ -320,6 +320,7 @@ def ready(request: Request):
         config=col.pipeline.config.name,
         index_size=col.size,
         version=col.version,
+        generation=col.generation,
         worker="in-process" if state.worker is not None else "external",
     )
 

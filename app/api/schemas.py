@@ -37,6 +37,7 @@ class FeaturesOut(BaseModel):
 class IndexOut(BaseModel):
     size: int
     version: int
+    generation: int = Field(0, description="the index generation answering (a re-fit makes the next one)")
 
 
 class LocateOut(BaseModel):
@@ -121,4 +122,5 @@ class ReadyOut(BaseModel):
     config: str | None = None
     index_size: int | None = None
     version: int | None = None
+    generation: int | None = None
     worker: str | None = None

@@ -38,6 +38,7 @@ class Features:
     global_: np.ndarray | None  # (512,) GeM of fire9, L2-normalised
     timings_ms: dict[str, float] = field(default_factory=dict)
     orb_raw: np.ndarray | None = None  # packed ORB bits, for geometric re-ranking
+    config: str | None = None  # the configuration that extracted them (a re-fit may change it)
 
     @property
     def n_local(self) -> int:
@@ -126,7 +127,7 @@ class Pipeline:
                 with _Timer(t, "hybrid"):
                     sampled = cnn_mod.sample_at(out.fire9, xy)
                     local = np.hstack([_unit(local), c.cnn_local_weight * _unit(sampled)]).astype(np.float32)
-        return Features(local=local, xy=xy, global_=gem, timings_ms=t, orb_raw=orb_raw)
+        return Features(local=local, xy=xy, global_=gem, timings_ms=t, orb_raw=orb_raw, config=c.name)
 
     # -- stage 1b: feature selection (SVM bank) -------------------------------------------------------
     def select(self, f: Features) -> np.ndarray | None:

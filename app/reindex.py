@@ -1,0 +1,342 @@
+"""Re-fit and re-index (``geoloc refit``): a new generation of the pipeline and of every reference's codes.
+
+Why generations: re-fitting changes every code, and a collection of 10^6 references takes hours to
+re-encode, while the service must keep answering and accepting uploads. So the new pipeline is fitted on a
+sample of the stored references and saved in the data dir (``pipelines/<config>-g<N>``, written to a
+temporary folder and renamed); the new codes go into a table of their own (``next_codes``), one
+transaction per batch, resumable; uploads indexed meanwhile by the old pipeline are picked up by the next
+pass and deletions are ignored by the join; then one write transaction re-checks completeness and switches
+pipeline, generation and fingerprint together, and makes the new codes the ones every reader sees by
+renaming their table (constant time; they are copied into ``refs`` afterwards in short transactions).
+Every process notices the new generation in its next catch-up (the same read as the index version) and
+swaps pipeline and index together. An interrupted
+re-index never switched: the old generation keeps serving, and a re-run continues where it stopped.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import shutil
+import time
+from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from app.collection import pipeline_source
+from app.core import Encoded
+from app.encoding import EncodeItem, batched, make_engine
+from app.engine.cnn import MODEL_FILENAME, SqueezeNet
+from app.engine.configs import get_config
+from app.engine.errors import GeolocError
+from app.engine.imageio import ImageLimits, load_image
+from app.engine.pipeline import Features, Pipeline, PipelineSource
+from app.engine.search import ReferenceIndex
+from app.store import ReferenceStore, StorageUnavailable
+
+log = logging.getLogger("geoloc.reindex")
+
+BANK_SOURCES = ("collection", "train", "none")
+#: How many passes over the references may end with rows the storage could not read before giving up.
+MAX_RETRY_PASSES = 5
+
+
+class RefitError(GeolocError):
+    """The re-fit cannot run as asked (nothing stored, a bank source without its photos...)."""
+
+
+@dataclass(frozen=True)
+class RefitOptions:
+    config: str | None = None  # None: the data dir's own configuration
+    train_manifest: Path | None = None
+    sample: int = 2000  # references the codebook, PCA and binariser are fitted on
+    svm_bank: str | None = None  # collection | train | none; None: train with a manifest, else collection
+    bank_kind: str = "contrastive"
+    seed: int = 0
+    workers: int = 1  # extraction threads for the fit, encoding threads (or Ray workers) for the re-index
+    batch: int = 32  # references re-encoded per transaction
+    fresh: bool = False  # discard an interrupted re-index instead of continuing it
+
+
+@dataclass(frozen=True)
+class Target:
+    """The generation being built: what ``next_codes`` belongs to (recorded as meta ``reindex_target``)."""
+
+    generation: int
+    pipeline: str  # the fitted pipeline's folder, relative to the data dir
+    config: str
+    fingerprint: str
+
+    def as_meta(self) -> dict:
+        return {"generation": self.generation, "pipeline": self.pipeline, "config": self.config, "fp": self.fingerprint}
+
+    def source(self, data_dir: Path, models_dir: Path) -> PipelineSource:
+        return pipeline_source(data_dir, models_dir, self.pipeline, self.config)
+
+
+@dataclass
+class RefitSummary:
+    generation: int
+    pipeline: str
+    config: str
+    fitted_on: int = 0
+    reencoded: int = 0
+    failed: int = 0
+    resumed: bool = False
+    bank: str = "none"
+    seconds: dict[str, float] = field(default_factory=dict)
+
+
+# -- fitting ----------------------------------------------------------------------------------------------
+def capture_group(lat: float, lon: float, captured_at: str | None) -> str:
+    """Which references count as one capture (a photo and its crops) for the SVM bank's "never learn from
+    yourself" rule: the same position to about 0.1 m, and the same capture time when the photo says it."""
+    return f"{captured_at or ''}@{lat:.6f},{lon:.6f}"
+
+
+def _extract(pipe: Pipeline, paths: Sequence[Path], limits: ImageLimits, workers: int, desc: str) -> list:
+    def one(path: Path) -> Features | None:
+        try:
+            return pipe.extract(load_image(path.read_bytes(), limits).rgb)
+        except (OSError, GeolocError) as e:
+            log.warning("%s: not used for fitting (%s)", path, e)
+            return None
+
+    with ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
+        return list(tqdm(pool.map(one, paths), total=len(paths), desc=desc, unit="img", disable=None))
+
+
+def _bank(pipe: Pipeline, refs: dict, train: list, options: RefitOptions, source: str):
+    from app.engine.svm_bank import KINDS, BankParams
+    from app.engine.svm_training import fit_bank, fit_bank_from_collection
+
+    if options.bank_kind not in KINDS:
+        raise RefitError(f"--svm-bank-kind must be one of {', '.join(KINDS)}")
+    ids = np.array(sorted(refs), np.int64)
+    codes = [pipe.encode_features(refs[int(i)].features) for i in ids]
+    index = ReferenceIndex(pipe.config, pipe.float_dim, pipe.bits)
+    index.add(
+        ids,
+        np.stack([c.float_ for c in codes]) if pipe.float_dim else None,
+        np.stack([c.binary for c in codes]) if pipe.bits else None,
+    )
+    params = BankParams(kind=options.bank_kind, seed=options.seed)
+    if source == "collection":
+        return fit_bank_from_collection(pipe, index, refs, params, train)
+    return fit_bank(pipe, index, refs, train, params)
+
+
+def fit_generation(
+    store: ReferenceStore, models_dir: Path, options: RefitOptions, limits: ImageLimits | None = None
+) -> tuple[Target, RefitSummary]:
+    """Fit the next generation's pipeline on a seeded sample of the stored references (and its SVM bank) and
+    save it in the data dir atomically; returns the target to re-index into."""
+    from app.engine.svm_training import Geotagged
+
+    limits = limits or ImageLimits()
+    generation, _, current = store.generation_state()
+    name = options.config or current or "hybrid"
+    cfg = get_config(name)
+    source = options.svm_bank or (
+        "train" if options.train_manifest else "collection" if cfg.svm_bank and cfg.local is not None else "none"
+    )
+    if source not in BANK_SOURCES:
+        raise RefitError(f"--svm-bank must be one of {', '.join(BANK_SOURCES)}, not {source!r}")
+    if source != "none" and cfg.local is None:
+        raise RefitError(f"configuration {name} has no local features: an SVM bank has nothing to select")
+    if source == "train" and options.train_manifest is None:
+        raise RefitError("--svm-bank train needs --train-manifest (geotagged photos that are not references)")
+    ids = store.indexed_ids()
+    if len(ids) == 0:
+        raise RefitError(f"{store.data_dir} has no indexed references to fit on")
+    if options.sample < 2:
+        raise RefitError("--sample must be at least 2")
+    rng = np.random.default_rng(options.seed)
+    picked = np.sort(rng.choice(ids, min(options.sample, len(ids)), replace=False))
+    rows = store.get_many(picked.tolist())
+    picked = [int(i) for i in picked if int(i) in rows]
+    t0 = time.perf_counter()
+    cnn = SqueezeNet(Path(models_dir) / MODEL_FILENAME) if cfg.uses_cnn else None
+    if cnn is not None:
+        cnn.load()
+    pipe = Pipeline(cfg, cnn=cnn, models_dir=Path(models_dir))
+    paths = [store.image_path(i) for i in picked]
+    feats = _extract(pipe, paths, limits, options.workers, "fit: extract")
+    kept = [(i, f) for i, f in zip(picked, feats, strict=True) if f is not None]
+    if len(kept) < 2:
+        raise RefitError("fewer than 2 stored references could be read to fit on")
+    pipe.fit([f for _, f in kept], seed=options.seed)
+    seconds = {"fit": time.perf_counter() - t0}
+    if source != "none":
+        t1 = time.perf_counter()
+        refs = {
+            i: Geotagged(f, rows[i].lat, rows[i].lon, capture_group(rows[i].lat, rows[i].lon, rows[i].captured_at))
+            for i, f in kept
+        }
+        train = _train_photos(pipe, options.train_manifest, limits, options.workers)
+        if source == "train" and not train:
+            raise RefitError(f"{options.train_manifest} has no photo that could be read")
+        pipe.bank = _bank(pipe, refs, train, options, source)
+        seconds["bank"] = time.perf_counter() - t1
+    target = _save(store.data_dir, pipe, generation + 1, {"refit_sample": len(kept), "svm_bank_source": source})
+    summary = RefitSummary(target.generation, target.pipeline, name, fitted_on=len(kept), bank=source)
+    summary.seconds.update(seconds)
+    return target, summary
+
+
+def _train_photos(pipe: Pipeline, manifest: Path | None, limits: ImageLimits, workers: int) -> list:
+    from app.datasets import read_manifest
+    from app.engine.svm_training import Geotagged
+
+    if manifest is None:
+        return []
+    rows = read_manifest(manifest)
+    rows = [r for r in rows if r.split == "train"] or rows  # a manifest of training photos only: all rows
+    feats = _extract(pipe, [r.image for r in rows], limits, workers, "fit: train photos")
+    return [Geotagged(f, r.lat, r.lon, f"train:{r.group}") for r, f in zip(rows, feats, strict=True) if f is not None]
+
+
+def _save(data_dir: Path, pipe: Pipeline, generation: int, extra: dict) -> Target:
+    """Write to a temporary folder, then rename: a folder named like a generation is always complete."""
+    rel = f"pipelines/{pipe.config.name}-g{generation}"
+    final = Path(data_dir) / rel
+    tmp = final.with_name(f".{final.name}.{os.getpid()}.tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    pipe.save(tmp, {**extra, "generation": generation})
+    if final.exists():  # an interrupted re-fit's folder for the same number: never switched to, replace it
+        shutil.rmtree(final)
+    os.replace(tmp, final)
+    return Target(generation, rel, pipe.config.name, pipe.fingerprint)
+
+
+def resumable_target(store: ReferenceStore, models_dir: Path, config: str | None) -> Target | None:
+    """The interrupted re-index recorded in the data dir, when it can continue (same configuration asked,
+    its pipeline folder intact, and still the next generation)."""
+    meta = store.reindex_target()
+    if not meta:
+        return None
+    target = Target(int(meta["generation"]), meta["pipeline"], meta["config"], meta["fp"])
+    if (config and config != target.config) or target.generation != store.generation_state()[0] + 1:
+        return None
+    return target if (store.data_dir / target.pipeline / "pipeline.json").exists() else None
+
+
+# -- re-encoding and switching ------------------------------------------------------------------------------
+@dataclass
+class _EngineHost:
+    """What ``make_engine`` needs of a service: the pipeline to encode with (the new one) and the limits."""
+
+    pipeline: Pipeline
+    limits: ImageLimits
+
+
+def reindex(
+    store: ReferenceStore,
+    target: Target,
+    engine,
+    batch: int = 32,
+    limit: int | None = None,
+    on_batch: Callable[[Sequence[Encoded]], None] | None = None,
+) -> tuple[int, int]:
+    """Encode every indexed reference without a code of ``target`` and record the codes, one transaction per
+    batch, pass after pass until a pass finds nothing (uploads indexed meanwhile are found by the next one).
+    ``limit``: stop after that many (an interrupted re-index, for tests). Returns (encoded, failed)."""
+    meta = target.as_meta()
+    done = failed = retry_passes = 0
+    while True:
+        after, found, retried = 0, 0, 0
+        while True:
+            todo = store.reindex_todo(batch * 8, after)
+            if not todo:
+                break
+            after = todo[-1][0]
+            if limit is not None:
+                todo = todo[: max(0, limit - done)]
+            items = [EncodeItem(i, p) for i, p in todo]
+            for results in batched(engine.run(items), batch):
+                final = [(r.ref_id, r.float_code, r.binary_code, r.error) for r in results if not r.retry]
+                retried += len(results) - len(final)
+                if final:
+                    store.put_next_codes(meta, final)
+                found += len(final)
+                done += len(final)
+                failed += sum(1 for r in results if r.error is not None)
+                if on_batch is not None:
+                    on_batch(results)
+            if limit is not None and done >= limit:
+                return done, failed
+        if not found and not retried:
+            return done, failed
+        if retried and not found:
+            retry_passes += 1
+            if retry_passes >= MAX_RETRY_PASSES:
+                raise StorageUnavailable(f"{retried} stored images could not be read: re-run `geoloc refit` later")
+            time.sleep(1.0)
+
+
+def switch(store: ReferenceStore, target: Target) -> int | None:
+    """The switch transaction (``ReferenceStore.switch_generation``); None while references are missing."""
+    return store.switch_generation(target.as_meta(), target.fingerprint, target.config)
+
+
+def refit(
+    data_dir: Path,
+    models_dir: Path,
+    options: RefitOptions,
+    ray: str | None = None,
+    limits: ImageLimits | None = None,
+    progress: bool = True,
+) -> RefitSummary:
+    """The whole use case: fit (or continue an interrupted re-index), re-encode, switch, snapshot."""
+    from app.worker import WorkerLock
+
+    limits = limits or ImageLimits()
+    store = ReferenceStore(data_dir)
+    target = None if options.fresh else resumable_target(store, models_dir, options.config)
+    if target is not None:
+        summary = RefitSummary(target.generation, target.pipeline, target.config, resumed=True)
+        log.info("continuing the interrupted re-index into generation %d", target.generation)
+    else:
+        target, summary = fit_generation(store, models_dir, options, limits)
+    already = store.start_reindex(target.as_meta())
+    t0 = time.perf_counter()
+    pipeline = target.source(data_dir, models_dir).load()
+    if pipeline.fingerprint != target.fingerprint:
+        store.abandon_reindex()
+        raise RefitError(f"{target.pipeline} is not the pipeline its re-index started with: run `geoloc refit --fresh`")
+    engine = make_engine(_EngineHost(pipeline, limits), ray=ray, workers=options.workers)  # type: ignore[arg-type]
+    try:
+        while True:
+            with tqdm(
+                total=already + store.reindex_missing(), initial=already, desc="re-encode", unit="img", disable=None
+            ) as bar:
+                n, failed = reindex(store, target, engine, options.batch, on_batch=lambda r: bar.update(len(r)))
+            summary.reencoded += n
+            summary.failed += failed
+            t1 = time.perf_counter()
+            switched = switch(store, target)
+            summary.seconds["switch"] = time.perf_counter() - t1  # the one write transaction
+            if switched is not None:
+                break
+            already = 0  # uploads indexed between the last pass and the switch: one more pass
+    finally:
+        engine.close()
+    summary.seconds["reindex"] = time.perf_counter() - t0
+    t1 = time.perf_counter()
+    while store.migrate_switched():  # the new codes into refs, a few thousand per short transaction
+        pass
+    summary.seconds["copy"] = time.perf_counter() - t1
+    lock = WorkerLock(data_dir)
+    if lock.acquire():  # no server or worker writes snapshots here now: write the new generation's one
+        try:
+            from app.collection import Collection
+
+            Collection.open(data_dir, models_dir, target.config).write_snapshot()
+        finally:
+            lock.release()
+    store.close()
+    return summary
