@@ -218,7 +218,12 @@ class StoreReferences:
 def verify_candidates(
     query_rgb: np.ndarray, ids: Sequence[int], refs: ReferenceSource, limits: ImageLimits
 ) -> dict[int, int | None]:
-    """Inliers per candidate; None where the pair could not be verified (image gone, OpenCV refused)."""
+    """Inliers of the chosen geometry per candidate (0: too few matches, or no geometry); None where the
+    pair could not be verified (image gone or undecodable, OpenCV refused the matches).
+
+    The query's RootSIFT is computed once; each candidate's is recomputed from its stored image, not stored
+    at ingest: what fits the 64 KB a reference may take (480 keypoints) verifies worse, and recomputing
+    costs tens of ms per candidate (docs/RESULTS.md, "Verification that works")."""
     q = rerank_mod.features_for_verification(query_rgb)
     out: dict[int, int | None] = {}
     for i in ids:
@@ -227,12 +232,27 @@ def verify_candidates(
             out[int(i)] = None
             continue
         try:
-            ref = rerank_mod.features_for_verification(load_image(data, limits).rgb)
-            out[int(i)] = rerank_mod.count_inliers(q, ref)
-        except (cv2.error, GeolocError) as e:  # degenerate sample sets make USAC raise: count as unverified
+            v = rerank_mod.verify_features(q, rerank_mod.features_for_verification(load_image(data, limits).rgb))
+        except (cv2.error, GeolocError) as e:
             log.debug("verification of reference %s skipped: %s", i, e)
             out[int(i)] = None
+            continue
+        if v.error is not None:  # degenerate sample sets make USAC raise: unverified, never an error
+            log.debug("verification of reference %s skipped: %s", i, v.error)
+        out[int(i)] = None if v.error is not None else v.inliers
     return out
+
+
+def order_by_verification(
+    ranked: Sequence[tuple[int, float]], inliers: dict[int, int | None]
+) -> list[tuple[int, float]]:
+    """(id, global score) pairs re-ordered by ``rerank.fused_score``; ties keep the retrieval order.
+
+    Unverified candidates (None, 0 inliers, or not in ``inliers``) keep their global score, so verification
+    only ever lifts a candidate and never reorders the unverified among themselves. The scores returned
+    stay the global ones: calibration and the estimate are fitted on them."""
+    by_fused = [(rerank_mod.fused_score(s, inliers.get(i) or 0), n) for n, (i, s) in enumerate(ranked)]
+    return [ranked[n] for _, n in sorted(by_fused, key=lambda p: (-p[0], p[1]))]
 
 
 def locate_features(
@@ -274,8 +294,7 @@ def locate_features(
         t0 = time.perf_counter()
         head = [i for i, _ in ranked[:RERANK_CANDIDATES]]
         inliers = verify_candidates(query_rgb, head, refs, limits or ImageLimits())
-        order = {i: n for n, (i, _) in enumerate(ranked)}
-        ranked.sort(key=lambda p: (-(inliers.get(p[0]) if inliers.get(p[0]) is not None else -1), order[p[0]]))
+        ranked = order_by_verification(ranked, inliers)
         t["rerank"] = (time.perf_counter() - t0) * 1000
     t0 = time.perf_counter()
     fused = ranked[:ESTIMATE_CANDIDATES]
