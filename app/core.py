@@ -139,6 +139,8 @@ class LocateAnswer:
     timings_ms: dict[str, float] = field(default_factory=dict)
     index_size: int = 0
     index_version: int = 0
+    #: The verification outcome per verified candidate (rerank only): not in the JSON, for the evaluation.
+    verification: dict = field(default_factory=dict)
 
     @property
     def confident_estimate(self) -> Estimate | None:
@@ -219,13 +221,23 @@ def verify_candidates(
     query_rgb: np.ndarray, ids: Sequence[int], refs: ReferenceSource, limits: ImageLimits
 ) -> dict[int, int | None]:
     """Inliers of the chosen geometry per candidate (0: too few matches, or no geometry); None where the
-    pair could not be verified (image gone or undecodable, OpenCV refused the matches).
+    pair could not be verified (image gone or undecodable, OpenCV refused the matches)."""
+    return {
+        i: None if v is None else v.inliers for i, v in verify_candidate_pairs(query_rgb, ids, refs, limits).items()
+    }
+
+
+def verify_candidate_pairs(
+    query_rgb: np.ndarray, ids: Sequence[int], refs: ReferenceSource, limits: ImageLimits
+) -> dict[int, rerank_mod.Verification | None]:
+    """``verify_candidates`` with the whole outcome per pair (matches, both models' inliers), for the
+    evaluation's analysis; None where the pair could not be verified.
 
     The query's RootSIFT is computed once; each candidate's is recomputed from its stored image, not stored
-    at ingest: what fits the 64 KB a reference may take (480 keypoints) verifies worse, and recomputing
-    costs tens of ms per candidate (docs/RESULTS.md, "Verification that works")."""
+    at ingest: 1,500 keypoints take about 190 KB, three times the 64 KB a reference may take, and
+    recomputing costs tens of ms per candidate (docs/RESULTS.md, "Verification that works")."""
     q = rerank_mod.features_for_verification(query_rgb)
-    out: dict[int, int | None] = {}
+    out: dict[int, rerank_mod.Verification | None] = {}
     for i in ids:
         data = refs.image_bytes(int(i))
         if data is None:
@@ -237,9 +249,9 @@ def verify_candidates(
             log.debug("verification of reference %s skipped: %s", i, e)
             out[int(i)] = None
             continue
-        if v.error is not None:  # degenerate sample sets make USAC raise: unverified, never an error
+        if v.error is not None:  # both fits refused by USAC: unverified, never an error
             log.debug("verification of reference %s skipped: %s", i, v.error)
-        out[int(i)] = None if v.error is not None else v.inliers
+        out[int(i)] = None if v.error is not None else v
     return out
 
 
@@ -288,12 +300,14 @@ def locate_features(
     t["metadata"] = (time.perf_counter() - t0) * 1000
     ranked = [(int(i), float(s)) for i, s in zip(ids, scores, strict=True) if int(i) in info]
     inliers: dict[int, int | None] = {}
+    verification: dict[int, rerank_mod.Verification | None] = {}
     if options.rerank and ranked:
         if query_rgb is None:
             raise ValueError("verification needs the query image")
         t0 = time.perf_counter()
         head = [i for i, _ in ranked[:RERANK_CANDIDATES]]
-        inliers = verify_candidates(query_rgb, head, refs, limits or ImageLimits())
+        verification = verify_candidate_pairs(query_rgb, head, refs, limits or ImageLimits())
+        inliers = {i: None if v is None else v.inliers for i, v in verification.items()}
         ranked = order_by_verification(ranked, inliers)
         t["rerank"] = (time.perf_counter() - t0) * 1000
     t0 = time.perf_counter()
@@ -344,6 +358,7 @@ def locate_features(
         features_extracted=codes.features_extracted,
         features_kept=codes.features_kept,
         timings_ms=t,
+        verification=verification,
     )
 
 

@@ -225,11 +225,27 @@ def evaluate(
             rgb = load_image(rows[i].image.read_bytes()).rgb if rerank else None
             res = locate_features(pipe, index, refs, extracted[i].features, options, rgb, cluster_radius_m=radius_m)
             hits.append(_hits(rows, i, lat, lon, res.candidates, top_n, radius_m))
+            verified = None
             if rerank:
                 plain = LocateOptions(top_k=top_n, mode=mode, rerank=False, region=region)
                 res0 = locate_features(pipe, index, refs, extracted[i].features, plain, cluster_radius_m=radius_m)
                 hits_plain.append(_hits(rows, i, lat, lon, res0.candidates, top_n, radius_m))
                 rerank_ms.append(res.timings_ms.get("rerank", 0.0))
+                # What bench/verification.py analyses: the retrieval order, and each verified pair's outcome.
+                verified = {
+                    "retrieval": [
+                        [
+                            c.reference_id,
+                            round(c.score, 6),
+                            int(haversine_m(rows[i].lat, rows[i].lon, c.lat, c.lon) <= radius_m),
+                        ]
+                        for c in res0.candidates
+                    ],
+                    "pairs": {
+                        str(r): None if v is None else [v.n_matches, v.h_inliers, v.f_inliers]
+                        for r, v in res.verification.items()
+                    },
+                }
             e = res.estimate
             if e.lat is not None:
                 err = float(haversine_m(rows[i].lat, rows[i].lon, e.lat, e.lon))
@@ -254,6 +270,8 @@ def evaluate(
                     },
                 }
             )
+            if verified is not None:
+                per_query[-1]["verification"] = verified
             if res.features_extracted:
                 kept_fractions.append(res.features_kept / res.features_extracted)
         hits_arr = np.array(hits, bool)
