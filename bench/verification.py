@@ -47,14 +47,16 @@ def pairs_from_eval(result: dict) -> dict[str, np.ndarray]:
         for rank, (ref, score, right) in enumerate(v["retrieval"]):
             out = v["pairs"].get(str(ref))
             n, h, f = out if out is not None else (0, 0, 0)
-            rows.append([q["fold"], qn, rank, ref, score, right, n, h, f, str(ref) in v["pairs"]])
+            crop = "_" in Path(q["image"]).stem.removeprefix("img_")  # penn crops are img_NNNNN_K.jpg
+            rows.append([q["fold"], qn, rank, ref, score, right, n, h, f, str(ref) in v["pairs"], crop])
     arr = np.array(rows, float)
-    cols = ["fold", "query", "rank", "ref", "score", "correct", "n", "h", "f", "verified"]
+    cols = ["fold", "query", "rank", "ref", "score", "correct", "n", "h", "f", "verified", "crop"]
     P = {c: arr[:, i] for i, c in enumerate(cols)}
     P["qid"] = P["query"].astype(int)
     P["rank"] = P["rank"].astype(int)
     P["correct"] = P["correct"].astype(bool)
     P["verified"] = P["verified"].astype(bool)
+    P["crop"] = P["crop"].astype(bool)
     return P
 
 
@@ -163,6 +165,29 @@ def recall(P: dict, key: np.ndarray, k: int, queries: np.ndarray | None = None) 
     return float(np.mean(hits1)), float(np.mean(hits5))
 
 
+def lofo(P: dict, inl: np.ndarray, k: int, floors: tuple, what: str) -> None:
+    """Weight, scale and floor chosen leave-one-fold-out: each fold's figures use the triple chosen on the
+    other folds (by R@1, then R@5, then the smaller weight and the larger floor)."""
+    nq = len(np.unique(P["qid"]))
+    print(f"\nleave-one-fold-out (weight, scale, floor), {what}, K = {k}:")
+    held = [0.0, 0.0]
+    for f in np.unique(P["fold"]):
+        train_q = np.unique(P["qid"][P["fold"] != f])
+        test_q = np.unique(P["qid"][P["fold"] == f])
+        best = max(
+            product(WEIGHTS, SCALES, floors),
+            key=lambda ws: (*recall(P, fused(P["score"], inl, *ws), k, train_q), -ws[0], ws[2]),
+        )
+        r = recall(P, fused(P["score"], inl, *best), k, test_q)
+        r0 = recall(P, -P["rank"].astype(float), k, test_q)
+        held[0] += r[0] * len(test_q)
+        held[1] += r[1] * len(test_q)
+        print(
+            f"  fold {int(f) + 1}: {best}: held-out R@1 {r[0]:.3f} R@5 {r[1]:.3f} (no rerank {r0[0]:.3f} {r0[1]:.3f})"
+        )
+    print(f"  pooled held-out: R@1 {held[0] / nq:.3f}  R@5 {held[1] / nq:.3f}")
+
+
 def analyse(result: dict) -> None:
     P = pairs_from_eval(result)
     lab = P["correct"].astype(int)
@@ -186,25 +211,9 @@ def analyse(result: dict) -> None:
         f"{_pct(inl[wrong], 90):.0f}, p99 {_pct(inl[wrong], 99):.0f})"
     )
 
-    # Weight, scale and floor, leave-one-fold-out: each fold's figures use the triple chosen on the others.
-    folds = np.unique(P["fold"])
-    print(f"\nleave-one-fold-out choice of (weight, scale, floor) by R@1 then R@5 on the other folds, K = {k_max}:")
-    held = [0.0, 0.0]
-    for f in folds:
-        train_q = np.unique(P["qid"][P["fold"] != f])
-        test_q = np.unique(P["qid"][P["fold"] == f])
-        best = max(
-            product(WEIGHTS, SCALES, FLOORS),
-            key=lambda ws: (*recall(P, fused(P["score"], inl, *ws), k_max, train_q), -ws[0], ws[2]),
-        )
-        r = recall(P, fused(P["score"], inl, *best), k_max, test_q)
-        r0 = recall(P, -P["rank"].astype(float), k_max, test_q)
-        held[0] += r[0] * len(test_q)
-        held[1] += r[1] * len(test_q)
-        print(
-            f"  fold {int(f) + 1}: {best}: held-out R@1 {r[0]:.3f} R@5 {r[1]:.3f} (no rerank {r0[0]:.3f} {r0[1]:.3f})"
-        )
-    print(f"  pooled held-out: R@1 {held[0] / nq:.3f}  R@5 {held[1] / nq:.3f}")
+    wrong_p99 = _pct(inl[wrong], 99)
+    lofo(P, inl, k_max, FLOORS, "any floor")
+    lofo(P, inl, k_max, tuple(f for f in FLOORS if f >= wrong_p99), f"floor >= wrong pairs' p99 ({wrong_p99:.0f})")
 
     w, s, fl = rerank.FUSION_WEIGHT, rerank.FUSION_SCALE, rerank.FUSION_FLOOR
     fz = fused(P["score"], inl, w, s, fl)
@@ -228,6 +237,19 @@ def analyse(result: dict) -> None:
         f"    per query (mean over {len(per_q)} queries with right and wrong candidates): global {g:.3f}  "
         f"raw F inliers {rf:.3f}  fused {fu:.3f}"
     )
+
+    print(f"  by query kind (defaults, K = {k_max}):")
+    for name, kind in (("photos", ~P["crop"]), ("224 px crops", P["crop"])):
+        qs = np.unique(P["qid"][kind])
+        r0, r1 = recall(P, -P["rank"].astype(float), k_max, qs), recall(P, fz, k_max, qs)
+        rk, wk = right & kind, wrong & kind
+        print(
+            f"    {name}: {len(qs)} queries, R@1 {r0[0]:.3f} -> {r1[0]:.3f}, R@5 {r0[1]:.3f} -> {r1[1]:.3f}; "
+            f"median tentative matches {_pct(P['n'][head & kind], 50):.0f}; inliers right median "
+            f"{_pct(inl[rk], 50):.0f} (p90 {_pct(inl[rk], 90):.0f}), wrong {_pct(inl[wk], 50):.0f} "
+            f"(p99 {_pct(inl[wk], 99):.0f}); AUC fused {auc(fz[head & kind], lab[head & kind]):.3f} "
+            f"global {auc(P['score'][head & kind], lab[head & kind]):.3f}"
+        )
 
     print("\nthe H-or-F rule (H kept when its inliers >= h_share x F's), fitted pairs:")
     for hs in H_SHARES:
