@@ -140,6 +140,8 @@ class LocateAnswer:
     index_size: int = 0
     index_version: int = 0
     index_generation: int = 0
+    #: The verification outcome per verified candidate (rerank only): not in the JSON, for the evaluation.
+    verification: dict[int, rerank_mod.Verification | None] = field(default_factory=dict)
 
     @property
     def confident_estimate(self) -> Estimate | None:
@@ -219,21 +221,52 @@ class StoreReferences:
 def verify_candidates(
     query_rgb: np.ndarray, ids: Sequence[int], refs: ReferenceSource, limits: ImageLimits
 ) -> dict[int, int | None]:
-    """Inliers per candidate; None where the pair could not be verified (image gone, OpenCV refused)."""
+    """Inliers of the chosen geometry per candidate (0: too few matches, or no geometry); None where the
+    pair could not be verified (image gone or undecodable, OpenCV refused the matches)."""
+    return {
+        i: None if v is None else v.inliers for i, v in verify_candidate_pairs(query_rgb, ids, refs, limits).items()
+    }
+
+
+def verify_candidate_pairs(
+    query_rgb: np.ndarray, ids: Sequence[int], refs: ReferenceSource, limits: ImageLimits
+) -> dict[int, rerank_mod.Verification | None]:
+    """``verify_candidates`` with the whole outcome per pair (matches, both models' inliers), for the
+    evaluation's analysis; None where the pair could not be verified.
+
+    The query's RootSIFT is computed once; each candidate's is recomputed from its stored image (about
+    0.1 s each, most of what rerank costs). Storing the strongest 480 keypoints at ingest (62 KB per
+    reference; all 1,500 would take 193 KB) verified as well on penn and is the measured next step; this
+    is the one place that would read them (docs/RESULTS.md, "Verification that works")."""
     q = rerank_mod.features_for_verification(query_rgb)
-    out: dict[int, int | None] = {}
+    out: dict[int, rerank_mod.Verification | None] = {}
     for i in ids:
         data = refs.image_bytes(int(i))
         if data is None:
             out[int(i)] = None
             continue
         try:
-            ref = rerank_mod.features_for_verification(load_image(data, limits).rgb)
-            out[int(i)] = rerank_mod.count_inliers(q, ref)
-        except (cv2.error, GeolocError) as e:  # degenerate sample sets make USAC raise: count as unverified
+            v = rerank_mod.verify_features(q, rerank_mod.features_for_verification(load_image(data, limits).rgb))
+        except (cv2.error, GeolocError) as e:
             log.debug("verification of reference %s skipped: %s", i, e)
             out[int(i)] = None
+            continue
+        if v.error is not None:  # both fits refused by USAC: unverified, never an error
+            log.debug("verification of reference %s skipped: %s", i, v.error)
+        out[int(i)] = None if v.error is not None else v
     return out
+
+
+def order_by_verification(
+    ranked: Sequence[tuple[int, float]], inliers: dict[int, int | None]
+) -> list[tuple[int, float]]:
+    """(id, global score) pairs re-ordered by ``rerank.fused_score``; ties keep the retrieval order.
+
+    Unverified candidates (None, 0 inliers, or not in ``inliers``) keep their global score, so verification
+    only ever lifts a candidate and never reorders the unverified among themselves. The scores returned
+    stay the global ones: calibration and the estimate are fitted on them."""
+    by_fused = [(rerank_mod.fused_score(s, inliers.get(i) or 0), n) for n, (i, s) in enumerate(ranked)]
+    return [ranked[n] for _, n in sorted(by_fused, key=lambda p: (-p[0], p[1]))]
 
 
 def locate_features(
@@ -269,14 +302,15 @@ def locate_features(
     t["metadata"] = (time.perf_counter() - t0) * 1000
     ranked = [(int(i), float(s)) for i, s in zip(ids, scores, strict=True) if int(i) in info]
     inliers: dict[int, int | None] = {}
+    verification: dict[int, rerank_mod.Verification | None] = {}
     if options.rerank and ranked:
         if query_rgb is None:
             raise ValueError("verification needs the query image")
         t0 = time.perf_counter()
         head = [i for i, _ in ranked[:RERANK_CANDIDATES]]
-        inliers = verify_candidates(query_rgb, head, refs, limits or ImageLimits())
-        order = {i: n for n, (i, _) in enumerate(ranked)}
-        ranked.sort(key=lambda p: (-(inliers.get(p[0]) if inliers.get(p[0]) is not None else -1), order[p[0]]))
+        verification = verify_candidate_pairs(query_rgb, head, refs, limits or ImageLimits())
+        inliers = {i: None if v is None else v.inliers for i, v in verification.items()}
+        ranked = order_by_verification(ranked, inliers)
         t["rerank"] = (time.perf_counter() - t0) * 1000
     t0 = time.perf_counter()
     fused = ranked[:ESTIMATE_CANDIDATES]
@@ -326,6 +360,7 @@ def locate_features(
         features_extracted=codes.features_extracted,
         features_kept=codes.features_kept,
         timings_ms=t,
+        verification=verification,
     )
 
 

@@ -79,6 +79,13 @@ def extract_cached(pipeline: Pipeline, rows: list[Row], cache_dir: Path | None, 
     return extracted
 
 
+def _hits(rows: list[Row], i: int, lat, lon, candidates, top_n: int, radius_m: float) -> list[bool]:
+    """Recall@1..top_n of one query: is a candidate within ``radius_m`` among the first n."""
+    ids_ = np.array([c.reference_id for c in candidates], np.int64)
+    d = haversine_m(rows[i].lat, rows[i].lon, lat[ids_], lon[ids_]) if len(ids_) else np.zeros(0)
+    return [bool(np.any(d[:n] <= radius_m)) for n in range(1, top_n + 1)]
+
+
 class RowReferences:
     """The evaluation's references (one fold's database rows) as the core's ``ReferenceSource``."""
 
@@ -153,7 +160,9 @@ def evaluate(
     fold's queries: ``bank_source`` train (the train rows only) or collection (the fold's db rows as
     training photos, plus the train rows: the rule ``geoloc fit`` serves). ``rerank`` and
     ``region_radius_m`` (a circle of that radius around each query's true position) ask the same of the
-    core as /locate's ``rerank`` and region do: queries go through ``core.locate_features``."""
+    core as /locate's ``rerank`` and region do: queries go through ``core.locate_features``. With ``rerank``
+    each query is also located without it (the same search), so one run reports recall with and without
+    verification and the time it adds per query."""
     if svm_bank not in ("off", "positive", "negative"):
         raise ValueError(f"svm_bank must be off, positive or negative, not {svm_bank!r}")
     if bank_source not in BANK_SOURCES:
@@ -167,6 +176,7 @@ def evaluate(
     lat = np.array([r.lat for r in rows])
     lon = np.array([r.lon for r in rows])
     per_fold, all_hits, est_err, est_conf, stage_times = [], [], [], [], []
+    per_fold_plain, rerank_ms = [], []  # with rerank: recall without it, and the time it adds
     bank_reports, kept_fractions, per_query = [], [], []
     n_db = n_query = 0
     bytes_per_ref = 0.0
@@ -208,15 +218,34 @@ def evaluate(
                 }
             )
         refs = RowReferences(rows, db_idx)
-        hits = []
+        hits, hits_plain = [], []
         for i in q_idx:
             region = Region(rows[i].lat, rows[i].lon, region_radius_m) if region_radius_m else None
             options = LocateOptions(top_k=top_n, mode=mode, rerank=rerank, region=region)
             rgb = load_image(rows[i].image.read_bytes()).rgb if rerank else None
             res = locate_features(pipe, index, refs, extracted[i].features, options, rgb, cluster_radius_m=radius_m)
-            ids_ = np.array([c.reference_id for c in res.candidates], np.int64)
-            d = haversine_m(rows[i].lat, rows[i].lon, lat[ids_], lon[ids_]) if len(ids_) else np.zeros(0)
-            hits.append([bool(np.any(d[:n] <= radius_m)) for n in range(1, top_n + 1)])
+            hits.append(_hits(rows, i, lat, lon, res.candidates, top_n, radius_m))
+            verified = None
+            if rerank:
+                plain = LocateOptions(top_k=top_n, mode=mode, rerank=False, region=region)
+                res0 = locate_features(pipe, index, refs, extracted[i].features, plain, cluster_radius_m=radius_m)
+                hits_plain.append(_hits(rows, i, lat, lon, res0.candidates, top_n, radius_m))
+                rerank_ms.append(res.timings_ms.get("rerank", 0.0))
+                # What bench/verification.py analyses: the retrieval order, and each verified pair's outcome.
+                verified = {
+                    "retrieval": [
+                        [
+                            c.reference_id,
+                            round(c.score, 6),
+                            int(haversine_m(rows[i].lat, rows[i].lon, c.lat, c.lon) <= radius_m),
+                        ]
+                        for c in res0.candidates
+                    ],
+                    "pairs": {
+                        str(r): None if v is None else [v.n_matches, v.h_inliers, v.f_inliers]
+                        for r, v in res.verification.items()
+                    },
+                }
             e = res.estimate
             if e.lat is not None:
                 err = float(haversine_m(rows[i].lat, rows[i].lon, e.lat, e.lon))
@@ -241,11 +270,16 @@ def evaluate(
                     },
                 }
             )
+            if verified is not None:
+                per_query[-1]["verification"] = verified
             if res.features_extracted:
                 kept_fractions.append(res.features_kept / res.features_extracted)
         hits_arr = np.array(hits, bool)
         all_hits.append(hits_arr)
         per_fold.append({str(n): float(hits_arr[:, n - 1].mean()) for n in RECALL_AT})
+        if rerank:
+            plain_arr = np.array(hits_plain, bool)
+            per_fold_plain.append({str(n): float(plain_arr[:, n - 1].mean()) for n in RECALL_AT})
         n_db += len(db_idx)
         n_query += len(q_idx)
         bytes_per_ref = index.bytes_per_reference()
@@ -268,6 +302,14 @@ def evaluate(
         "region_radius_m": region_radius_m,
         "recall_at": {str(n): float(np.mean([p[str(n)] for p in per_fold])) for n in RECALL_AT},
         "recall_at_per_fold": per_fold,
+        "without_rerank": None
+        if not rerank
+        else {
+            "recall_at": {str(n): float(np.mean([p[str(n)] for p in per_fold_plain])) for n in RECALL_AT},
+            "recall_at_per_fold": per_fold_plain,
+            "rerank_ms_median": float(statistics.median(rerank_ms)) if rerank_ms else 0.0,
+            "rerank_ms_p90": float(np.percentile(rerank_ms, 90)) if rerank_ms else 0.0,
+        },
         "recall_curve": [float(x) for x in recall_curve],
         "ms_per_query": ms,
         "ms_per_query_note": "median over queries; extraction ran on a 2-thread pool, so per-stage times "
@@ -327,6 +369,14 @@ def format_summary(result: dict) -> str:
         + ("  rerank" if result.get("rerank") else "")
         + (f"  region {result['region_radius_m']:.0f} m" if result.get("region_radius_m") else ""),
         "Recall@1/5/10/20: " + " / ".join(f"{r[k]:.3f}" for k in ("1", "5", "10", "20")),
+        *(
+            [
+                "without rerank: " + " / ".join(f"{w['recall_at'][k]:.3f}" for k in ("1", "5", "10", "20")),
+                f"rerank adds {w['rerank_ms_median']:.1f} ms per query (median; p90 {w['rerank_ms_p90']:.1f} ms)",
+            ]
+            if (w := result.get("without_rerank"))
+            else []
+        ),
         "ms per query (median): " + ", ".join(f"{k} {v:.1f}" for k, v in ms.items()),
         f"bytes per reference: {result['bytes_per_reference']:.0f}",
         *(

@@ -1,38 +1,56 @@
-"""Verification never fails a request: pairs on which OpenCV's USAC raises count as unverified."""
+"""Verification never fails a request: pairs OpenCV's USAC refuses, images gone or undecodable, count as
+unverified (None in /locate's ``inliers``) and keep their global score."""
 
 import itertools
 
 import cv2
+import numpy as np
 
-from app.core import verify_candidates
+from app.core import order_by_verification, verify_candidates
 from app.engine import rerank
 from app.engine.imageio import ImageLimits, load_image
 from tests.conftest import PENN
 
 
 class Photos:
-    """Penn photos as a ReferenceSource for the verification step (ids index the list)."""
+    """Image bytes as a ReferenceSource for the verification step (ids index the list)."""
 
-    def __init__(self, paths):
-        self.paths = paths
+    def __init__(self, images: list[bytes]):
+        self.images = images
 
     def image_bytes(self, ref_id: int) -> bytes | None:
-        return self.paths[ref_id].read_bytes() if ref_id < len(self.paths) else None
+        return self.images[ref_id] if ref_id < len(self.images) else None
 
 
-def test_pairs_opencv_refuses_are_unverified_not_errors():
+def test_a_fit_opencv_refuses_leaves_the_other_models_answer():
+    """Positions as fractions of the image with a 0.004 threshold (what verification once used) make USAC's
+    fundamental-matrix fit assert on some real penn pairs: ``fit_geometry`` must answer with the
+    homography alone, not raise."""
     paths = sorted((PENN / "photos").glob("*.jpg"))[:12]
-    feats = [rerank.features_for_verification(load_image(p.read_bytes()).rgb) for p in paths]
-    raising = []
+    feats: dict[int, rerank.PixelFeatures] = {}
     for a, b in itertools.combinations(range(len(paths)), 2):
+        for i in (a, b):
+            if i not in feats:
+                feats[i] = rerank.features_for_verification(load_image(paths[i].read_bytes()).rgb)
+        m = rerank.mutual_matches(feats[a].descriptors, feats[b].descriptors)
+        p1, p2 = feats[a].xy[m[:, 0]] / 800, feats[b].xy[m[:, 1]] / 800
         try:
-            rerank.count_inliers(feats[a], feats[b])
+            cv2.findFundamentalMat(p1.astype(np.float64), p2.astype(np.float64), cv2.USAC_MAGSAC, 0.004, 0.999, 2000)
         except cv2.error:
-            raising.append((a, b))
-    assert raising, "no pair made OpenCV raise: the regression this test guards is not exercised"
-    a, b = raising[0]
-    query = load_image(paths[a].read_bytes()).rgb
-    out = verify_candidates(query, [b, a, 99], Photos(paths), ImageLimits())
-    assert out[b] is None  # OpenCV raised: unverified
-    assert out[a] is not None and out[a] > 0  # the photo against itself verifies
-    assert out[99] is None  # no image
+            break
+    else:
+        raise AssertionError("no pair made OpenCV raise: the regression this test guards is not exercised")
+    v = rerank.fit_geometry(p1, p2, threshold_px=0.004)
+    assert v.error is None and v.model != "F" and v.f_inliers == v.h_inliers == v.inliers
+
+
+def test_missing_and_undecodable_images_are_unverified_and_keep_their_place():
+    photo = sorted((PENN / "photos").glob("*.jpg"))[0].read_bytes()
+    query = load_image(photo).rgb
+    source = Photos([b"not an image", photo])
+    out = verify_candidates(query, [0, 1, 7], source, ImageLimits())
+    assert out[0] is None  # undecodable
+    assert out[1] is not None and out[1] > 100  # the photo against itself verifies
+    assert out[7] is None  # no image
+    ranked = [(7, 0.9), (0, 0.8), (1, 0.5)]
+    assert [i for i, _ in order_by_verification(ranked, out)] == [1, 7, 0]  # only the verified one moves

@@ -193,3 +193,31 @@ def test_an_interrupted_reindex_leaves_the_old_generation_and_a_rerun_continues(
     geoloc("restore", str(tmp_path / "backup"), "--data-dir", str(tmp_path / "restored"))
     check = geoloc("check", "--data-dir", str(tmp_path / "restored"), "--models-dir", str(fitted_models)).stdout
     assert f"pipelines/{CONFIG}-g1, generation 1" in check and "ok:" in check
+
+
+@pytest.mark.ray
+def test_refit_on_ray_gives_the_codes_of_the_local_path(template, fitted_models, tmp_path):
+    """`geoloc refit --ray local`: the re-fitted pipeline travels to the actors (it lives in the data dir,
+    not the models dir) and the new generation's codes equal those of a local re-index."""
+    codes = {}
+    for engine, extra in (("local", ()), ("ray", ("--ray", "local", "--workers", "2"))):
+        data = _copy(template, tmp_path / engine)
+        out = geoloc(
+            "refit", "--data-dir", str(data), "--models-dir", str(fitted_models),
+            "--sample", "12", "--svm-bank", "none", "--seed", "3", *extra,
+        ).stdout  # fmt: skip
+        assert "30 references re-encoded" in out, out
+        meta = _meta(data)
+        assert meta["generation"] == "1"
+        store = ReferenceStore(data)
+        try:
+            _, ids, fcodes, bcodes = store.all_codes()
+        finally:
+            store.close()
+        codes[engine] = (meta["fingerprint"], dict(zip(ids.tolist(), zip(fcodes, bcodes, strict=True), strict=True)))
+    (fp_local, local), (fp_ray, ray) = codes["local"], codes["ray"]
+    assert fp_local == fp_ray  # the same seeded fit
+    assert local.keys() == ray.keys() and len(local) == 30
+    for i, (f, b) in local.items():
+        assert np.allclose(np.frombuffer(f, np.float32), np.frombuffer(ray[i][0], np.float32), atol=1e-5)
+        assert np.unpackbits(np.frombuffer(b, np.uint8) ^ np.frombuffer(ray[i][1], np.uint8)).sum() <= 2
