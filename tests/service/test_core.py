@@ -90,6 +90,12 @@ def test_eval_with_rerank_and_region(fitted_models, mini_manifest, tmp_path):
     r = json.loads(out.read_text())
     assert r["rerank"] is True and r["region_radius_m"] == 150 and "rerank" in r["ms_per_query"]
     assert r["n_query"] == 9 and 0 <= r["recall_at"]["1"] <= 1
+    # One run reports recall with and without verification (the search is the same) and its added time.
+    w = r["without_rerank"]
+    assert set(w["recall_at"]) == set(r["recall_at"]) and w["rerank_ms_median"] > 0
+    assert "without rerank: " in p.stdout and "rerank adds " in p.stdout
+    # Verification only re-orders the first candidates: recall at 20 cannot change.
+    assert w["recall_at"]["20"] == r["recall_at"]["20"]
 
 
 def test_check_backup_restore(ingested, fitted_models, tmp_path):
