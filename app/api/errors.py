@@ -25,7 +25,8 @@ from app.engine.search import UnsupportedMode
 from app.engine.svm_training import NothingToTrainOn
 from app.evaluate import ManifestCannotBeEvaluated
 from app.operations import OperationRefused
-from app.store import StorageUnavailable, is_storage_error
+from app.reindex import RefitError
+from app.store import StaleReindex, StorageUnavailable, is_storage_error
 
 log = logging.getLogger("geoloc.api")
 
@@ -76,6 +77,8 @@ DOMAIN_CODES: dict[type[Exception], str] = {
     OperationRefused: "invalid_request",  # CLI-only (backup/restore), listed so no domain error is unmapped
     NothingToTrainOn: "invalid_request",  # CLI-only (fit/eval on a manifest that leaves nothing to fit)
     ManifestCannotBeEvaluated: "invalid_request",  # CLI-only (eval on a manifest whose folds are empty)
+    RefitError: "invalid_request",  # CLI-only (geoloc refit: nothing to fit on, a changed pipeline folder)
+    StaleReindex: "not_ready",  # CLI-only (another re-index took over, or a switch is still being copied)
 }
 
 #: Refusals raised by Starlette/FastAPI themselves (routing, multipart parsing, static files).
