@@ -7,7 +7,7 @@ figures are medians over repetitions with ratios against the local path measured
 1 CPU with onnxruntime and OpenCV on 1 thread (the local path too: one thread, ``GEOLOC_ORT_THREADS=1``).
 Pool start-up (loading the models in each actor) is timed apart from images/s.
 
-    PYTHONPATH=$PWD python -m bench.ingest_speed [--models-dir models] [--config hybrid] [--photos 24]
+    .venv/bin/python -m bench.ingest_speed [--models-dir models] [--config hybrid] [--photos 24]
         [--crops 64] [--repeat 3] [--write-docs]
 
 The per-image split times the real functions one image at a time: read (``Path.read_bytes``), decode
@@ -186,10 +186,11 @@ def report(results: list[dict], args, load: tuple[float, float]) -> str:
 
     ray_version, w = ray.__version__, args.workers
     lines = [
-        f"Command: `PYTHONPATH=$PWD python -m bench.ingest_speed --models-dir {args.models_dir} --photos "
-        f"{args.photos} --crops {args.crops} --repeat {args.repeat}` (config {args.config}, Ray {ray_version}); "
-        f"load average {load[0]:.1f} before, {load[1]:.1f} "
-        f"after (2 cores shared with other jobs). Medians over {args.repeat} interleaved repetitions.",
+        f"Command: `.venv/bin/python -m bench.ingest_speed --photos {args.photos} --crops {args.crops} "
+        f"--repeat {args.repeat}` (config {args.config}, Ray {ray_version}, "
+        f"{time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, {os.cpu_count()} cores); "
+        f"load average {load[0]:.1f} before, {load[1]:.1f} after. "
+        f"Medians over {args.repeat} interleaved repetitions.",
         "",
         "| images | n | local img/s | " + " | ".join(f"Ray {k} img/s (vs local)" for k in w)
         + " | 2 vs 1 worker (efficiency) | writer share (local / Ray max) | pool start |",
