@@ -82,6 +82,10 @@ def test_compose_ray_profile_runs_the_same_image():
     assert worker["command"][:2] == ["ray", "start"] and "--address=ray-head:6379" in worker["command"]
     assert "container_name" not in worker and "ports" not in worker  # --scale ray-worker=N must work
     assert "geoloc-data:/data" in head["volumes"]
+    for service in (head, worker):  # one shared token, or the workers cannot join the head (Ray >= 2.5x)
+        assert service["environment"]["RAY_AUTH_MODE"] == "token"
+        assert service["environment"]["RAY_AUTH_TOKEN"] == "${RAY_AUTH_TOKEN:-}"
+    assert "RAY_AUTH_TOKEN=" in (REPO / ".env.example").read_text()
     assert any(r'pip install ".[ray]"' in rest for op, rest in _instructions() if op == "RUN")
     pyproject = (REPO / "pyproject.toml").read_text()
-    assert re.search(r'^ray = \["ray\[data\]', pyproject, re.M)
+    assert re.search(r'^ray = \["ray\[data,client\]', pyproject, re.M)  # client: for ray:// addresses

@@ -46,3 +46,60 @@ def test_manifest_and_folder_on_ray_match_the_local_path(tmp_path, fitted_models
         assert np.allclose(np.frombuffer(fcode, np.float32), np.frombuffer(r[4], np.float32), atol=1e-5)
         bits = np.unpackbits(np.frombuffer(bcode, np.uint8) ^ np.frombuffer(r[5], np.uint8)).sum()
         assert bits <= 2  # a sign flip where a projection sits on zero, nothing more
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_ingest_joins_a_running_cluster_by_auto_and_by_client_address(tmp_path, fitted_models, monkeypatch):
+    """The cluster path of the README: a Ray head started apart from geoloc (`ray start --head`, with token
+    authentication on, as Ray 2.60 does by default), then `--ray auto` (RAY_ADDRESS) and `--ray ray://...`
+    (the Ray Client port) both encode on it. The head runs in a process group of its own, ended at the end."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import tempfile
+    import time
+    from pathlib import Path
+
+    gcs, client = _free_port(), _free_port()
+    monkeypatch.setenv("RAY_AUTH_MODE", "token")
+    monkeypatch.setenv("RAY_AUTH_TOKEN", "geoloc-test-" + "0" * 32)
+    monkeypatch.delenv("RAY_ADDRESS", raising=False)
+    log = tmp_path / "head.log"
+    short = Path(tempfile.mkdtemp(prefix="ray-", dir="/tmp"))  # Ray's socket paths must stay under 108 bytes
+    head = subprocess.Popen(
+        [str(Path(sys.executable).with_name("ray")), "start", "--head", "--block", f"--port={gcs}",
+         f"--ray-client-server-port={client}", "--num-cpus=2", "--include-dashboard=false",
+         "--node-ip-address=127.0.0.1", "--disable-usage-stats", f"--temp-dir={short}"],
+        stdout=open(log, "w"), stderr=subprocess.STDOUT, start_new_session=True,  # noqa: SIM115
+    )  # fmt: skip
+    try:
+        deadline = time.time() + 120
+        while "block forever" not in log.read_text():
+            assert head.poll() is None and time.time() < deadline, log.read_text()
+            time.sleep(0.5)
+        folder = tmp_path / "photos"
+        folder.mkdir()
+        for name in GPS_PHOTOS[:2]:
+            shutil.copy(PENN / "photos" / name, folder / name)
+        for n, address in enumerate(("auto", f"ray://127.0.0.1:{client}")):
+            if address == "auto":
+                monkeypatch.setenv("RAY_ADDRESS", f"127.0.0.1:{gcs}")
+            else:
+                monkeypatch.delenv("RAY_ADDRESS")
+            data = tmp_path / f"data{n}"
+            out = ingest(folder, data, fitted_models, "--ray", address).stdout
+            assert "ingested 2 new references" in out, out
+            assert [r[3] for r in stored(data).values()] == ["indexed", "indexed"]
+    finally:
+        if head.poll() is None:
+            os.killpg(head.pid, signal.SIGTERM)
+            head.wait(timeout=60)
+        shutil.rmtree(short, ignore_errors=True)
