@@ -38,52 +38,54 @@ def seed(data_dir: Path, models_dir: Path, config: str, rows) -> int:
     return done
 
 
-def run(models_dir: Path, configs: list[str], reps: int) -> dict:
-    rows = penn_rows()
-    queries = [r for r in rows if r.split == "query" and is_photo(r)]
+def run(models_dir: Path, configs: list[str], reps: int, manifest: Path | None = None, limit: int = 0) -> dict:
+    rows = penn_rows(manifest) if manifest is not None else penn_rows()
+    queries = [r for r in rows if r.split == "query" and is_photo(r)][: limit or None]
     groups = {r.group for r in queries}
     collection = [r for r in rows if r.split == "db" and is_photo(r) and r.group not in groups]
     payloads = [(r, r.image.read_bytes()) for r in queries]
     out = {"configs": configs, "collection": len(collection), "queries": len(queries), "reps": reps}
     with tempfile.TemporaryDirectory(prefix="geoloc-compare-") as tmp:
-        servers = {}
+        servers: list[ServerProcess] = []  # by position: the same configuration may be compared with itself
         try:
-            for c in configs:
+            for n, c in enumerate(configs):
                 print(f"seeding {c}: {len(collection)} references ...", flush=True)
-                seed(Path(tmp) / c, models_dir, c, collection)
-                servers[c] = ServerProcess(Path(tmp) / c, models_dir, c, api_key="bench")
-            for s in servers.values():
+                data = Path(tmp) / f"{n}-{c}"
+                seed(data, models_dir, c, collection)
+                servers.append(ServerProcess(data, models_dir, c, api_key="bench"))
+            for s in servers:
                 s.wait_ready(timeout=600)
-            wall = {c: [] for c in configs}
-            hits = {c: [] for c in configs}
+            wall: list[list[float]] = [[] for _ in configs]
+            hits: list[list[bool]] = [[] for _ in configs]
             for _, data in payloads:  # warm: onnxruntime pays once per input shape
-                for s in servers.values():
+                for s in servers:
                     s.client.post("/locate", files=[("image", ("q.jpg", data, "image/jpeg"))]).raise_for_status()
-            n = 0
+            turn = 0
             for _ in range(reps):
                 for row, data in payloads:
-                    order = configs if n % 2 == 0 else configs[::-1]
-                    n += 1
-                    for c in order:
+                    order = list(range(len(configs)))
+                    if turn % 2:
+                        order.reverse()
+                    turn += 1
+                    for k in order:
                         t0 = time.perf_counter()
-                        r = servers[c].client.post("/locate", files=[("image", ("q.jpg", data, "image/jpeg"))])
-                        wall[c].append((time.perf_counter() - t0) * 1000)
+                        r = servers[k].client.post("/locate", files=[("image", ("q.jpg", data, "image/jpeg"))])
+                        wall[k].append((time.perf_counter() - t0) * 1000)
                         r.raise_for_status()
                         top = r.json()["candidates"][:1]
-                        hits[c].append(bool(top) and haversine_m(row.lat, row.lon, top[0]["lat"], top[0]["lon"]) <= 25)
+                        hits[k].append(bool(top) and haversine_m(row.lat, row.lon, top[0]["lat"], top[0]["lon"]) <= 25)
         finally:
-            for s in servers.values():
+            for s in servers:
                 s.stop()
-    base = configs[0]
     out["results"] = [
         {
             "config": c,
-            **{f"{k}_ms": v for k, v in percentiles(wall[c]).items()},
-            "ratio_p50": median_ms(wall[c]) / median_ms(wall[base]),
-            "top1_within_25m": sum(hits[c]) / len(hits[c]),
-            "requests": len(wall[c]),
+            **{f"{k}_ms": v for k, v in percentiles(wall[n]).items()},
+            "ratio_p50": median_ms(wall[n]) / median_ms(wall[0]),
+            "top1_within_25m": sum(hits[n]) / len(hits[n]),
+            "requests": len(wall[n]),
         }
-        for c in configs
+        for n, c in enumerate(configs)
     ]
     return out
 
@@ -113,10 +115,12 @@ def main() -> None:
     ap.add_argument("--configs", default="hybrid,hybrid-xfeat")
     ap.add_argument("--models-dir", type=Path, default=REPO / "models")
     ap.add_argument("--reps", type=int, default=3)
+    ap.add_argument("--manifest", type=Path, default=None, help="default: data/manifests/penn-campus-gps.csv")
+    ap.add_argument("--limit", type=int, default=0, help="first N query photos (0: all)")
     ap.add_argument("--no-doc", action="store_true", help="print only; leave docs/BENCHMARKS.md alone")
     args = ap.parse_args()
     os.environ.setdefault("GEOLOC_FAISS_THREADS", "1")
-    fig = run(args.models_dir, args.configs.split(","), args.reps)
+    fig = run(args.models_dir, args.configs.split(","), args.reps, args.manifest, args.limit)
     text = render(fig, " ".join([COMMAND, *sys.argv[1:]]))
     print(text)
     if not args.no_doc:

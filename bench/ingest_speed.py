@@ -128,7 +128,7 @@ def measure(kind: str, n: int, args, root: Path) -> dict:
     images = uploads(kind, n)
     service, items = fresh(root, args.models_dir, args.config, images)
     cost_split(service, items[:2])  # warm-up: sessions, caches
-    split = cost_split(service, items[2 : 2 + min(len(items) - 2, args.split_images)])
+    split = cost_split(service, (items[2:] or items)[: args.split_images])  # past the warm-up when there are enough
     variants = {"local": None, **{f"ray {w}": w for w in args.workers}}
     speed: dict[str, list[float]] = {v: [] for v in variants}
     share: dict[str, list[float]] = {v: [] for v in variants}

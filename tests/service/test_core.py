@@ -3,6 +3,8 @@ answer; the estimate does not depend on top_k; eval runs the core's rerank and r
 
 import json
 import sqlite3
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -96,6 +98,12 @@ def test_eval_with_rerank_and_region(fitted_models, mini_manifest, tmp_path):
     assert "without rerank: " in p.stdout and "rerank adds " in p.stdout
     # Verification only re-orders the first candidates: recall at 20 cannot change.
     assert w["recall_at"]["20"] == r["recall_at"]["20"]
+    # The README's analysis of that record runs on it.
+    analysis = subprocess.run(
+        [sys.executable, "-m", "bench.verification", str(out)], capture_output=True, text=True, timeout=600
+    )
+    assert analysis.returncode == 0, analysis.stderr[-3000:]
+    assert "AUC" in analysis.stdout
 
 
 def test_check_backup_restore(ingested, fitted_models, tmp_path):
