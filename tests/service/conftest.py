@@ -29,6 +29,20 @@ def fitted_models(models_dir, mini_manifest, squeezenet) -> Path:
     return models_dir
 
 
+@pytest.fixture(scope="session")
+def mini_collection(tmp_path_factory, fitted_models, mini_manifest) -> Path:
+    """A data dir holding the mini manifest's 30 db images, ingested once per session by `geoloc ingest`.
+    Tests read it or copy it; none may change its references."""
+    data = tmp_path_factory.mktemp("collection") / "data"
+    args = ["ingest", "--manifest", str(mini_manifest), "--split", "db", "--config", CONFIG]
+    out = subprocess.run(
+        [sys.executable, "-m", "app.cli", *args, "--data-dir", str(data), "--models-dir", str(fitted_models)],
+        capture_output=True, text=True, timeout=600, env={**os.environ, "PYTHONUNBUFFERED": "1"},
+    )  # fmt: skip
+    assert "ingested 30 new references" in out.stdout, out.stdout + out.stderr
+    return data
+
+
 class Server(ServerProcess):
     """The tests' server: the fitted hybrid-bin models, one onnxruntime thread."""
 

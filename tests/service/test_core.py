@@ -20,15 +20,9 @@ from tests.service.conftest import CONFIG, Server
 from tests.test_cli import geoloc
 
 
-@pytest.fixture(scope="module")
-def ingested(tmp_path_factory, fitted_models, mini_manifest):
-    data = tmp_path_factory.mktemp("core") / "data"
-    out = geoloc(
-        "ingest", "--manifest", str(mini_manifest), "--split", "db", "--config", CONFIG,
-        "--data-dir", str(data), "--models-dir", str(fitted_models),
-    )  # fmt: skip
-    assert "ingested 30 new references" in out.stdout
-    return data
+@pytest.fixture
+def ingested(mini_collection):
+    return mini_collection
 
 
 def test_every_face_gives_the_same_answer(ingested, fitted_models):

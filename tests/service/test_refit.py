@@ -21,16 +21,10 @@ from tests.service.conftest import CONFIG, Server, wait_job
 from tests.test_cli import geoloc
 
 
-@pytest.fixture(scope="module")
-def template(tmp_path_factory, fitted_models, mini_manifest):
-    """A data dir of the mini manifest's 30 db images, generation 0 (copied by each test)."""
-    data = tmp_path_factory.mktemp("refit") / "data"
-    out = geoloc(
-        "ingest", "--manifest", str(mini_manifest), "--split", "db", "--config", CONFIG,
-        "--data-dir", str(data), "--models-dir", str(fitted_models),
-    )  # fmt: skip
-    assert "ingested 30 new references" in out.stdout
-    return data
+@pytest.fixture
+def template(mini_collection):
+    """The session's data dir of the mini manifest's 30 db images, generation 0 (copied by each test)."""
+    return mini_collection
 
 
 @pytest.fixture(scope="module")
