@@ -91,9 +91,6 @@ def _load_cnn(models_dir: Path, config):
     return cnn
 
 
-BANK_SOURCES = ("collection", "train", "none")
-
-
 @app.command()
 def fit(
     manifest: ManifestOpt,
@@ -114,6 +111,7 @@ def fit(
     from app.datasets import read_manifest
     from app.engine.configs import get_config
     from app.engine.pipeline import Pipeline, pipeline_dir
+    from app.engine.svm_training import BANK_SOURCES
     from app.evaluate import extract_all
 
     cfg = get_config(config)
@@ -140,11 +138,8 @@ def fit(
 def _train_bank(pipe, rows, feats, kind: str, seed: int, source: str = "collection"):
     """The bank from the db rows (the collection rule, plus train rows) or from the train rows alone,
     retrieved against an in-memory index of the db rows encoded by the pipeline just fitted."""
-    import numpy as np
-
-    from app.engine.search import ReferenceIndex
     from app.engine.svm_bank import KINDS, BankParams
-    from app.engine.svm_training import Geotagged, fit_bank, fit_bank_from_collection
+    from app.engine.svm_training import Geotagged, fit_bank_from, index_of
 
     if kind not in KINDS:
         _fail(f"--svm-bank-kind must be one of {', '.join(KINDS)}")
@@ -157,19 +152,9 @@ def _train_bank(pipe, rows, feats, kind: str, seed: int, source: str = "collecti
         )
     if not db:
         _fail("the manifest has no db rows: the SVM bank needs references to retrieve against")
-    index = ReferenceIndex(pipe.config, pipe.float_dim, pipe.bits)
-    codes = [pipe.encode_features(feats[i]) for i in db]
-    index.add(
-        np.array(db, np.int64),
-        np.stack([c.float_ for c in codes]) if pipe.float_dim else None,
-        np.stack([c.binary for c in codes]) if pipe.bits else None,
-    )
+    index = index_of(pipe, db, (feats[i] for i in db))
     refs = {i: Geotagged(feats[i], rows[i].lat, rows[i].lon, rows[i].group) for i in db}
-    params = BankParams(kind=kind, seed=seed)
-    if source == "collection":
-        bank = fit_bank_from_collection(pipe, index, refs, params, train)
-    else:
-        bank = fit_bank(pipe, index, refs, train, params)
+    bank = fit_bank_from(source, pipe, index, refs, train, BankParams(kind=kind, seed=seed))
     t = bank.manifest["training"]
     typer.echo(
         f"SVM bank ({kind}, from {source}): {t['labelled_positive']} positive / {t['labelled_negative']} negative "

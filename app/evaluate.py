@@ -28,9 +28,8 @@ from app.engine.errors import GeolocError
 from app.engine.geo import haversine_m
 from app.engine.imageio import load_image
 from app.engine.pipeline import Features, Pipeline
-from app.engine.search import ReferenceIndex
 from app.engine.svm_bank import BankParams
-from app.engine.svm_training import Geotagged, fit_bank, fit_bank_from_collection
+from app.engine.svm_training import Geotagged, fit_bank_from, index_of
 
 RECALL_AT = (1, 5, 10, 20)
 BANK_SOURCES = ("train", "collection")
@@ -187,17 +186,8 @@ def evaluate(
         fit_idx = db_idx + [i for i, r in enumerate(rows) if r.split == "train"]
         pipe = Pipeline(config, cnn=cnn, models_dir=models_dir)
         pipe.fit([extracted[i].features for i in fit_idx], seed=seed + f)
-        index = ReferenceIndex(config, pipe.float_dim, pipe.bits)
-        codes = [
-            pipe.encode_features(extracted[i].features)
-            for i in tqdm(db_idx, desc=f"fold {f + 1}/{len(query_sets)} encode db", unit="img", leave=False)
-        ]
-        ids = np.array(db_idx, np.int64)
-        index.add(
-            ids,
-            np.stack([c.float_ for c in codes]) if pipe.float_dim else None,
-            np.stack([c.binary for c in codes]) if pipe.bits else None,
-        )
+        progress = tqdm(db_idx, desc=f"fold {f + 1}/{len(query_sets)} encode db", unit="img", leave=False)
+        index = index_of(pipe, db_idx, (extracted[i].features for i in progress))
         if svm_bank != "off":
             refs = {i: Geotagged(extracted[i].features, rows[i].lat, rows[i].lon, rows[i].group) for i in db_idx}
             train = [
@@ -206,10 +196,7 @@ def evaluate(
                 if r.split == "train"
             ]
             params = BankParams(kind=bank_kind, seed=seed + f)
-            if bank_source == "collection":
-                pipe.bank = fit_bank_from_collection(pipe, index, refs, params, train, pos_radius_m=radius_m)
-            else:
-                pipe.bank = fit_bank(pipe, index, refs, train, params, pos_radius_m=radius_m)
+            pipe.bank = fit_bank_from(bank_source, pipe, index, refs, train, params, pos_radius_m=radius_m)
             pipe.bank_select = svm_bank
             bank_reports.append(
                 {

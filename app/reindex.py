@@ -35,12 +35,11 @@ from app.engine.configs import get_config
 from app.engine.errors import GeolocError
 from app.engine.imageio import ImageLimits, load_image
 from app.engine.pipeline import Features, Pipeline, PipelineSource
-from app.engine.search import ReferenceIndex
+from app.engine.svm_training import BANK_SOURCES
 from app.store import ReferenceStore, StorageUnavailable
 
 log = logging.getLogger("geoloc.reindex")
 
-BANK_SOURCES = ("collection", "train", "none")
 #: How many passes over the references may end with rows the storage could not read before giving up.
 MAX_RETRY_PASSES = 5
 
@@ -112,22 +111,13 @@ def _extract(pipe: Pipeline, paths: Sequence[Path], limits: ImageLimits, workers
 
 def _bank(pipe: Pipeline, refs: dict, train: list, options: RefitOptions, source: str):
     from app.engine.svm_bank import KINDS, BankParams
-    from app.engine.svm_training import fit_bank, fit_bank_from_collection
+    from app.engine.svm_training import fit_bank_from, index_of
 
     if options.bank_kind not in KINDS:
         raise RefitError(f"--svm-bank-kind must be one of {', '.join(KINDS)}")
-    ids = np.array(sorted(refs), np.int64)
-    codes = [pipe.encode_features(refs[int(i)].features) for i in ids]
-    index = ReferenceIndex(pipe.config, pipe.float_dim, pipe.bits)
-    index.add(
-        ids,
-        np.stack([c.float_ for c in codes]) if pipe.float_dim else None,
-        np.stack([c.binary for c in codes]) if pipe.bits else None,
-    )
-    params = BankParams(kind=options.bank_kind, seed=options.seed)
-    if source == "collection":
-        return fit_bank_from_collection(pipe, index, refs, params, train)
-    return fit_bank(pipe, index, refs, train, params)
+    ids = sorted(refs)
+    index = index_of(pipe, ids, (refs[i].features for i in ids))
+    return fit_bank_from(source, pipe, index, refs, train, BankParams(kind=options.bank_kind, seed=options.seed))
 
 
 def fit_generation(

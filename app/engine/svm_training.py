@@ -22,6 +22,7 @@ the collection: labelling is one retrieval and ``top_n`` feature matchings per t
 from __future__ import annotations
 
 import time
+from collections.abc import Iterable
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -311,3 +312,37 @@ def fit_bank_from_collection(
     }
     bank.manifest["train_seconds"] = round(time.time() - started, 1)
     return bank
+
+
+#: Where a bank learns: the references themselves (plus train photos), train photos only, or nowhere.
+BANK_SOURCES = ("collection", "train", "none")
+
+
+def index_of(pipeline: Pipeline, ids: np.ndarray, features: Iterable[Features]) -> ReferenceIndex:
+    """An in-memory index of features encoded by ``pipeline``: what a bank is trained against, built the
+    same way by `geoloc fit`, `geoloc refit` and the evaluation's folds."""
+    codes = [pipeline.encode_features(f) for f in features]
+    index = ReferenceIndex(pipeline.config, pipeline.float_dim, pipeline.bits)
+    index.add(
+        np.asarray(ids, np.int64),
+        np.stack([c.float_ for c in codes]) if pipeline.float_dim else None,
+        np.stack([c.binary for c in codes]) if pipeline.bits else None,
+    )
+    return index
+
+
+def fit_bank_from(
+    source: str,
+    pipeline: Pipeline,
+    index: ReferenceIndex,
+    refs: dict[int, Geotagged],
+    train: list[Geotagged],
+    params: BankParams,
+    pos_radius_m: float = 25.0,
+) -> SvmBank:
+    """The bank by source: ``collection`` (the references, plus ``train``) or ``train`` (those photos only)."""
+    if source == "collection":
+        return fit_bank_from_collection(pipeline, index, refs, params, train, pos_radius_m=pos_radius_m)
+    if source == "train":
+        return fit_bank(pipeline, index, refs, train, params, pos_radius_m=pos_radius_m)
+    raise ValueError(f"an SVM bank learns from collection or train, not {source!r}")
