@@ -215,3 +215,23 @@ def test_refit_on_ray_gives_the_codes_of_the_local_path(template, fitted_models,
     for i, (f, b) in local.items():
         assert np.allclose(np.frombuffer(f, np.float32), np.frombuffer(ray[i][0], np.float32), atol=1e-5)
         assert np.unpackbits(np.frombuffer(b, np.uint8) ^ np.frombuffer(ray[i][1], np.uint8)).sum() <= 2
+
+
+def test_refit_trains_the_bank_on_the_references_or_a_train_manifest(template, fitted_models, tmp_path, mini_manifest):
+    """The SVM bank of a re-fit: from the stored references themselves, then (a second generation) from the
+    train manifest's photos; each generation's folder holds its bank and says where it learnt."""
+    data = _copy(template, tmp_path)
+    base = ["refit", "--data-dir", str(data), "--models-dir", str(fitted_models), "--sample", "20", "--seed", "1"]
+    for generation, extra, source in (
+        (1, ["--svm-bank", "collection"], "collection"),
+        (2, ["--train-manifest", str(mini_manifest)], "train"),  # train is the default with a manifest
+    ):
+        out = geoloc(*base, *extra).stdout
+        assert "30 references re-encoded" in out, out
+        meta = _meta(data)
+        assert meta["generation"] == str(generation)
+        folder = data / meta["pipeline"]
+        assert folder.name == f"{CONFIG}-g{generation}"
+        assert json.loads((folder / "pipeline.json").read_text())["svm_bank_source"] == source
+        bank = json.loads((folder / "svm_bank.json").read_text())
+        assert bank["fit"]["n_features"] > 0 and len(bank["fit"]["clusters"]) > 0
