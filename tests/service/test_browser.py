@@ -34,6 +34,12 @@ ARGS = [
 VIEWPORTS = {"desktop": {"width": 1280, "height": 900}, "phone": {"width": 375, "height": 812}}
 TILE_HOST = "tile.openstreetmap.org"
 UNRELATED = CHECK_IMAGES / "fox.jpg"  # not a street of the collection: candidates, but no agreement
+#: Every Content-Security-Policy violation the page reports, kept in window.__csp (see violations()).
+RECORD_VIOLATIONS = """
+window.__csp = [];
+document.addEventListener("securitypolicyviolation",
+  (e) => window.__csp.push(`${e.violatedDirective} ${e.blockedURI}`));
+"""
 
 
 def plain_tile() -> bytes:
@@ -93,6 +99,7 @@ def open_page(browser, server, viewport: str, tiles: bytes | None):
     page = browser.new_page(viewport=VIEWPORTS[viewport])
     page.errors = []
     page.on("pageerror", lambda e: page.errors.append(str(e)))
+    page.add_init_script(RECORD_VIOLATIONS)
 
     def only_this_service(route):
         host = urlparse(route.request.url).hostname
@@ -418,3 +425,191 @@ def test_api_docs_render_with_no_network_beyond_the_service(browser, server):
     assert icon.status == 200 and icon.headers["content-type"] == "image/x-icon" and icon.body()[:4] == b"\0\0\1\0"
     redoc = page.request.get(server.url + "/redoc")  # turned off rather than loaded from a CDN
     assert redoc.status == 404 and redoc.json()["error"] == "not_found"
+
+
+# -- user text is text: labels, file names, notes and messages never run as HTML (issue 18) -------------
+XSS_KEY = "xss-key"
+EXFIL = "/xss-exfil"
+
+
+def label_payload(via: str) -> str:
+    """A label that, parsed as HTML anywhere on the page, sends the API key to the service at /xss-exfil."""
+    handler = f"fetch('{EXFIL}?via={via}&k='+sessionStorage.getItem('geoloc-key'))"
+    return f"""College Hall"'><img src=x onerror="{handler}">"""
+
+
+def file_payload(via: str) -> str:
+    """The same as a file name: no slash or backslash (the service keeps a path's last part) and no double
+    quote (browsers and httpx percent-encode it in a multipart file name)."""
+    return f"<img src=x onerror=fetch(String.fromCharCode(47)+'xss-exfil?via={via}')>.jpg"
+
+
+#: Markup that must stay text; ``.xss-injected`` found in the page means it was parsed.
+MARKUP_LABEL = "<b class=xss-injected>bold</b> & <i class=xss-injected>friends</i>"
+
+
+@pytest.fixture(scope="module")
+def xss_server(tmp_path_factory, fitted_models, mini_manifest):
+    """A collection whose every label is hostile: the query capture's photo (labelled with the payload),
+    one crop labelled by its uploaded file name (a payload too) and one labelled with plain markup. All
+    three lie at one spot, so locating the photo lists and draws all three."""
+    s = Server(tmp_path_factory.mktemp("xss") / "data", fitted_models, api_key=XSS_KEY)
+    s.wait_ready()
+    db = [r for r in read_manifest(mini_manifest) if r.split == "db"]
+    photos = [r for r in db if "/photos/" in str(r.image)]
+    crops = [r for r in db if "/crops/" in str(r.image) and r.group == photos[0].group]
+    rows = [photos[0], *crops[:2]]
+    names = [rows[0].image.name, file_payload("upload-name"), rows[2].image.name]
+    files = [("image", (n, r.image.read_bytes(), "image/jpeg")) for n, r in zip(names, rows, strict=True)]
+    meta = [
+        {"lat": rows[0].lat, "lon": rows[0].lon, "label": label_payload("label")},
+        {"lat": rows[1].lat, "lon": rows[1].lon},  # labelled by the service with its file name
+        {"lat": rows[2].lat, "lon": rows[2].lon, "label": MARKUP_LABEL},
+    ]
+    res = s.client.post("/references", files=files, data={"metadata": json.dumps(meta)}, headers={"X-API-Key": XSS_KEY})
+    assert res.status_code == 202, res.text
+    assert wait_job(s.client, res.json()["job_id"])["status"] == "done"
+    s.labels = [label_payload("label"), file_payload("upload-name"), MARKUP_LABEL]
+    s.query, s.other = rows[0].image, photos[1]
+    yield s
+    s.stop()
+
+
+def watch_exfil(page) -> list[str]:
+    """Every request the page makes to /xss-exfil (a CSP-blocked one is never made)."""
+    seen = []
+    page.on("request", lambda r: seen.append(r.url) if EXFIL in r.url else None)
+    return seen
+
+
+def check_nothing_ran(page, server, seen: list[str]) -> None:
+    """No payload ran (no request to /xss-exfil, in the browser or in the server's access log), none was
+    parsed into elements (no on* attribute, no .xss-injected), and the page policy had nothing to block:
+    the text is kept as text by the page itself, the policy is only the second line."""
+    page.wait_for_timeout(500)  # an onerror handler fires once its broken image has failed
+    assert not seen, seen
+    assert EXFIL not in Path(server.log.name).read_text()
+    parsed = page.evaluate(
+        """() => [...document.querySelectorAll('*')].filter((e) =>
+            e.classList.contains('xss-injected') || [...e.attributes].some((a) => a.name.startsWith('on'))
+        ).map((e) => e.outerHTML)"""
+    )
+    assert not parsed, parsed
+    assert page.evaluate("window.__csp") == []
+
+
+def test_user_text_stays_text_in_the_locate_view(browser, xss_server, tile_png, tmp_path):
+    page = open_page(browser, xss_server, "desktop", tile_png)
+    seen = watch_exfil(page)
+    page.fill("#api-key", XSS_KEY)  # what a payload would be after
+    photo = tmp_path / file_payload("locate-name")
+    photo.write_bytes(xss_server.query.read_bytes())
+    page.set_input_files("#locate-file", str(photo))
+    assert page.get_attribute("#preview", "alt") == f"Your photo: {photo.name}"
+    page.click("#locate-btn")
+    page.wait_for_selector("#answer:not([hidden])", timeout=60_000)
+    items = page.locator("#candidates li")
+    assert items.count() == 3
+    listed = page.inner_text("#candidates")
+    assert all(t in listed for t in xss_server.labels), listed
+    # Every candidate's marker hovered and its popup opened.
+    for m in page.locator("#map .num-marker").all():
+        m.dispatch_event("mouseover")
+        m.dispatch_event("mouseout")
+    popups = []
+    for i in range(items.count()):
+        items.nth(i).locator("button.show").click()
+        page.wait_for_function(
+            f"(document.querySelector('.leaflet-popup-content') || {{}}).textContent?.startsWith('{i + 1}. ')"
+        )
+        popups.append(page.inner_text(".leaflet-popup-content").split("\n")[0])
+    assert {p.split(". ", 1)[1] for p in popups} == set(xss_server.labels), popups
+    alts = page.locator("#candidates img").evaluate_all("els => els.map(e => e.alt)")
+    assert {a.split(": ", 1)[1] for a in alts} == set(xss_server.labels)
+    # A message from the service carrying the payload (its own error shape, served by the test).
+    page.route(
+        "**/locate",
+        lambda route: route.fulfill(status=422, json={"error": "invalid_request", "message": label_payload("error")}),
+    )
+    page.click("#locate-btn")
+    page.wait_for_selector("#locate-error:not([hidden])")
+    assert page.inner_text("#locate-error") == f"422: {label_payload('error')}"
+    check_nothing_ran(page, xss_server, seen)
+    assert not page.errors, page.errors
+
+
+def test_user_text_stays_text_in_the_references_view(browser, xss_server, tile_png, tmp_path):
+    page = open_page(browser, xss_server, "desktop", tile_png)
+    seen = watch_exfil(page)
+    page.fill("#api-key", XSS_KEY)
+    page.click("#tab-refs")
+    page.wait_for_selector("#refs li")
+    listed = page.inner_text("#refs")
+    assert all(t in listed for t in xss_server.labels), listed
+    # Every reference's map marker hovered: its tooltip shows the label as it is.
+    tips = []
+    for path in page.locator("#refs-map path.leaflet-interactive").all():
+        path.dispatch_event("mouseover")
+        tip = page.locator("#" + path.get_attribute("aria-describedby"))  # Leaflet links a tooltip so
+        tip.wait_for(state="visible")
+        tips.append(tip.inner_text())
+        path.dispatch_event("mouseout")
+        page.wait_for_timeout(100)  # the tooltip's own mouseover is where Leaflet's onerror would run
+    check_nothing_ran(page, xss_server, seen)
+    assert sorted(tips) == sorted(xss_server.labels), tips
+
+    # A new reference named by a hostile file name (no label: the service labels it with the name).
+    added = tmp_path / file_payload("add-name")
+    added.write_bytes(xss_server.other.image.read_bytes())
+    page.set_input_files("#add-file", str(added))
+    page.fill("#add-lat", str(xss_server.other.lat))
+    page.fill("#add-lon", str(xss_server.other.lon))
+    page.click("#add-form button[type=submit]")
+    page.wait_for_function("document.getElementById('refs-status').textContent === 'Reference indexed.'")
+    page.wait_for_function("document.querySelectorAll('#refs li').length === 4")
+    assert added.name in page.inner_text("#refs")
+    # A duplicate with a hostile label: the service's note (quoting both labels) and a failed job's error
+    # (served by the test, in the service's shape) are shown as text.
+    page.route(
+        "**/jobs/*",
+        lambda route: route.fulfill(
+            json={
+                "job_id": "j",
+                "status": "failed",
+                "items": [{"reference_id": 1, "status": "failed", "error": label_payload("job")}],
+            }
+        ),
+    )
+    page.set_input_files("#add-file", str(xss_server.query))
+    page.fill("#add-label", label_payload("note"))
+    page.click("#add-form button[type=submit]")
+    page.wait_for_function("document.getElementById('refs-status').textContent.includes('metadata was kept')")
+    said = page.inner_text("#refs-status")
+    assert said.startswith(f"Encoding failed: {label_payload('job')} image 0 is already stored"), said
+    assert '<img src=x onerror="fetch(' in said.split("already stored", 1)[1], said
+    # An error message carrying the payload (served by the test).
+    page.route(
+        "**/references?*",
+        lambda route: route.fulfill(status=503, json={"error": "not_ready", "message": label_payload("refs-error")}),
+    )
+    page.click("#tab-locate")
+    page.click("#tab-refs")
+    page.wait_for_selector("#refs-error:not([hidden])")
+    assert page.inner_text("#refs-error") == f"503: {label_payload('refs-error')}"
+    check_nothing_ran(page, xss_server, seen)
+    assert not page.errors, page.errors
+
+
+def test_the_page_policy_contains_a_slip(browser, xss_server, tile_png):
+    """Should some later code put user text in as HTML, the page's Content-Security-Policy still stops
+    its inline handler: the next slip is contained."""
+    page = open_page(browser, xss_server, "desktop", tile_png)
+    seen = watch_exfil(page)
+    page.evaluate(
+        """(payload) => { const d = document.createElement('div'); d.innerHTML = payload; document.body.append(d); }""",
+        label_payload("slip"),
+    )
+    page.wait_for_function("window.__csp.length > 0")
+    page.wait_for_timeout(500)
+    assert not seen, seen
+    assert any(v.startswith("script-src") for v in page.evaluate("window.__csp")), page.evaluate("window.__csp")
