@@ -243,12 +243,12 @@ def get_reference(ref_id: RefId, core: Core) -> ReferenceOut:
 @router.get(
     "/references/{ref_id}/image",
     responses={
-        200: {"content": {"image/jpeg": {}}, "description": "a JPEG thumbnail without EXIF"},
+        200: {"content": {"image/jpeg": {}}, "description": "a JPEG thumbnail: pixels only (JFIF)"},
         **error_responses(401, 404, 422, 503),
     },
     response_class=Response,
     dependencies=[Depends(read_access)],
-    summary="A thumbnail of the reference image (no EXIF)",
+    summary="A thumbnail of the reference image (pixels only: no EXIF, XMP, ICC or comment)",
 )
 def reference_image(request: Request, ref_id: RefId, core: Core) -> Response:
     path = core.image_path(ref_id)
@@ -263,8 +263,12 @@ def reference_image(request: Request, ref_id: RefId, core: Core) -> Response:
         im.draft("RGB", (size * 2, size * 2))
         im = ImageOps.exif_transpose(im).convert("RGB")
         im.thumbnail((size, size))
+        # Pillow's JPEG writer copies a source's comment (COM) from ``im.info``, and a comment may say
+        # anything ("home address: ..."): a new image holds the pixels and none of the photo's metadata.
+        pixels = Image.new("RGB", im.size)
+        pixels.paste(im)
         buf = io.BytesIO()
-        im.save(buf, "JPEG", quality=85)  # a new file: no EXIF, no GPS block
+        pixels.save(buf, "JPEG", quality=85)  # JFIF only: no EXIF/GPS, XMP, ICC, IPTC or comment
     return Response(buf.getvalue(), media_type="image/jpeg", headers={"Cache-Control": "max-age=3600"})
 
 
