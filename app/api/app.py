@@ -13,7 +13,7 @@ from fastapi.responses import FileResponse
 from fastapi.staticfiles import StaticFiles
 
 from app import __version__, apikey
-from app.api import docs, errors
+from app.api import docs, errors, security
 from app.api.metrics import Metrics, MetricsMiddleware
 from app.api.routes import router
 from app.collection import SnapshotWriter
@@ -122,6 +122,6 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     @app.get("/", include_in_schema=False)
     def page() -> FileResponse:
-        return FileResponse(WEB_DIR / "index.html")
+        return FileResponse(WEB_DIR / "index.html", headers=security.PAGE_HEADERS)
 
     return app

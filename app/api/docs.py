@@ -14,6 +14,8 @@ from fastapi import FastAPI
 from fastapi.openapi.docs import get_swagger_ui_html
 from fastapi.responses import FileResponse, HTMLResponse
 
+from app.api import security
+
 VENDOR = "/static/vendor/swagger-ui"
 
 
@@ -22,7 +24,7 @@ def install(app: FastAPI, web_dir: Path) -> None:
 
     @app.get("/docs", include_in_schema=False)
     def docs() -> HTMLResponse:
-        return get_swagger_ui_html(
+        page = get_swagger_ui_html(
             openapi_url=app.openapi_url,
             title=f"{app.title} - API docs",
             swagger_js_url=f"{VENDOR}/swagger-ui-bundle.js",
@@ -31,6 +33,8 @@ def install(app: FastAPI, web_dir: Path) -> None:
             # No call to swagger.io's online validator: nothing leaves the machine.
             swagger_ui_parameters={"validatorUrl": None},
         )
+        page.headers.update(security.DOCS_HEADERS)  # never framed; no script policy (see app/api/security.py)
+        return page
 
     @app.get("/favicon.ico", include_in_schema=False)
     def favicon() -> FileResponse:

@@ -39,10 +39,26 @@ async function api(path, options = {}) {
   return body;
 }
 
-// -- words ------------------------------------------------------------------------------------------
-function escapeHtml(s) {
-  return String(s).replace(/[&<>"']/g, (ch) => ({ "&": "&amp;", "<": "&lt;", ">": "&gt;", '"': "&quot;", "'": "&#39;" })[ch]);
+// -- building the page -------------------------------------------------------------------------------
+// Labels, file names, notes and messages come from users and the service: they reach the page as text
+// nodes only, never as a string of HTML (a label in a map tooltip once ran as script and sent the API key
+// away). Elements are built here; a string child becomes text. Leaflet gets nodes, not strings, too.
+function el(tag, attrs = {}, ...children) {
+  const e = document.createElement(tag);
+  for (const [name, value] of Object.entries(attrs)) {
+    if (name === "class") e.className = value;
+    else e.setAttribute(name, value);
+  }
+  e.append(...children.filter((c) => c != null && c !== ""));
+  return e;
 }
+// The parts (nodes or strings; empty ones left out) with a line break between each.
+function lines(...parts) {
+  return parts.filter((p) => p != null && p !== "").flatMap((p, k) => (k ? [el("br"), p] : [p]));
+}
+const textNode = (s) => document.createTextNode(s);
+
+// -- words ------------------------------------------------------------------------------------------
 const position = (lat, lon) => `${lat.toFixed(5)}, ${lon.toFixed(5)}`;
 const metres = (m) => (m < 1000 ? `${Math.round(m)} m` : `${(m / 1000).toFixed(1)} km`);
 
@@ -76,7 +92,7 @@ function makeMap(id) {
   const map = L.map(id, { zoomControl: true }).setView([39.9522, -75.1932], 16);
   const tiles = L.tileLayer("https://tile.openstreetmap.org/{z}/{x}/{y}.png", {
     maxZoom: 19,
-    attribution: "&copy; OpenStreetMap contributors",
+    attribution: "© OpenStreetMap contributors", // Leaflet takes only a string here: ours, no user text
   }).addTo(map);
   L.control.scale({ imperial: false }).addTo(map);
   tiles.once("tileerror", () => noTiles(id));
@@ -99,7 +115,7 @@ function numberedIcon(n, best) {
   const size = best ? 34 : 24;
   return L.divIcon({
     className: best ? "num-marker best" : "num-marker",
-    html: `<span>${n}</span>`,
+    html: el("span", {}, String(n)),
     iconSize: [size, size],
   });
 }
@@ -283,10 +299,10 @@ function whereFrom(c, i, res) {
 // The service's calibrated probability (when it gives one) that a candidate lies within 25 m of where the
 // photo was taken.
 function chanceInWords(c) {
-  if (c.p_within_25m == null) return "";
+  if (c.p_within_25m == null) return null;
   const p = Math.round(c.p_within_25m * 100);
-  return `<span title="The service's estimate of the chance that this reference lies within 25 m of where ` +
-    `your photo was taken">${p} % chance it is within 25 m</span>`;
+  return el("span", { title: "The service's estimate of the chance that this reference lies within 25 m of where " +
+    "your photo was taken" }, `${p} % chance it is within 25 m`);
 }
 
 function candidateItem(c, i, res) {
@@ -296,18 +312,18 @@ function candidateItem(c, i, res) {
   const img = document.createElement("img");
   img.src = `/references/${c.reference_id}/image`;
   img.alt = `Reference ${c.reference_id}${c.label ? ": " + c.label : ""}`;
-  const text = document.createElement("div");
-  text.className = "text";
-  const where = whereFrom(c, i, res);
   const inliers = c.inliers == null ? "" : `, ${c.inliers} matching points`;
-  const chance = chanceInWords(c);
-  const file = name.file ? `${escapeHtml(name.file)} · ` : "";
-  text.innerHTML = `<strong>${i + 1}. ${escapeHtml(name.title)}</strong>` +
-    (i === 0 ? ' <span class="tag">best match</span>' : "") +
-    (where ? `<br>${escapeHtml(where)}` : "") + (chance ? `<br>${chance}` : "") +
-    `<br>match score ${c.score.toFixed(3)}${inliers}` +
-    `<br><small>${file}${position(c.lat, c.lon)}</small>`;
-  li.append(img, text);
+  const file = name.file ? `${name.file} · ` : "";
+  const heading = [el("strong", {}, `${i + 1}. ${name.title}`)];
+  if (i === 0) heading.push(" ", el("span", { class: "tag" }, "best match"));
+  const words = el("div", { class: "text" }, ...lines(
+    el("span", {}, ...heading),
+    whereFrom(c, i, res),
+    chanceInWords(c),
+    `match score ${c.score.toFixed(3)}${inliers}`,
+    el("small", {}, `${file}${position(c.lat, c.lon)}`),
+  ));
+  li.append(img, words);
   if (locateMap) {
     const show = document.createElement("button");
     show.type = "button";
@@ -336,7 +352,7 @@ function renderLocate(res) {
 // Markers at one spot hide each other: each popup names the others there.
 function sameSpot(cands, i) {
   const here = cands.map((c, j) => j).filter((j) => j !== i && haversine(cands[i], cands[j]) < 1);
-  return here.length ? `<br>Also at this spot: ${here.map((j) => j + 1).join(", ")}` : "";
+  return here.length ? `Also at this spot: ${here.map((j) => j + 1).join(", ")}` : "";
 }
 
 // Marker 1 is drawn last and with the largest z-index offset, so it is on top of any later candidate at
@@ -352,7 +368,7 @@ function drawLocate(res) {
   const bounds = L.latLngBounds(res.candidates.map((c) => [c.lat, c.lon]));
   if (est) {
     const circle = L.circle([est.lat, est.lon], { radius: est.radius_m, color: "#c92a2a", weight: 2, fillOpacity: 0.12 })
-      .bindTooltip(`Estimate: within ${metres(est.radius_m)}`).addTo(layer);
+      .bindTooltip(textNode(`Estimate: within ${metres(est.radius_m)}`)).addTo(layer);
     bounds.extend(circle.getBounds());
     L.circleMarker([est.lat, est.lon], { radius: 5, color: "#c92a2a", fillOpacity: 1, className: "estimate-marker" })
       .addTo(layer);
@@ -365,8 +381,8 @@ function drawLocate(res) {
       title: `Candidate ${i + 1}: ${name}`,
       alt: `Candidate ${i + 1}`,
       riseOnHover: true,
-    }).bindPopup(`${i + 1}. ${escapeHtml(name)}<br>${escapeHtml(whereFrom(c, i, res) || "best match")}` +
-      sameSpot(res.candidates, i));
+    }).bindPopup(el("div", {}, ...lines(`${i + 1}. ${name}`, whereFrom(c, i, res) || "best match",
+      sameSpot(res.candidates, i))));
   });
   candidateMarkers.slice().reverse().forEach((m) => m.addTo(layer));
   if (bounds.isValid()) map.fitBounds(bounds, { padding: [30, 30], maxZoom: 18 });
@@ -390,17 +406,17 @@ function refItem(r) {
   img.src = `/references/${r.id}/image`;
   img.alt = `Reference ${r.id}${r.label ? ": " + r.label : ""}`;
   img.loading = "lazy";
-  const text = document.createElement("div");
-  text.className = "text";
-  const file = name.file ? `<br><small>${escapeHtml(name.file)}</small>` : "";
-  text.innerHTML = `<strong>${escapeHtml(name.title)}</strong>${file}<br>` +
-    `<small>${position(r.lat, r.lon)} · ${escapeHtml(r.status)}</small>`;
+  const words = el("div", { class: "text" }, ...lines(
+    el("strong", {}, name.title),
+    name.file ? el("small", {}, name.file) : null,
+    el("small", {}, `${position(r.lat, r.lon)} · ${r.status}`),
+  ));
   const del = document.createElement("button");
   del.type = "button";
   del.textContent = "Delete";
   del.setAttribute("aria-label", `Delete reference ${r.id}`);
   del.addEventListener("click", () => deleteRef(r.id));
-  li.append(img, text, del);
+  li.append(img, words, del);
   return li;
 }
 
@@ -415,7 +431,7 @@ function renderRefs(page) {
     refsMap.layer.clearLayers();
     const pts = page.items.map((r) => [r.lat, r.lon]);
     page.items.forEach((r) => L.circleMarker([r.lat, r.lon], { radius: 5 })
-      .bindTooltip(refName(r.id, r.label).title).addTo(refsMap.layer));
+      .bindTooltip(textNode(refName(r.id, r.label).title)).addTo(refsMap.layer));
     if (pts.length) refsMap.map.fitBounds(pts, { padding: [30, 30], maxZoom: 18 });
   }
 }

@@ -1,0 +1,35 @@
+"""Response headers that contain a slip in the page: should user text ever reach the page as HTML again
+(a label in the map tooltip once ran as script and sent the API key away), the browser still refuses to
+run it, to send data elsewhere, or to show the page inside another site's frame.
+
+The page (index.html, app.js, the vendored Leaflet) has no inline script, style or handler, so its policy
+needs no 'unsafe-*'. /docs is Swagger UI, started by an inline script FastAPI writes: it shows no user
+text, and gets only the framing and sniffing rules."""
+
+from __future__ import annotations
+
+#: Map tiles are the only other host the page uses, for images only (see makeMap in app.js). ``blob:`` is
+#: the preview of the photo being located; ``data:`` is the empty GIF Leaflet puts in a tile it drops (an
+#: image never runs script).
+TILES = "https://tile.openstreetmap.org"
+
+PAGE_POLICY = "; ".join(
+    [
+        "default-src 'self'",
+        "script-src 'self'",
+        "style-src 'self'",
+        f"img-src 'self' data: blob: {TILES}",
+        "connect-src 'self'",
+        "object-src 'none'",
+        "base-uri 'none'",
+        "form-action 'self'",
+        "frame-ancestors 'none'",
+    ]
+)
+
+_NOT_FRAMED = {"X-Content-Type-Options": "nosniff", "X-Frame-Options": "DENY"}
+
+#: For ``/``.
+PAGE_HEADERS = {"Content-Security-Policy": PAGE_POLICY, **_NOT_FRAMED}
+#: For ``/docs``.
+DOCS_HEADERS = {"Content-Security-Policy": "frame-ancestors 'none'", **_NOT_FRAMED}
