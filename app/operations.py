@@ -19,6 +19,7 @@ import numpy as np
 
 from app.collection import pipeline_source
 from app.engine.errors import GeolocError
+from app.orphans import MIN_AGE_S, retry_removals, sweep
 from app.snapshots import MANIFEST, SnapshotInvalid, load_snapshot, read_manifest, snapshot_files
 from app.store import CODES, DB_NAME, IMAGES, ReferenceStore
 
@@ -61,7 +62,8 @@ def check_data_dir(data_dir: Path, models_dir: Path, config: str | None) -> Chec
     if missing:
         r.problems.append(f"references whose image file is missing: {_sample(missing)}")
     if orphans:
-        r.problems.append(f"image files no row names: {_sample(orphans)}")
+        r.problems.append(f"image files no row names: {_sample(orphans)} (`geoloc check --repair` removes them)")
+    _check_leftovers(store, data_dir, r)
     name = store.get_meta("config") or config or "hybrid"
     pipeline = pipeline_source(data_dir, models_dir, store.get_meta("pipeline"), name).load()
     r.lines.append(f"pipeline: {store.get_meta('pipeline') or 'models:' + name}, generation {store.head()[1]}")
@@ -101,6 +103,38 @@ def check_data_dir(data_dir: Path, models_dir: Path, config: str | None) -> Chec
         r.problems.append(f"index entries without an indexed row: {_sample(extra.tolist())}")
     store.close()
     return r
+
+
+def _check_leftovers(store: ReferenceStore, data_dir: Path, r: CheckReport) -> None:
+    """Files that no longer belong to anything: removals queued by deletes, temporary files of killed
+    writers older than ``MIN_AGE_S`` (younger ones may be uploads being written)."""
+    queued = store.queued_removals()
+    if queued:
+        r.problems.append(
+            f"{len(queued)} image files of deleted references still to remove: {_sample(queued)} "
+            "(the worker retries; `geoloc check --repair` too)"
+        )
+    now = time.time()
+    stale = [p.name for p in (data_dir / IMAGES).glob(".*.tmp") if p.is_file() and now - p.stat().st_mtime > MIN_AGE_S]
+    if stale:
+        r.problems.append(f"stale temporary files: {_sample(stale)} (`geoloc check --repair` removes them)")
+
+
+def repair_data_dir(data_dir: Path, min_age_s: float = MIN_AGE_S) -> list[str]:
+    """Remove what no longer belongs to anything: queued removals retried, image files no row names and
+    temporary files, both older than ``min_age_s`` (younger ones may be uploads in flight). Safe while the
+    services run: every unlink is re-checked under the database's write lock. Returns what it did."""
+    if not (data_dir / DB_NAME).exists():
+        raise OperationRefused(f"{data_dir / DB_NAME} does not exist: nothing to repair")
+    store = ReferenceStore(data_dir)
+    try:
+        removed, failed = retry_removals(store)
+        lines = [f"removed {len(removed)} queued image files of deleted references"]
+        if failed:
+            lines.append(f"could not remove {len(failed)} queued files yet: {_sample(failed)}")
+        return lines + sweep(store, min_age_s).lines(min_age_s)
+    finally:
+        store.close()
 
 
 def backup_data_dir(data_dir: Path, dest: Path) -> dict:
