@@ -504,6 +504,8 @@ def backup(
         f"{summary['snapshot_version']}) to {dest}"
         + (f"; {summary['missing_images']} images were missing" if summary["missing_images"] else "")
     )
+    if summary.get("note"):
+        typer.echo(summary["note"])
 
 
 @app.command()

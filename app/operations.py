@@ -9,6 +9,7 @@ that other processes keep writing, which a plain file copy of a WAL database doe
 from __future__ import annotations
 
 import json
+import os
 import shutil
 import sqlite3
 import time
@@ -17,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from app.apikey import KEY_FILE, key_path
 from app.collection import pipeline_source
 from app.engine.errors import GeolocError
 from app.orphans import MIN_AGE_S, retry_removals, sweep
@@ -24,6 +26,7 @@ from app.snapshots import MANIFEST, SnapshotInvalid, load_snapshot, read_manifes
 from app.store import CODES, DB_NAME, IMAGES, ReferenceStore
 
 BACKUP_MANIFEST = "backup.json"
+KEY_NOTE = f"this backup holds the API key ({KEY_FILE}, mode 0600): keep it as private as the key itself"
 PIPELINES = "pipelines"  # the data dir's re-fitted pipelines, one folder per generation
 
 
@@ -166,11 +169,14 @@ def backup_data_dir(data_dir: Path, dest: Path) -> dict:
         version = read_manifest(dest)["version"]
     except (SnapshotInvalid, FileNotFoundError):
         pass  # no snapshot (or replaced meanwhile): a restore rebuilds the index from SQLite
+    holds_key = _copy_key(data_dir, dest)
     summary = {
         "references": len(rows),
         "images": copied,
         "missing_images": missing,
         "snapshot_version": version,
+        "api_key": holds_key,
+        **({"note": KEY_NOTE} if holds_key else {}),
         "source": str(data_dir.resolve()),
         "written_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
     }
@@ -198,4 +204,20 @@ def restore_data_dir(source: Path, data_dir: Path) -> dict:
         shutil.copy2(path, data_dir / path.name)
     if (source / MANIFEST).exists():
         shutil.copy2(source / MANIFEST, data_dir / MANIFEST)
+    _copy_key(source, data_dir)
     return json.loads((source / BACKUP_MANIFEST).read_text())
+
+
+def _copy_key(src_dir: Path, dest_dir: Path) -> bool:
+    """Copy the data dir's API key file (clients hold that key: a restore without it would lock them out),
+    created 0600 whatever the source's mode. False when there is none (a key from the environment)."""
+    try:
+        key = key_path(src_dir).read_bytes()
+    except FileNotFoundError:
+        return False
+    fd = os.open(key_path(dest_dir), os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    with os.fdopen(fd, "wb") as f:
+        f.write(key)
+        f.flush()
+        os.fsync(f.fileno())
+    return True

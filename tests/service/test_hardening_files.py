@@ -4,13 +4,16 @@ writer retries; orphans are swept by the writer and by `geoloc check --repair`; 
 
 from __future__ import annotations
 
+import json
 import shutil
+import stat
 import threading
 import time
 from pathlib import Path
 
 import httpx
 
+from app.apikey import key_path, load_or_create
 from app.store import ReferenceStore, sha256_of
 from tests.conftest import PENN
 from tests.service.conftest import Server, wait_job
@@ -161,3 +164,20 @@ def test_check_repair_removes_orphans_and_queued_removals(mini_collection, fitte
     kept = geoloc("check", "--repair", *models, check=False)
     assert kept.returncode == 1 and young.exists() and "kept 1 unnamed files younger than 3600 s" in kept.stdout
     assert "ok:" in geoloc("check", "--repair", "--min-age", "0", *models).stdout and not young.exists()
+
+
+def test_backup_holds_the_api_key_and_restore_puts_it_back(mini_collection, tmp_path):
+    data = tmp_path / "data"
+    shutil.copytree(mini_collection, data)
+    key, _ = load_or_create(data)
+    backup = tmp_path / "backup"
+    out = geoloc("backup", str(backup), "--data-dir", str(data))
+    assert "this backup holds the API key" in out.stdout
+    assert key_path(backup).read_text().strip() == key
+    assert stat.S_IMODE(key_path(backup).stat().st_mode) == 0o600
+    summary = json.loads((backup / "backup.json").read_text())
+    assert summary["api_key"] is True and "holds the API key" in summary["note"]
+    restored = tmp_path / "restored"
+    geoloc("restore", str(backup), "--data-dir", str(restored))
+    assert key_path(restored).read_text().strip() == key
+    assert stat.S_IMODE(key_path(restored).stat().st_mode) == 0o600
