@@ -469,12 +469,13 @@ class ReferenceStore:
         queued for these names are dropped: the names are in use again."""
         if not created:
             return
-        gone = [it for it in created if not self.image_path_for(it.sha256, it.ext).exists()]
-        for it in gone:
-            write_image_file(self.image_path_for(it.sha256, it.ext), it.image, sync=True)
+        folder = str(self.images_dir)
+        names = [f"{it.sha256}.{it.ext}" for it in created]
+        gone = [(it, name) for it, name in zip(created, names, strict=True) if not os.path.exists(f"{folder}/{name}")]
+        for it, name in gone:
+            write_image_file(self.images_dir / name, it.image, sync=True)
         if gone:
             fsync_dir(self.images_dir)
-        names = [self.image_path_for(it.sha256, it.ext).name for it in created]
         db.execute("DELETE FROM removals WHERE name IN (SELECT value FROM json_each(?))", (json.dumps(names),))
 
     # -- deleting -------------------------------------------------------------------------------------
@@ -505,7 +506,8 @@ class ReferenceStore:
     def queued_removals(self) -> list[str]:
         """The file names still queued for removal (an empty list on a data dir from before the queue)."""
         try:
-            return [r[0] for r in self.db.execute("SELECT name FROM removals ORDER BY queued_at").fetchall()]
+            with self._lock:  # not inside another thread's open transaction on this shared connection
+                return [r[0] for r in self.db.execute("SELECT name FROM removals ORDER BY queued_at").fetchall()]
         except sqlite3.OperationalError:  # a read-only open of a data dir without the table
             return []
 
@@ -559,9 +561,10 @@ class ReferenceStore:
             return set()
         shas = json.dumps([n.split(".", 1)[0] for n in names])
         conn = db or self.db
-        rows = conn.execute(
-            "SELECT sha256, image_ext FROM refs WHERE sha256 IN (SELECT value FROM json_each(?))", (shas,)
-        ).fetchall()
+        with self._lock:
+            rows = conn.execute(
+                "SELECT sha256, image_ext FROM refs WHERE sha256 IN (SELECT value FROM json_each(?))", (shas,)
+            ).fetchall()
         return {f"{sha}.{ext}" for sha, ext in rows} & set(names)
 
     # -- editing --------------------------------------------------------------------------------------
