@@ -457,11 +457,28 @@ def worker_cmd(
 
 @app.command()
 def check(
-    data_dir: DataDir = _S.data_dir, models_dir: ModelsDir = _S.models_dir, config: ConfigOpt = _S.config
+    data_dir: DataDir = _S.data_dir,
+    models_dir: ModelsDir = _S.models_dir,
+    config: ConfigOpt = _S.config,
+    repair: Annotated[
+        bool,
+        typer.Option(
+            "--repair",
+            help="first remove image files no row names, stale temporary files and queued removals "
+            "(safe while the services run), then check",
+        ),
+    ] = False,
+    min_age: Annotated[
+        float,
+        typer.Option("--min-age", help="with --repair: only files older than this many seconds (uploads in flight)"),
+    ] = 3600.0,
 ) -> None:
     """Check that rows, image files, codes and the index snapshot agree; say what does not (exit 1)."""
-    from app.operations import check_data_dir
+    from app.operations import check_data_dir, repair_data_dir
 
+    if repair:
+        for line in repair_data_dir(data_dir, min_age):
+            typer.echo(f"repair: {line}")
     report = check_data_dir(data_dir, models_dir, config)
     for line in report.lines:
         typer.echo(line)
@@ -487,6 +504,8 @@ def backup(
         f"{summary['snapshot_version']}) to {dest}"
         + (f"; {summary['missing_images']} images were missing" if summary["missing_images"] else "")
     )
+    if summary.get("note"):
+        typer.echo(summary["note"])
 
 
 @app.command()

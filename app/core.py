@@ -635,11 +635,13 @@ class GeolocService:
         return done
 
     # -- the rest ---------------------------------------------------------------------------------------
-    def delete(self, ref_id: int) -> bool:
-        if not self.store.delete(ref_id):
-            return False
-        self.collection.catch_up()  # gone from this process's searches at once
-        return True
+    def delete(self, ref_id: int) -> str | None:
+        """None: no such reference; else whether its image file is ``"removed"`` or its removal ``"queued"``
+        (the reference is gone either way: see ``ReferenceStore.delete``)."""
+        outcome = self.store.delete(ref_id)
+        if outcome is not None:
+            self.collection.catch_up()  # gone from this process's searches at once
+        return outcome
 
     def get(self, ref_id: int) -> Reference | None:
         return self.store.get(ref_id)

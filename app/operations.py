@@ -9,6 +9,7 @@ that other processes keep writing, which a plain file copy of a WAL database doe
 from __future__ import annotations
 
 import json
+import os
 import shutil
 import sqlite3
 import time
@@ -17,12 +18,15 @@ from pathlib import Path
 
 import numpy as np
 
+from app.apikey import KEY_FILE, key_path
 from app.collection import pipeline_source
 from app.engine.errors import GeolocError
+from app.orphans import MIN_AGE_S, retry_removals, sweep
 from app.snapshots import MANIFEST, SnapshotInvalid, load_snapshot, read_manifest, snapshot_files
 from app.store import CODES, DB_NAME, IMAGES, ReferenceStore
 
 BACKUP_MANIFEST = "backup.json"
+KEY_NOTE = f"this backup holds the API key ({KEY_FILE}, mode 0600): keep it as private as the key itself"
 PIPELINES = "pipelines"  # the data dir's re-fitted pipelines, one folder per generation
 
 
@@ -61,7 +65,8 @@ def check_data_dir(data_dir: Path, models_dir: Path, config: str | None) -> Chec
     if missing:
         r.problems.append(f"references whose image file is missing: {_sample(missing)}")
     if orphans:
-        r.problems.append(f"image files no row names: {_sample(orphans)}")
+        r.problems.append(f"image files no row names: {_sample(orphans)} (`geoloc check --repair` removes them)")
+    _check_leftovers(store, data_dir, r)
     name = store.get_meta("config") or config or "hybrid"
     pipeline = pipeline_source(data_dir, models_dir, store.get_meta("pipeline"), name).load()
     r.lines.append(f"pipeline: {store.get_meta('pipeline') or 'models:' + name}, generation {store.head()[1]}")
@@ -103,6 +108,38 @@ def check_data_dir(data_dir: Path, models_dir: Path, config: str | None) -> Chec
     return r
 
 
+def _check_leftovers(store: ReferenceStore, data_dir: Path, r: CheckReport) -> None:
+    """Files that no longer belong to anything: removals queued by deletes, temporary files of killed
+    writers older than ``MIN_AGE_S`` (younger ones may be uploads being written)."""
+    queued = store.queued_removals()
+    if queued:
+        r.problems.append(
+            f"{len(queued)} image files of deleted references still to remove: {_sample(queued)} "
+            "(the worker retries; `geoloc check --repair` too)"
+        )
+    now = time.time()
+    stale = [p.name for p in (data_dir / IMAGES).glob(".*.tmp") if p.is_file() and now - p.stat().st_mtime > MIN_AGE_S]
+    if stale:
+        r.problems.append(f"stale temporary files: {_sample(stale)} (`geoloc check --repair` removes them)")
+
+
+def repair_data_dir(data_dir: Path, min_age_s: float = MIN_AGE_S) -> list[str]:
+    """Remove what no longer belongs to anything: queued removals retried, image files no row names and
+    temporary files, both older than ``min_age_s`` (younger ones may be uploads in flight). Safe while the
+    services run: every unlink is re-checked under the database's write lock. Returns what it did."""
+    if not (data_dir / DB_NAME).exists():
+        raise OperationRefused(f"{data_dir / DB_NAME} does not exist: nothing to repair")
+    store = ReferenceStore(data_dir)
+    try:
+        removed, failed = retry_removals(store)
+        lines = [f"removed {len(removed)} queued image files of deleted references"]
+        if failed:
+            lines.append(f"could not remove {len(failed)} queued files yet: {_sample(failed)}")
+        return lines + sweep(store, min_age_s).lines(min_age_s)
+    finally:
+        store.close()
+
+
 def backup_data_dir(data_dir: Path, dest: Path) -> dict:
     if dest.exists() and any(dest.iterdir()):
         raise OperationRefused(f"{dest} is not empty: back up into a new or empty folder")
@@ -132,11 +169,14 @@ def backup_data_dir(data_dir: Path, dest: Path) -> dict:
         version = read_manifest(dest)["version"]
     except (SnapshotInvalid, FileNotFoundError):
         pass  # no snapshot (or replaced meanwhile): a restore rebuilds the index from SQLite
+    holds_key = _copy_key(data_dir, dest)
     summary = {
         "references": len(rows),
         "images": copied,
         "missing_images": missing,
         "snapshot_version": version,
+        "api_key": holds_key,
+        **({"note": KEY_NOTE} if holds_key else {}),
         "source": str(data_dir.resolve()),
         "written_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
     }
@@ -164,4 +204,20 @@ def restore_data_dir(source: Path, data_dir: Path) -> dict:
         shutil.copy2(path, data_dir / path.name)
     if (source / MANIFEST).exists():
         shutil.copy2(source / MANIFEST, data_dir / MANIFEST)
+    _copy_key(source, data_dir)
     return json.loads((source / BACKUP_MANIFEST).read_text())
+
+
+def _copy_key(src_dir: Path, dest_dir: Path) -> bool:
+    """Copy the data dir's API key file (clients hold that key: a restore without it would lock them out),
+    created 0600 whatever the source's mode. False when there is none (a key from the environment)."""
+    try:
+        key = key_path(src_dir).read_bytes()
+    except FileNotFoundError:
+        return False
+    fd = os.open(key_path(dest_dir), os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    with os.fdopen(fd, "wb") as f:
+        f.write(key)
+        f.flush()
+        os.fsync(f.fileno())
+    return True

@@ -18,6 +18,7 @@ from __future__ import annotations
 import errno
 import hashlib
 import json
+import logging
 import os
 import sqlite3
 import threading
@@ -32,6 +33,8 @@ import numpy as np
 
 from app.engine.errors import GeolocError, IncompatibleArtifact
 from app.engine.pipeline import Pipeline
+
+log = logging.getLogger("geoloc.store")
 
 DB_NAME = "references.sqlite"
 IMAGES = "images"
@@ -82,6 +85,18 @@ CREATE TABLE IF NOT EXISTS claims (
     expires REAL NOT NULL
 );
 CREATE INDEX IF NOT EXISTS claims_owner ON claims(owner);
+"""
+#: Image files to remove, queued in the transaction that deletes the row naming them. A file is unlinked only
+#: under the write lock and only while no row names it (``_unlink_unnamed``), and an add commits a row only
+#: after checking, under the same lock, that its file is there (``insert_rows``): so whichever of an upload
+#: and a delete of the same bytes commits last, across processes, a committed row always names a file. A
+#: removal that fails (a read-only folder) stays queued and is retried by the writer process and by
+#: ``geoloc check --repair``.
+REMOVALS_SCHEMA = """
+CREATE TABLE IF NOT EXISTS removals (
+    name TEXT PRIMARY KEY,
+    queued_at REAL NOT NULL
+);
 """
 # Index generations (a re-fit): the codes of the generation being built, one row per reference, until the
 # switch copies them into ``refs`` in one transaction. Meta keys: ``generation`` (the number in use, 0 before
@@ -292,6 +307,7 @@ class ReferenceStore:
                 self.db.executescript(SCHEMA)
                 self.db.executescript(CLAIMS_SCHEMA)
                 self.db.executescript(GENERATIONS_SCHEMA)
+                self.db.executescript(REMOVALS_SCHEMA)
 
     def close(self) -> None:
         self.db.close()
@@ -388,10 +404,12 @@ class ReferenceStore:
     ) -> tuple[list[tuple[int, bool]], str | None]:
         """Insert rows in one transaction; identical bytes (already stored, or racing in from another process
         at this very moment) come back as the existing id with ``created`` False. Encoded items are stored
-        indexed and logged as index changes in the same transaction."""
+        indexed and logged as index changes in the same transaction. Each created row's file is checked (and
+        written again if a delete removed it meanwhile) before the commit: see ``REMOVALS_SCHEMA``."""
         out: list[tuple[int, bool]] = []
         job_id = uuid.uuid4().hex if job else None
         now = _now()
+        created: list[NewReference] = []
         with self.transaction() as db:
             for it in items:
                 row = db.execute(
@@ -415,11 +433,13 @@ class ReferenceStore:
                 ).fetchone()
                 if row is not None:
                     out.append((int(row[0]), True))
+                    created.append(it)
                     if it.encoded:
                         db.execute("INSERT INTO changes(ref_id, op) VALUES(?, 'add')", (int(row[0]),))
                 else:
                     existing = db.execute("SELECT id FROM refs WHERE sha256=?", (it.sha256,)).fetchone()
                     out.append((int(existing[0]), False))
+            self._files_for(db, created)
             if job_id is not None:
                 db.execute("INSERT INTO jobs(id, created_at) VALUES(?, ?)", (job_id, now))
                 db.executemany(
@@ -442,18 +462,110 @@ class ReferenceStore:
         )
         return ref_id, created
 
+    def _files_for(self, db: sqlite3.Connection, created: Sequence[NewReference]) -> None:
+        """Inside an add's write transaction: every created row's file is on disk when it commits. The files
+        were written (or found) before the transaction, so this is one ``stat`` per row; only a file that a
+        delete (or the orphan sweep) removed after that is written again here, under the lock. Removals
+        queued for these names are dropped: the names are in use again."""
+        if not created:
+            return
+        folder = str(self.images_dir)
+        names = [f"{it.sha256}.{it.ext}" for it in created]
+        gone = [(it, name) for it, name in zip(created, names, strict=True) if not os.path.exists(f"{folder}/{name}")]
+        for it, name in gone:
+            write_image_file(self.images_dir / name, it.image, sync=True)
+        if gone:
+            fsync_dir(self.images_dir)
+        db.execute("DELETE FROM removals WHERE name IN (SELECT value FROM json_each(?))", (json.dumps(names),))
+
     # -- deleting -------------------------------------------------------------------------------------
-    def delete(self, ref_id: int) -> bool:
-        """Delete the row; an indexed one is logged so every process drops it from its index."""
+    def delete(self, ref_id: int) -> str | None:
+        """Delete the row (an indexed one is logged so every process drops it from its index) and queue its
+        file for removal in the same transaction, then remove the file. Returns None when there is no such
+        reference, ``"removed"``, or ``"queued"`` when the file could not be removed now: the reference is
+        gone all the same, and the removal is retried (``remove_queued``) by the writer process and by
+        ``geoloc check --repair``."""
         with self.transaction() as db:
             row = db.execute("SELECT sha256, image_ext, status FROM refs WHERE id=?", (ref_id,)).fetchone()
             if row is None:
-                return False
+                return None
             db.execute("DELETE FROM refs WHERE id=?", (ref_id,))
             if row[2] == "indexed":
                 db.execute("INSERT INTO changes(ref_id, op) VALUES(?, 'delete')", (ref_id,))
-        self.image_path_for(row[0], row[1]).unlink(missing_ok=True)
-        return True
+            name = self.image_path_for(row[0], row[1]).name
+            db.execute(
+                "INSERT INTO removals(name, queued_at) VALUES(?, ?) ON CONFLICT(name) DO NOTHING", (name, time.time())
+            )
+        try:
+            _, failed = self.remove_queued([name])
+        except StorageUnavailable as e:
+            log.warning("reference %d deleted; removing its image is queued (%s)", ref_id, e)
+            return "queued"
+        return "queued" if failed else "removed"
+
+    def queued_removals(self) -> list[str]:
+        """The file names still queued for removal (an empty list on a data dir from before the queue)."""
+        try:
+            with self._lock:  # not inside another thread's open transaction on this shared connection
+                return [r[0] for r in self.db.execute("SELECT name FROM removals ORDER BY queued_at").fetchall()]
+        except sqlite3.OperationalError:  # a read-only open of a data dir without the table
+            return []
+
+    def remove_queued(self, names: Sequence[str] | None = None, limit: int = 1000) -> tuple[list[str], list[str]]:
+        """Remove queued files (those in ``names``, or up to ``limit`` of the oldest): each is unlinked under
+        the write lock unless a row names it again (an upload of the same bytes since), and leaves the queue
+        unless its unlink failed. Returns (removed, failed)."""
+        with self.transaction() as db:
+            if names is None:
+                rows = db.execute("SELECT name FROM removals ORDER BY queued_at LIMIT ?", (limit,)).fetchall()
+            else:
+                rows = db.execute(
+                    "SELECT name FROM removals WHERE name IN (SELECT value FROM json_each(?))",
+                    (json.dumps(list(names)),),
+                ).fetchall()
+            queued = [r[0] for r in rows]
+            removed, failed = self._unlink_unnamed(db, queued)
+            db.execute(
+                "DELETE FROM removals WHERE name IN (SELECT value FROM json_each(?))",
+                (json.dumps(sorted(set(queued) - set(failed))),),
+            )
+        return removed, failed
+
+    def remove_unnamed(self, names: Sequence[str]) -> tuple[list[str], list[str]]:
+        """Unlink the image files among ``names`` that no row names (orphans), under the write lock so that
+        an add of the same bytes either commits first (and its file is kept) or re-writes the file in its
+        own transaction. Returns (removed, failed)."""
+        with self.transaction() as db:
+            return self._unlink_unnamed(db, names)
+
+    def _unlink_unnamed(self, db: sqlite3.Connection, names: Sequence[str]) -> tuple[list[str], list[str]]:
+        """Inside a write transaction: unlink each of ``names`` that no row names. A file that cannot be
+        unlinked is reported, not raised: the caller keeps it queued."""
+        named = self.named_files(names, db)
+        removed: list[str] = []
+        failed: list[str] = []
+        for name in names:
+            if name in named:
+                continue
+            try:
+                (self.images_dir / name).unlink(missing_ok=True)
+                removed.append(name)
+            except OSError as e:
+                log.warning("cannot remove %s now: %s", self.images_dir / name, e)
+                failed.append(name)
+        return removed, failed
+
+    def named_files(self, names: Sequence[str], db: sqlite3.Connection | None = None) -> set[str]:
+        """Those of ``names`` (image file names) that a row names: one lookup of the sha256 index each."""
+        if not names:
+            return set()
+        shas = json.dumps([n.split(".", 1)[0] for n in names])
+        conn = db or self.db
+        with self._lock:
+            rows = conn.execute(
+                "SELECT sha256, image_ext FROM refs WHERE sha256 IN (SELECT value FROM json_each(?))", (shas,)
+            ).fetchall()
+        return {f"{sha}.{ext}" for sha, ext in rows} & set(names)
 
     # -- editing --------------------------------------------------------------------------------------
     EDITABLE = ("lat", "lon", "heading", "label", "captured_at")

@@ -17,6 +17,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from app.core import GeolocService
+from app.orphans import Janitor
 from app.store import is_storage_error
 
 log = logging.getLogger("geoloc.worker")
@@ -87,6 +88,15 @@ class IngestWorker:
         return len(results) - retry
 
     def run_forever(self) -> None:
+        """Encode until stopped. The writer's housekeeping (queued file removals, the hourly orphan sweep:
+        ``app.orphans.Janitor``) runs beside it in its own thread for as long as this loop runs."""
+        janitor = Janitor(self.service.store).start()
+        try:
+            self._loop()
+        finally:
+            janitor.stop()
+
+    def _loop(self) -> None:
         backoff = self.poll_seconds
         while not self.stop_event.is_set():
             try:

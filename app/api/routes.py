@@ -296,9 +296,13 @@ def patch_reference(ref_id: RefId, patch: ReferencePatch, core: Core) -> Referen
     summary="Delete a reference: image, codes and metadata",
 )
 def delete_reference(ref_id: RefId, core: Core) -> dict:
-    if not core.delete(ref_id):
+    """The row and its codes are gone when this answers 200; ``image_removal`` says whether the image file is
+    too ("done") or could not be removed yet ("queued": it is removed by the writer process's retries or by
+    ``geoloc check --repair``, never left unowned)."""
+    outcome = core.delete(ref_id)
+    if outcome is None:
         raise ApiError(404, "not_found", f"no reference {ref_id}")
-    return {"deleted": ref_id}
+    return {"deleted": ref_id, "image_removal": "done" if outcome == "removed" else "queued"}
 
 
 # -- operations -----------------------------------------------------------------------------------------
