@@ -58,8 +58,9 @@ class BodyLimits:
         path = getattr(route, "path", None)
         limit = body_limit(self.settings, scope["method"], path)
         declared = _declared_length(conn)
-        unread_body = declared is None or declared > 0  # chunked, or bytes on their way
-        close = {"Connection": "close"} if unread_body and (declared is None or declared > SMALL_BODY) else None
+        # Refused unread, a small body is read and dropped by uvicorn (the connection stays); a larger or
+        # chunked one is not read at all: the connection closes.
+        close = {"Connection": "close"} if declared is None or declared > SMALL_BODY else None
         try:
             for depends in getattr(route, "dependencies", ()):
                 if depends.dependency in ACCESS_CHECKS:

@@ -231,3 +231,38 @@ def test_a_503_names_no_server_path(server, tmp_path):
     assert r.status_code == 503 and r.json()["error"] == "storage_unavailable", r.text
     assert str(server.data_dir) not in r.text and not ABSOLUTE_PATH.search(r.json()["message"]), r.text
     assert str(server.data_dir) in server.read_log()  # the operator still sees where
+
+
+def test_a_bug_answers_json_500_and_keeps_the_connection():
+    """The last resort (app/api/errors.py LastResort) under a real uvicorn: an exception no handler takes
+    answers the API's JSON 500 and the keep-alive connection serves the next request."""
+    import threading
+    import time
+
+    import uvicorn
+    from starlette.responses import JSONResponse
+
+    from app.api.errors import LastResort
+    from app.server_process import free_port
+
+    async def buggy(scope, receive, send):
+        if scope["path"] == "/bug":
+            raise RecursionError("maximum recursion depth exceeded")
+        await JSONResponse({"ok": True})(scope, receive, send)
+
+    port = free_port()
+    server = uvicorn.Server(uvicorn.Config(LastResort(buggy), port=port, lifespan="off", log_level="critical"))
+    thread = threading.Thread(target=server.run, daemon=True)
+    thread.start()
+    try:
+        deadline = time.time() + 30
+        while not server.started and time.time() < deadline:
+            time.sleep(0.05)
+        with httpx.Client(base_url=f"http://127.0.0.1:{port}") as c:
+            r = c.get("/bug")
+            assert r.status_code == 500 and r.json()["error"] == "internal_error", r.text
+            assert "RecursionError" in r.json()["message"]
+            assert _client_port(c.get("/fine")) == _client_port(r)
+    finally:
+        server.should_exit = True
+        thread.join(10)
