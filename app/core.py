@@ -36,6 +36,7 @@ from app.engine.geo import haversine_m, valid_position
 from app.engine.imageio import ImageLimits, LoadedImage, load_image
 from app.engine.pipeline import Features, Pipeline
 from app.store import NewReference, Reference, ReferenceStore, StorageUnavailable, is_storage_error
+from app.text import CAPTURED_AT_MAX, LABEL_MAX, unsafe_character
 
 log = logging.getLogger("geoloc.core")
 
@@ -418,20 +419,44 @@ def _position(u: Upload, img: LoadedImage, n: int) -> tuple[float, float]:
         return img.gps
     if u.lat is None or u.lon is None:
         raise InvalidPosition(f"image {n}: give both lat and lon, or neither (to use the EXIF GPS)")
+    if not all(isinstance(v, int | float) and not isinstance(v, bool) for v in (u.lat, u.lon)):
+        raise InvalidPosition(f"image {n}: lat and lon must be numbers")  # True is not 1.0
     try:
         lat, lon = float(u.lat), float(u.lon)
-    except (TypeError, ValueError):
-        raise InvalidPosition(f"image {n}: lat and lon must be numbers") from None
+    except OverflowError:  # an int of 400 digits
+        raise InvalidPosition(f"image {n}: position {u.lat},{u.lon} is out of range") from None
     if not valid_position(lat, lon):
         raise InvalidPosition(f"image {n}: position {lat},{lon} is out of range (lat -90..90, lon -180..180)")
     return lat, lon
 
 
 def label_from(filename: str | None) -> str | None:
+    """The default label: the file's name, never a path ("../../x.jpg" -> "x.jpg"), cut to the label's length
+    (a name is not something the caller typed as a label)."""
     if not filename:
         return None
-    name = PurePosixPath(filename.replace("\\", "/")).name  # never a path: "../../x.jpg" -> "x.jpg"
-    return name[:200] or None
+    name = PurePosixPath(filename.replace("\\", "/")).name
+    return name[:LABEL_MAX] or None
+
+
+def _text(value, name: str, limit: int, n: int) -> str | None:
+    """A text field as given (None stays None): a string, within its length, with no control character
+    (``app.text``). Refused, never cut or converted: what is stored is what was asked for."""
+    if value is None:
+        return None
+    if not isinstance(value, str):
+        raise InvalidRequest(f"image {n}: {name} must be a string")
+    if len(value) > limit:
+        raise InvalidRequest(f"image {n}: {name} has {len(value)} characters; the limit is {limit}")
+    bad = unsafe_character(value)
+    if bad is not None:
+        raise InvalidRequest(f"image {n}: {name} contains the control character {bad}")
+    return value
+
+
+def _exif_text(value: str | None, limit: int) -> str | None:
+    """A text the photo's EXIF gave: kept when it would pass as a field, else left out (the photo is fine)."""
+    return value if value and len(value) <= limit and unsafe_character(value) is None else None
 
 
 def prepare_upload(
@@ -440,6 +465,10 @@ def prepare_upload(
     """Validate one upload completely (decodable, within limits, with a position) before anything is stored.
     ``exif_heading``: with no heading given, take the photo's EXIF GPSImgDirection (bulk ingestion of a
     folder of photos, where EXIF is the only metadata there is)."""
+    label = _text(u.label, "label", LABEL_MAX, n) or None
+    captured_at = _text(u.captured_at, "captured_at", CAPTURED_AT_MAX, n) or None
+    if label is None:
+        label = _text(label_from(u.filename), "file name", LABEL_MAX, n)
     img = load_image(u.data, limits)
     lat, lon = _position(u, img, n)
     hd = u.heading if u.heading is not None or not exif_heading else img.heading
@@ -453,8 +482,8 @@ def prepare_upload(
         lat=lat,
         lon=lon,
         heading=hd,
-        captured_at=str(u.captured_at)[:64] if u.captured_at else img.captured_at,
-        label=str(u.label)[:200] if u.label else label_from(u.filename),
+        captured_at=captured_at or _exif_text(img.captured_at, CAPTURED_AT_MAX),
+        label=label,
         source=source,
     )
 

@@ -25,6 +25,10 @@ class Settings(BaseSettings):
     max_upload_bytes: int = Field(30 * 1024 * 1024, description="per image; 12 MP phone photos are 2-8 MB")
     max_image_pixels: int = Field(50_000_000, description="declared pixels; refuses decompression bombs")
     max_files_per_request: int = 50
+    max_request_bytes: int = Field(
+        512 * 1024 * 1024,
+        description="a whole POST /references body (with max_upload_bytes x max_files_per_request, the smaller)",
+    )
     keep_queries: bool = Field(False, description="store /locate uploads in DATA_DIR/queries")
     worker: str = Field(
         "inprocess", description="inprocess: this process encodes uploads; none: a separate `geoloc worker` does"

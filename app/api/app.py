@@ -14,6 +14,7 @@ from fastapi.staticfiles import StaticFiles
 
 from app import __version__, apikey
 from app.api import docs, errors, security
+from app.api.limits import BodyLimits
 from app.api.metrics import Metrics, MetricsMiddleware
 from app.api.routes import router
 from app.collection import SnapshotWriter
@@ -114,6 +115,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.extract_slots = (
         threading.BoundedSemaphore(settings.locate_concurrency) if settings.locate_concurrency else nullcontext()
     )
+    # Outermost first: metrics see every answer; body limits and keys come before any body is read; a bug
+    # still answers JSON and keeps the connection.
+    app.add_middleware(errors.LastResort)
+    app.add_middleware(BodyLimits, settings=settings, routes=router.routes)
     app.add_middleware(MetricsMiddleware, metrics=app.state.metrics)
     errors.install(app)
     app.include_router(router)

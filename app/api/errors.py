@@ -8,6 +8,7 @@ leak into the API. The README's error table and the OpenAPI document are checked
 from __future__ import annotations
 
 import logging
+import re
 import sqlite3
 from dataclasses import dataclass
 from typing import Literal
@@ -17,6 +18,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from pydantic import BaseModel, Field
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from app.core import InvalidRequest
 from app.engine import errors as e
@@ -45,7 +47,9 @@ ERRORS: dict[str, ErrorCode] = {
     "not_found": ErrorCode(404, "no such reference, job or path"),
     "image_missing": ErrorCode(404, "the reference exists but its stored image file is gone (see `geoloc check`)"),
     "method_not_allowed": ErrorCode(405, "the path exists but not with this HTTP method"),
-    "too_large": ErrorCode(413, "an uploaded image has too many bytes or too many pixels"),
+    "too_large": ErrorCode(
+        413, "an uploaded image (or the request body) has too many bytes, or an image too many pixels"
+    ),
     "too_many_files": ErrorCode(413, "more images in one request than GEOLOC_MAX_FILES_PER_REQUEST"),
     "unsupported_image_format": ErrorCode(415, "a real image in a format we do not accept (e.g. GIF, HEIC)"),
     "invalid_request": ErrorCode(422, "a parameter or field is missing, malformed or out of range"),
@@ -134,9 +138,23 @@ def error_responses(*codes: int) -> dict:
     return out
 
 
-def _json(error: str, message: str, status: int | None = None, headers: dict | None = None) -> JSONResponse:
-    body = {"error": error, "message": message}
+#: An absolute POSIX path: a slash that starts a word (not "image/jpeg", not "http://"), then a name and more.
+_ABSOLUTE_PATH = re.compile(r"(?<![\w.:/-])/(?:[^/\s'\"]+/)+([^/\s'\"]*)")
+
+
+def without_paths(message: str) -> str:
+    """The message with each absolute path cut to its last name ("…/images"): an answer tells a client what
+    failed, not where the server keeps its files (the server log keeps the whole path)."""
+    return _ABSOLUTE_PATH.sub(lambda m: "…/" + m.group(1), message)
+
+
+def error_response(error: str, message: str, status: int | None = None, headers: dict | None = None) -> JSONResponse:
+    """The one error shape; every error body goes through here (so none names a server path)."""
+    body = {"error": error, "message": without_paths(message)}
     return JSONResponse(body, status_code=status or ERRORS[error].status, headers=headers)
+
+
+_json = error_response
 
 
 def install(app: FastAPI) -> None:
@@ -175,7 +193,7 @@ def install(app: FastAPI) -> None:
 
     @app.exception_handler(Exception)
     async def _unexpected(_: Request, exc: Exception):
-        """A bug still answers in the API's JSON shape; the traceback goes to the server log."""
+        """Outermost: a bug in a middleware itself. Starlette answers, then drops the connection."""
         log.exception("unhandled error", exc_info=exc)
         return _json("internal_error", f"internal error ({type(exc).__name__}); see the server log")
 
@@ -183,3 +201,32 @@ def install(app: FastAPI) -> None:
     async def _http(_: Request, exc: StarletteHTTPException):
         message = exc.detail if isinstance(exc.detail, str) else str(exc.detail)
         return _json(framework_code(exc.status_code), message, headers=exc.headers)  # 405 keeps its Allow
+
+
+class LastResort:
+    """A pure ASGI middleware: an exception no handler took (a bug) answers JSON 500 ``internal_error`` and
+    the keep-alive connection stays open. Starlette's own ``Exception`` handler answers too, but re-raises,
+    and uvicorn then drops the connection: the client's next request fails on a closed socket."""
+
+    def __init__(self, app: ASGIApp):
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        started = False
+
+        async def tracked(message: Message) -> None:
+            nonlocal started
+            started = started or message["type"] == "http.response.start"
+            await send(message)
+
+        try:
+            await self.app(scope, receive, tracked)
+        except Exception as exc:
+            if started:  # half an answer is out: only closing can tell the client
+                raise
+            log.exception("unhandled error", exc_info=exc)
+            response = _json("internal_error", f"internal error ({type(exc).__name__}); see the server log")
+            await response(scope, receive, send)

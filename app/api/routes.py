@@ -3,29 +3,32 @@
 from __future__ import annotations
 
 import io
-import json
 import math
-import secrets
 import time
 from typing import Annotated
 
-from fastapi import APIRouter, Depends, File, Form, Header, Path, Query, Request, UploadFile
+from fastapi import APIRouter, Depends, File, Form, Path, Query, Request, UploadFile
+from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, Response
 from PIL import Image, ImageOps
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
+from pydantic import TypeAdapter, ValidationError
 
-from app.api.errors import ApiError, error_responses
+from app.api.auth import read_access, write_access
+from app.api.errors import ApiError, error_response, error_responses
 from app.api.schemas import (
     AcceptedOut,
     HealthOut,
     JobOut,
     LocateOut,
     ReadyOut,
+    ReferenceFields,
     ReferenceList,
     ReferenceOut,
     ReferencePatch,
 )
 from app.core import GeolocService, LocateOptions, ReferenceEdit, Region, Upload
+from app.text import CAPTURED_AT_MAX, LABEL_MAX
 
 router = APIRouter()
 
@@ -36,22 +39,6 @@ def service(request: Request) -> GeolocService:
     if state.service is None:
         raise ApiError(503, "not_ready", state.load_error or "the model, pipeline and index are still loading")
     return state.service
-
-
-def _check_key(request: Request, key: str | None) -> None:
-    """Every address alike, loopback included: the port may be forwarded or shared. None only under --no-auth."""
-    expected = request.app.state.api_key
-    if expected and not (key and secrets.compare_digest(key.encode(), expected.encode())):
-        raise ApiError(401, "unauthorized", "this call needs a valid X-API-Key header")
-
-
-def write_access(request: Request, x_api_key: Annotated[str | None, Header()] = None) -> None:
-    _check_key(request, x_api_key)
-
-
-def read_access(request: Request, x_api_key: Annotated[str | None, Header()] = None) -> None:
-    if request.app.state.settings.protect_reads:
-        _check_key(request, x_api_key)
 
 
 Core = Annotated[GeolocService, Depends(service)]
@@ -127,6 +114,42 @@ def locate(
     return LocateOut(**answer.as_dict())
 
 
+#: ``metadata`` is bounded before it is parsed: a label of 200 characters written as JSON escapes, a capture
+#: time and three numbers fit in well under this per image.
+METADATA_CHARS_PER_IMAGE = 4096
+_METADATA = TypeAdapter(list[ReferenceFields])
+
+
+def _validated(fields: dict, loc: tuple) -> ReferenceFields:
+    """The form fields through the same model as ``metadata`` and PATCH (FastAPI has parsed the numbers)."""
+    try:
+        return ReferenceFields.model_validate({k: v for k, v in fields.items() if v is not None})
+    except ValidationError as e:
+        raise RequestValidationError([{**err, "loc": (*loc, *err["loc"])} for err in e.errors()]) from None
+
+
+def _parse_metadata(text: str, n_images: int) -> list[ReferenceFields]:
+    """``metadata`` as one model per image. pydantic's JSON parser (not ``json``) keeps a depth limit and
+    turns a number too large for a float into a validation error: nothing here can raise but a 422."""
+    limit = METADATA_CHARS_PER_IMAGE * max(n_images, 1)
+    if len(text) > limit:
+        raise ApiError(
+            422, "invalid_request", f"metadata has {len(text)} characters; the limit is {limit} for {n_images} images"
+        )
+    try:
+        metas = _METADATA.validate_json(text)
+    except ValidationError as e:
+        broken = [err for err in e.errors() if err["type"] == "json_invalid"]
+        if broken:
+            raise ApiError(422, "invalid_request", f"metadata is not valid JSON: {broken[0]['msg']}") from None
+        raise RequestValidationError([{**err, "loc": ("metadata", *err["loc"])} for err in e.errors()]) from None
+    if len(metas) != n_images:
+        raise ApiError(
+            422, "invalid_request", f"metadata must be a JSON list of {n_images} objects, one per image in order"
+        )
+    return metas
+
+
 # -- /references ----------------------------------------------------------------------------------------
 @router.post(
     "/references",
@@ -142,42 +165,33 @@ def add_references(
     image: Annotated[list[UploadFile], File(description="one or more images")],
     lat: Annotated[float | None, Form()] = None,
     lon: Annotated[float | None, Form()] = None,
-    heading: Annotated[float | None, Form(ge=0, lt=360)] = None,
-    captured_at: Annotated[str | None, Form(max_length=64)] = None,
-    label: Annotated[str | None, Form(max_length=200)] = None,
-    metadata: Annotated[str | None, Form(description="JSON list of {lat, lon, heading, captured_at, label}")] = None,
+    heading: Annotated[float | None, Form(description="degrees in [0, 360)")] = None,
+    captured_at: Annotated[str | None, Form(description=f"at most {CAPTURED_AT_MAX} characters")] = None,
+    label: Annotated[str | None, Form(description=f"at most {LABEL_MAX} characters")] = None,
+    metadata: Annotated[
+        str | None,
+        Form(
+            description="JSON list of {lat, lon, heading, captured_at, label}, one per image in order "
+            f"(at most {METADATA_CHARS_PER_IMAGE} characters per image); replaces the other fields"
+        ),
+    ] = None,
 ) -> JSONResponse:
+    """Text fields refuse control and bidirectional characters (U+0000-U+001F, U+202E...), in ``metadata``
+    and in a file name used as the label alike."""
     settings = request.app.state.settings
     if len(image) > settings.max_files_per_request:
         raise ApiError(
             413, "too_many_files", f"{len(image)} images in one request; the limit is {settings.max_files_per_request}"
         )
     if metadata is not None:
-        try:
-            metas = json.loads(metadata)
-        except json.JSONDecodeError as e:
-            raise ApiError(422, "invalid_request", f"metadata is not valid JSON: {e}") from None
-        if not isinstance(metas, list) or not all(isinstance(m, dict) for m in metas) or len(metas) != len(image):
-            raise ApiError(
-                422, "invalid_request", f"metadata must be a JSON list of {len(image)} objects, one per image in order"
-            )
+        metas = _parse_metadata(metadata, len(image))
     else:
-        metas = [
-            {"lat": lat, "lon": lon, "heading": heading, "captured_at": captured_at, "label": label} for _ in image
-        ]
-    uploads = []
-    for upload, meta in zip(image, metas, strict=True):
-        uploads.append(
-            Upload(
-                data=_read_upload(request, upload),
-                filename=upload.filename,
-                lat=meta.get("lat"),
-                lon=meta.get("lon"),
-                heading=meta.get("heading"),
-                captured_at=meta.get("captured_at"),
-                label=meta.get("label"),
-            )
-        )
+        given = {"lat": lat, "lon": lon, "heading": heading, "captured_at": captured_at, "label": label}
+        metas = [_validated(given, ())] * len(image)
+    uploads = [
+        Upload(data=_read_upload(request, upload), filename=upload.filename, **meta.model_dump())
+        for upload, meta in zip(image, metas, strict=True)
+    ]
     accepted = core.accept(uploads)
     worker = request.app.state.worker
     if worker is not None:
@@ -320,7 +334,7 @@ def health() -> HealthOut:
 def ready(request: Request):
     state = request.app.state
     if state.service is None:
-        return JSONResponse({"error": "not_ready", "message": state.load_error or "loading"}, status_code=503)
+        return error_response("not_ready", state.load_error or "loading")
     col = state.service.collection
     col.catch_up()
     return ReadyOut(

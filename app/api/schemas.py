@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
-from pydantic import BaseModel, Field
+from typing import Annotated
+
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field
+
+from app.text import CAPTURED_AT_MAX, LABEL_MAX, readable
 
 
 class CandidateOut(BaseModel):
@@ -82,16 +86,31 @@ class AcceptedOut(BaseModel):
     )
 
 
-class ReferencePatch(BaseModel):
-    """PATCH /references/{id}: every field optional; only those given change."""
+Label = Annotated[str, Field(max_length=LABEL_MAX), AfterValidator(readable)]
+CapturedAt = Annotated[str, Field(max_length=CAPTURED_AT_MAX), AfterValidator(readable)]
 
-    model_config = {"extra": "forbid"}
+
+class ReferenceFields(BaseModel):
+    """A reference's writable fields as a client gives them: the one model for the form fields of
+    POST /references, each item of its ``metadata`` and (with ranges on the position) PATCH.
+
+    Strict: a boolean is not a number and an object is not a string (lax mode stores ``true`` as 1.0).
+    The range of an upload's lat/lon is checked by the core (``invalid_position``, as for EXIF positions)."""
+
+    model_config = ConfigDict(extra="forbid", strict=True)
+
+    lat: float | None = None
+    lon: float | None = None
+    heading: float | None = Field(None, ge=0, lt=360)
+    captured_at: CapturedAt | None = None
+    label: Label | None = None
+
+
+class ReferencePatch(ReferenceFields):
+    """PATCH /references/{id}: every field optional; only those given change."""
 
     lat: float | None = Field(None, ge=-90, le=90)
     lon: float | None = Field(None, ge=-180, le=180)
-    heading: float | None = Field(None, ge=0, lt=360)
-    label: str | None = Field(None, max_length=200)
-    captured_at: str | None = Field(None, max_length=64)
 
 
 class JobItem(BaseModel):

@@ -1,0 +1,130 @@
+"""Request bodies bounded before they are read, and writes' keys checked before their bodies.
+
+FastAPI parses a multipart form (spooling its files to temporary files) before any dependency runs, so a
+size check in a route, or the key check of ``write_access``, comes after the whole body has been read: a
+300 MB body with no key used to get its 401 after 224 MB had been spooled. This pure ASGI middleware runs
+first: it finds the route, runs the route's own access dependencies (app/api/auth.py) on the headers,
+refuses a declared ``Content-Length`` over the route's limit, and counts the bytes as the app reads them,
+answering 413 the moment they pass the limit. A refusal with body bytes still unread closes the
+connection (``Connection: close``): uvicorn would otherwise read the rest to reach the next request."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+from starlette.requests import HTTPConnection
+from starlette.routing import BaseRoute, Match
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+from app.api.auth import ACCESS_CHECKS
+from app.api.errors import ApiError, error_response
+from app.settings import Settings
+
+#: Multipart framing and the form's text fields (``metadata`` included) around the images.
+FORM_OVERHEAD = 1024 * 1024
+#: Every other body: JSON (PATCH) or nothing at all.
+SMALL_BODY = 64 * 1024
+
+
+def body_limit(settings: Settings, method: str, path: str | None) -> int:
+    """The most bytes a body may have on this route (``path``: the route's template; None: no route)."""
+    if method == "POST" and path == "/locate":
+        return settings.max_upload_bytes + FORM_OVERHEAD
+    if method == "POST" and path == "/references":
+        images = min(settings.max_upload_bytes * settings.max_files_per_request, settings.max_request_bytes)
+        return images + FORM_OVERHEAD
+    return SMALL_BODY
+
+
+class _TooLarge(Exception):
+    """Raised into the app from ``receive`` once the body passes its limit; the app's own answer to it
+    (FastAPI makes it a 400) is dropped, and the 413 sent instead."""
+
+
+class BodyLimits:
+    """``routes``: the API's routes (the router's own, whose dependencies name the access checks)."""
+
+    def __init__(self, app: ASGIApp, settings: Settings, routes: Sequence[BaseRoute]):
+        self.app = app
+        self.settings = settings
+        self.routes = list(routes)
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        conn = HTTPConnection(scope)
+        route = _route(self.routes, scope)
+        path = getattr(route, "path", None)
+        limit = body_limit(self.settings, scope["method"], path)
+        declared = _declared_length(conn)
+        # Refused unread, a small body is read and dropped by uvicorn (the connection stays); a larger or
+        # chunked one is not read at all: the connection closes.
+        close = {"Connection": "close"} if declared is None or declared > SMALL_BODY else None
+        try:
+            for depends in getattr(route, "dependencies", ()):
+                if depends.dependency in ACCESS_CHECKS:
+                    depends.dependency(conn, conn.headers.get("x-api-key"))
+        except ApiError as e:
+            await error_response(e.error, e.message, e.status, headers=close)(scope, receive, send)
+            return
+        if declared is not None and declared > limit:
+            await _refuse(limit, path, scope, receive, send)
+            return
+
+        received = 0
+        refused = False
+        started = False
+
+        async def counted() -> Message:
+            nonlocal received, refused
+            message = await receive()
+            if message["type"] == "http.request":
+                received += len(message.get("body", b""))
+                if received > limit and not started:
+                    refused = True
+                    raise _TooLarge
+            return message
+
+        async def guarded(message: Message) -> None:
+            nonlocal started
+            if refused:  # the app's answer to the refusal: ours goes out instead
+                return
+            started = started or message["type"] == "http.response.start"
+            await send(message)
+
+        try:
+            await self.app(scope, counted, guarded)
+        except Exception:
+            if not refused:
+                raise
+        if refused:
+            await _refuse(limit, path, scope, receive, send)
+
+
+def _route(routes: Sequence[BaseRoute], scope: Scope) -> BaseRoute | None:
+    """The route that will answer (None: no API path matches with this method; a 404 or 405 follows)."""
+    for route in routes:
+        match, _ = route.matches(scope)
+        if match == Match.FULL:
+            return route
+    return None
+
+
+def _declared_length(conn: HTTPConnection) -> int | None:
+    """The ``Content-Length`` (0 when the request has no body); None when chunked or unreadable."""
+    if "transfer-encoding" in conn.headers:
+        return None
+    value = conn.headers.get("content-length")
+    if value is None:
+        return 0
+    try:
+        return int(value)
+    except ValueError:
+        return None
+
+
+async def _refuse(limit: int, path: str | None, scope: Scope, receive: Receive, send: Send) -> None:
+    where = f"{scope['method']} {path}" if path else "a request without a body"
+    message = f"the request body is larger than {limit} bytes, the limit of {where}"
+    await error_response("too_large", message, headers={"Connection": "close"})(scope, receive, send)
