@@ -50,6 +50,15 @@ class SnapshotMismatch(SnapshotInvalid):
         self.manifest = manifest
 
 
+def _same_change(ours: list | None, theirs: list | None) -> bool:
+    """Same reference id and operation, and the same image where both still know it (a reference deleted
+    since has no sha256 left: that is no divergence)."""
+    if ours is None or theirs is None or len(theirs) < 2:
+        return False
+    same_sha = ours[2] is None or len(theirs) < 3 or theirs[2] is None or ours[2] == theirs[2]
+    return ours[:2] == theirs[:2] and same_sha
+
+
 def check_binding(manifest: dict, store: ReferenceStore) -> None:
     """Raise unless the snapshot was made from this database at a version it still holds. The manifest is
     read before the database: a snapshot another process writes meanwhile is never ahead of what we read."""
@@ -65,8 +74,8 @@ def check_binding(manifest: dict, store: ReferenceStore) -> None:
             f"its change-log version {version} is ahead of the database's {head}: the database lost rows it "
             "indexes (a copy without its -wal file?)"
         )
-    elif version and change != manifest.get("last_change"):
-        why = f"the change log at version {version} is not the one it was made from (the database was replaced)"
+    elif version and not _same_change(change, manifest.get("last_change")):
+        why = f"the change log at version {version} is not the one it was made from (the database diverged)"
     if why:
         raise SnapshotMismatch(f"the snapshot does not belong to this database: {why}", manifest)
 

@@ -360,22 +360,28 @@ class ReferenceStore:
 
     def binding(self, version: int) -> dict:
         """What binds a snapshot of the index at ``version`` to this database: its id, the reference id
-        high-water mark, and the change log's entry at ``version`` (two databases that diverged after a
-        common past disagree there, since a change's reference id is never handed out twice)."""
-        with self.read_snapshot() as db:
-            change = db.execute("SELECT ref_id, op FROM changes WHERE version=?", (version,)).fetchone()
+        high-water mark, and the change log's entry at ``version`` with its image's sha256 (two databases
+        that diverged after a common past disagree there)."""
+        with self.read_snapshot():
             return {
                 "database_id": self.database_id,
                 "ref_high_water": self.ref_high_water(),
-                "last_change": list(change) if change else None,
+                "last_change": self._change_at(version),
             }
+
+    def _change_at(self, version: int) -> list | None:
+        """The change log's entry at ``version``: [ref_id, op, the reference's sha256 (None once deleted)]."""
+        row = self.db.execute(
+            "SELECT c.ref_id, c.op, r.sha256 FROM changes c LEFT JOIN refs r ON r.id = c.ref_id WHERE c.version=?",
+            (version,),
+        ).fetchone()
+        return list(row) if row else None
 
     def binding_state(self, version: int) -> tuple[str | None, int, list | None]:
         """(database id, index version, change-log entry at ``version``) read together, to check a snapshot."""
         with self.read_snapshot() as db:
             head = int(db.execute("SELECT COALESCE(MAX(version), 0) FROM changes").fetchone()[0])
-            change = db.execute("SELECT ref_id, op FROM changes WHERE version=?", (version,)).fetchone()
-            return self.database_id, head, list(change) if change else None
+            return self.database_id, head, self._change_at(version)
 
     def retire_snapshot(self, manifest: dict) -> None:
         """A snapshot was refused: raise AUTOINCREMENT's counters past what it knew, so the ids of references
