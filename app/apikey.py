@@ -21,6 +21,8 @@ import sys
 import time
 from pathlib import Path
 
+from app.permissions import private_dir
+
 log = logging.getLogger("geoloc.auth")
 
 KEY_FILE = "api_key"
@@ -98,7 +100,7 @@ def _create_direct(path: Path, key: str) -> bool:
 def load_or_create(data_dir: Path) -> tuple[str, bool]:
     """The data dir's key, and whether this call created it."""
     data_dir = Path(data_dir)
-    data_dir.mkdir(parents=True, exist_ok=True)
+    private_dir(data_dir, parents=True)
     path = key_path(data_dir)
     if not path.exists():
         key = new_key()

@@ -226,6 +226,7 @@ def ingest(
             service.collection.write_snapshot()
     finally:
         lock.release()
+        service.store.checkpoint()  # after a bulk load its rows go into the main file, not only the -wal
     _print_summary(service, summary, left)
 
 

@@ -23,7 +23,7 @@ import numpy as np
 
 from app.engine.pipeline import Pipeline, PipelineSource
 from app.engine.search import ReferenceIndex
-from app.snapshots import SnapshotInvalid, load_snapshot, write_snapshot
+from app.snapshots import SnapshotInvalid, SnapshotMismatch, load_snapshot, write_snapshot
 from app.store import Change, ReferenceStore
 
 log = logging.getLogger("geoloc.collection")
@@ -171,10 +171,12 @@ class Collection:
     # -- loading --------------------------------------------------------------------------------------
     def _load(self) -> tuple[ReferenceIndex, int]:
         try:
-            index, manifest = load_snapshot(self.store.data_dir, self.pipeline)
+            index, manifest = load_snapshot(self.store.data_dir, self.pipeline, self.store)
         except SnapshotInvalid as e:
             if (self.store.data_dir / "index.json").exists():
                 log.warning("snapshot not used (%s): rebuilding the index from the codes in SQLite", e)
+            if isinstance(e, SnapshotMismatch):
+                self.store.retire_snapshot(e.manifest)
             return self._rebuild()
         version = int(manifest["version"])
         changes = self.store.changes_since(version)
@@ -206,11 +208,14 @@ class Collection:
         t0 = time.perf_counter()
         pipeline = pipeline_source(self.store.data_dir, self.models_dir, ref, name or self.pipeline.config.name).load()
         try:
-            index, manifest = load_snapshot(self.store.data_dir, pipeline)
+            index, manifest = load_snapshot(self.store.data_dir, pipeline, self.store)
             if int(manifest.get("generation", -1)) != generation:
                 raise SnapshotInvalid("the snapshot is of another generation")
             version, rebuilt = int(manifest["version"]), False
-        except SnapshotInvalid:
+        except SnapshotInvalid as e:
+            if isinstance(e, SnapshotMismatch):
+                log.warning("snapshot not used (%s)", e)
+                self.store.retire_snapshot(e.manifest)
             gen, version, ids, fcodes, bcodes = self.store.generation_codes()
             if gen != generation:  # switched again while we loaded: the next catch-up loads that one
                 return False
@@ -319,7 +324,7 @@ class Collection:
             t0 = time.perf_counter()
             if self.store.head()[1] != gen0:  # a re-fit switched meanwhile: this generation is done with
                 return False
-            manifest = write_snapshot(self.store.data_dir, copy, pipeline, v0, gen0)
+            manifest = write_snapshot(self.store.data_dir, copy, pipeline, v0, gen0, self.store.binding(v0))
             with self.lock:
                 if self.generation != gen0:  # swapped while we wrote: the new generation's index stays
                     return False
@@ -334,17 +339,22 @@ class Collection:
             log.info(
                 "snapshot of version %d written (%d references) in %.2f s", v0, copy.size, time.perf_counter() - t0
             )
+            self.store.checkpoint()  # the main file catches up with the snapshot: a copy of it alone matches
             return True
 
 
 class SnapshotWriter:
-    """The background thread that writes snapshots by the policy, and a last one at a clean stop."""
+    """The background thread that writes snapshots by the policy, and a last one at a clean stop. It also
+    checkpoints the database (the WAL's pages into the main file) every ``checkpoint_seconds``, and empties
+    the WAL at the stop: the data dir's main file is never far behind what was accepted."""
 
-    def __init__(self, collection: Collection, check_seconds: float = 2.0):
+    def __init__(self, collection: Collection, check_seconds: float = 2.0, checkpoint_seconds: float = 10.0):
         self.collection = collection
         self.check_seconds = check_seconds
+        self.checkpoint_seconds = checkpoint_seconds
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
+        self._checkpointed_at = time.monotonic()
 
     def run(self) -> None:
         while not self._stop.wait(self.check_seconds):
@@ -354,6 +364,9 @@ class SnapshotWriter:
                     self.collection.write_snapshot()
             except Exception:  # a failed write is retried at the next check; the log still holds everything
                 log.exception("snapshot write failed")
+            if time.monotonic() - self._checkpointed_at >= self.checkpoint_seconds:
+                self.collection.store.checkpoint()  # PASSIVE: never waits for a reader nor blocks a writer
+                self._checkpointed_at = time.monotonic()
 
     def start(self) -> None:
         self._thread = threading.Thread(target=self.run, name="geoloc-snapshot", daemon=True)
@@ -368,3 +381,4 @@ class SnapshotWriter:
                 self.collection.write_snapshot()
             except Exception:
                 log.exception("final snapshot write failed")
+            self.collection.store.checkpoint("TRUNCATE")  # a clean stop leaves every row in the main file

@@ -588,12 +588,13 @@ class GeolocService:
     def keep_query(self, data: bytes, img: LoadedImage) -> None:
         if not self.keep_queries:
             return
-        from app.store import sha256_of
+        from app.permissions import private_dir
+        from app.store import sha256_of, write_image_file
 
         try:
             folder = self.store.data_dir / "queries"
-            folder.mkdir(exist_ok=True)
-            (folder / f"{sha256_of(data)}.{img.format.lower()}").write_bytes(data)
+            private_dir(folder)
+            write_image_file(folder / f"{sha256_of(data)}.{img.format.lower()}", data, sync=False)  # 0600
         except OSError as e:  # keeping queries is a courtesy; a full disk must not fail the answer
             log.warning("query not kept: %s", e)
 

@@ -22,7 +22,14 @@ from app.apikey import KEY_FILE, key_path
 from app.collection import pipeline_source
 from app.engine.errors import GeolocError
 from app.orphans import MIN_AGE_S, retry_removals, sweep
-from app.snapshots import MANIFEST, SnapshotInvalid, load_snapshot, read_manifest, snapshot_files
+from app.snapshots import (
+    MANIFEST,
+    SnapshotInvalid,
+    SnapshotUnverifiable,
+    load_snapshot,
+    read_manifest,
+    snapshot_files,
+)
 from app.store import CODES, DB_NAME, IMAGES, ReferenceStore
 
 BACKUP_MANIFEST = "backup.json"
@@ -51,6 +58,12 @@ def check_data_dir(data_dir: Path, models_dir: Path, config: str | None) -> Chec
         r.problems.append(f"{data_dir / DB_NAME} does not exist")
         return r
     store = ReferenceStore(data_dir, read_only=True)
+    if not store.db.execute("SELECT 1 FROM sqlite_master WHERE type='table' AND name='refs'").fetchone():
+        r.problems.append(
+            f"{data_dir / DB_NAME} holds no tables: its content is still in a -wal file that is not here "
+            "(a copy without it?); copy the data dir with `geoloc backup`"
+        )
+        return r
     counts = {s: store.count(s) for s in ("indexed", "pending", "failed")}
     r.lines.append(f"rows: {counts['indexed']} indexed, {counts['pending']} pending, {counts['failed']} failed")
     rows = store.db.execute(
@@ -82,10 +95,10 @@ def check_data_dir(data_dir: Path, models_dir: Path, config: str | None) -> Chec
         r.problems.append(f"indexed references without codes of the pipeline's size: {_sample(bad_codes)}")
     indexed = np.array(sorted(i for i, _, _, status, *_ in rows if status == "indexed"), np.int64)
     try:
-        index, manifest = load_snapshot(data_dir, pipeline)
+        index, manifest = load_snapshot(data_dir, pipeline, store)
     except SnapshotInvalid as e:
         r.lines.append(f"index: no usable snapshot ({e}); the service rebuilds it from SQLite")
-        if (data_dir / MANIFEST).exists():
+        if (data_dir / MANIFEST).exists() and not isinstance(e, SnapshotUnverifiable):
             r.problems.append(f"the snapshot is not usable: {e}")
         return r
     from app.collection import apply_changes

@@ -33,6 +33,9 @@ import numpy as np
 
 from app.engine.errors import GeolocError, IncompatibleArtifact
 from app.engine.pipeline import Pipeline
+from app.permissions import PRIVATE_FILE, create_private_file, private_dir
+
+log = logging.getLogger("geoloc.store")
 
 log = logging.getLogger("geoloc.store")
 
@@ -244,8 +247,9 @@ def write_image_file(path: Path, data: bytes, sync: bool) -> None:
     """Write to a temporary name then rename, so a reader never sees half a file. ``sync``: flush this
     file's data now; otherwise the caller syncs the whole batch at once before committing its rows."""
     tmp = path.with_name(f".{path.name}.{os.getpid()}.{threading.get_ident()}.tmp")
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, PRIVATE_FILE)
     try:
+        os.fchmod(fd, PRIVATE_FILE)  # the umask cannot widen it, and a stale temporary file is narrowed
         with os.fdopen(fd, "wb") as f:
             f.write(data)
             f.flush()
@@ -294,8 +298,9 @@ class ReferenceStore:
                 uri = f"file:{self.data_dir / DB_NAME}?mode=ro"
                 self.db = sqlite3.connect(uri, uri=True, check_same_thread=False, isolation_level=None)
             else:
-                self.data_dir.mkdir(parents=True, exist_ok=True)
-                (self.data_dir / IMAGES).mkdir(exist_ok=True)
+                private_dir(self.data_dir, parents=True)
+                private_dir(self.data_dir / IMAGES)
+                create_private_file(self.data_dir / DB_NAME)
                 self.db = sqlite3.connect(self.data_dir / DB_NAME, check_same_thread=False, isolation_level=None)
                 self.db.execute("PRAGMA journal_mode=WAL")
             self.db.execute("PRAGMA synchronous=FULL")
@@ -308,9 +313,103 @@ class ReferenceStore:
                 self.db.executescript(CLAIMS_SCHEMA)
                 self.db.executescript(GENERATIONS_SCHEMA)
                 self.db.executescript(REMOVALS_SCHEMA)
+                self._ensure_database_id()
 
     def close(self) -> None:
+        """Checkpoint (a writer's rows go into the main file, the WAL is emptied), then close."""
+        if not self.read_only:
+            self.checkpoint("TRUNCATE")
         self.db.close()
+
+    # -- durability: the main file and the database's identity ------------------------------------------
+    def _ensure_database_id(self) -> None:
+        """Give the database its identity (a random id in meta) the first time it is opened, by this version
+        or an older one that made none, and checkpoint it at once: the main file alone then names the
+        database, so a copy of it without its ``-wal`` is recognised as this database at an older state."""
+        if self.get_meta("database_id") is not None:
+            return
+        with self.transaction() as db:
+            db.execute("INSERT OR IGNORE INTO meta(key, value) VALUES('database_id', ?)", (uuid.uuid4().hex,))
+        if self.count(None):
+            log.info("%s had no database id (made by an older version): it has one now", self.data_dir)
+        self.checkpoint("PASSIVE")
+
+    @property
+    def database_id(self) -> str | None:
+        """None only for a database made by an older version and opened read-only since."""
+        return self.get_meta("database_id")
+
+    def checkpoint(self, mode: str = "PASSIVE", timeout_s: float = 2.0) -> tuple[int, int, int] | None:
+        """Copy the WAL's committed pages into the main file: (busy, WAL frames, frames checkpointed), or None
+        when it could not run. Why not leave it to SQLite: its auto-checkpoint runs only on a commit that finds
+        1,000 pages in the WAL, so a collection of a few hundred uploads lived in the ``-wal`` file alone, and
+        a copy of the data dir without it (a common backup mistake) held nothing. PASSIVE never waits (it
+        stops at the oldest reader's snapshot); TRUNCATE, at a clean stop, waits up to ``timeout_s`` for
+        readers, then empties the WAL. Runs on a connection of its own, so it never waits for this process's
+        transactions nor holds the store's lock."""
+        if self.read_only:
+            return None
+        try:
+            con = sqlite3.connect(self.data_dir / DB_NAME, timeout=timeout_s, isolation_level=None)
+            try:
+                con.execute("PRAGMA synchronous=FULL")
+                row = con.execute(f"PRAGMA wal_checkpoint({mode})").fetchone()
+            finally:
+                con.close()
+        except sqlite3.Error as e:
+            log.warning("checkpoint %s of %s failed: %s", mode, self.data_dir, e)
+            return None
+        if row[0]:
+            log.info(
+                "checkpoint %s of %s: a reader holds %d of %d WAL frames", mode, self.data_dir, row[1] - row[2], row[1]
+            )
+        return int(row[0]), int(row[1]), int(row[2])
+
+    def ref_high_water(self) -> int:
+        """The largest reference id ever handed out (AUTOINCREMENT's counter, or a larger row id)."""
+        row = self.db.execute(
+            "SELECT MAX(COALESCE((SELECT seq FROM sqlite_sequence WHERE name='refs'), 0), "
+            "COALESCE((SELECT MAX(id) FROM refs), 0))"
+        ).fetchone()
+        return int(row[0])
+
+    def binding(self, version: int) -> dict:
+        """What binds a snapshot of the index at ``version`` to this database: its id, the reference id
+        high-water mark, and the change log's entry at ``version`` with its image's sha256 (two databases
+        that diverged after a common past disagree there)."""
+        with self.read_snapshot():
+            return {
+                "database_id": self.database_id,
+                "ref_high_water": self.ref_high_water(),
+                "last_change": self._change_at(version),
+            }
+
+    def _change_at(self, version: int) -> list | None:
+        """The change log's entry at ``version``: [ref_id, op, the reference's sha256 (None once deleted)]."""
+        row = self.db.execute(
+            "SELECT c.ref_id, c.op, r.sha256 FROM changes c LEFT JOIN refs r ON r.id = c.ref_id WHERE c.version=?",
+            (version,),
+        ).fetchone()
+        return list(row) if row else None
+
+    def binding_state(self, version: int) -> tuple[str | None, int, list | None]:
+        """(database id, index version, change-log entry at ``version``) read together, to check a snapshot."""
+        with self.read_snapshot() as db:
+            head = int(db.execute("SELECT COALESCE(MAX(version), 0) FROM changes").fetchone()[0])
+            return self.database_id, head, self._change_at(version)
+
+    def retire_snapshot(self, manifest: dict) -> None:
+        """A snapshot was refused: raise AUTOINCREMENT's counters past what it knew, so the ids of references
+        it indexes (lost from this database) are never handed out again, and the change log never again
+        reaches its version with other entries (the refused snapshot can never match later)."""
+        if self.read_only:
+            return
+        marks = {"refs": int(manifest.get("ref_high_water") or 0), "changes": int(manifest.get("version") or 0)}
+        with self.transaction() as db:
+            for table, mark in marks.items():
+                cur = db.execute("UPDATE sqlite_sequence SET seq = MAX(seq, ?) WHERE name = ?", (mark, table))
+                if not cur.rowcount and mark:
+                    db.execute("INSERT INTO sqlite_sequence(name, seq) VALUES(?, ?)", (table, mark))
 
     @property
     def images_dir(self) -> Path:

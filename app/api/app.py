@@ -89,6 +89,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             app.state.snapshots.stop(final=True)  # a clean stop leaves nothing to replay at the next start
         if app.state.worker_lock is not None:
             app.state.worker_lock.release()
+        if app.state.service is not None:
+            app.state.service.store.close()  # checkpoints: the rows this process wrote go into the main file
 
     app = FastAPI(
         title="geoloc",
