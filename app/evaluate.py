@@ -29,7 +29,7 @@ from app.engine.geo import haversine_m
 from app.engine.imageio import load_image
 from app.engine.pipeline import Features, Pipeline
 from app.engine.svm_bank import BankParams
-from app.engine.svm_training import Geotagged, fit_bank_from, index_of
+from app.engine.training.svm_training import Geotagged, fit_bank_from, index_of
 
 RECALL_AT = (1, 5, 10, 20)
 BANK_SOURCES = ("train", "collection")

@@ -30,12 +30,12 @@ from tqdm import tqdm
 from app.collection import pipeline_source
 from app.core import Encoded
 from app.encoding import EncodeItem, batched, make_engine
-from app.engine.cnn import MODEL_FILENAME, SqueezeNet
 from app.engine.configs import get_config
 from app.engine.errors import GeolocError
 from app.engine.imageio import ImageLimits, load_image
+from app.engine.models.squeezenet import MODEL_FILENAME, SqueezeNet
 from app.engine.pipeline import Features, Pipeline, PipelineSource
-from app.engine.svm_training import BANK_SOURCES
+from app.engine.training.svm_training import BANK_SOURCES
 from app.store import ReferenceStore, StorageUnavailable
 
 log = logging.getLogger("geoloc.reindex")
@@ -111,7 +111,7 @@ def _extract(pipe: Pipeline, paths: Sequence[Path], limits: ImageLimits, workers
 
 def _bank(pipe: Pipeline, refs: dict, train: list, options: RefitOptions, source: str):
     from app.engine.svm_bank import KINDS, BankParams
-    from app.engine.svm_training import fit_bank_from, index_of
+    from app.engine.training.svm_training import fit_bank_from, index_of
 
     if options.bank_kind not in KINDS:
         raise RefitError(f"--svm-bank-kind must be one of {', '.join(KINDS)}")
@@ -125,7 +125,7 @@ def fit_generation(
 ) -> tuple[Target, RefitSummary]:
     """Fit the next generation's pipeline on a seeded sample of the stored references (and its SVM bank) and
     save it in the data dir atomically; returns the target to re-index into."""
-    from app.engine.svm_training import Geotagged
+    from app.engine.training.svm_training import Geotagged
 
     limits = limits or ImageLimits()
     generation, _, current = store.generation_state()
@@ -180,7 +180,7 @@ def fit_generation(
 
 def _train_photos(pipe: Pipeline, manifest: Path | None, limits: ImageLimits, workers: int) -> list:
     from app.datasets import read_manifest
-    from app.engine.svm_training import Geotagged
+    from app.engine.training.svm_training import Geotagged
 
     if manifest is None:
         return []

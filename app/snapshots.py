@@ -16,8 +16,8 @@ import time
 from pathlib import Path
 
 from app.engine.artifacts import atomic_write_bytes
+from app.engine.index.references import ReferenceIndex
 from app.engine.pipeline import Pipeline
-from app.engine.search import ReferenceIndex
 
 MANIFEST = "index.json"
 FORMAT = 2

@@ -12,8 +12,8 @@ import tempfile
 from collections.abc import Iterable
 from pathlib import Path
 
-from app.engine.cnn import MODEL_FILENAME, SqueezeNet
 from app.engine.configs import DEFAULT_CONFIG, get_config
+from app.engine.models.squeezenet import MODEL_FILENAME, SqueezeNet
 from app.evaluate import evaluate
 
 BASELINE = "sift-vlad-kmeans"

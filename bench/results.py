@@ -16,8 +16,8 @@ import time
 from pathlib import Path
 
 from app.datasets import read_manifest
-from app.engine.cnn import MODEL_FILENAME, SqueezeNet
 from app.engine.configs import CONFIGS, get_config
+from app.engine.models.squeezenet import MODEL_FILENAME, SqueezeNet
 from app.evaluate import evaluate, format_summary, write_report
 from app.runtime import tune_malloc
 

@@ -18,10 +18,10 @@ import os
 import time
 from pathlib import Path
 
-from app.engine.cnn import MODEL_FILENAME, SqueezeNet
 from app.engine.configs import get_config
 from app.engine.extractors import build_extractor
 from app.engine.imageio import load_image
+from app.engine.models.squeezenet import MODEL_FILENAME, SqueezeNet
 from app.engine.pipeline import Pipeline
 from bench.common import REPO, median_ms
 

@@ -21,8 +21,8 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from app.core import InvalidRequest
 from app.engine import errors as e
 from app.engine.configs import UnknownConfig
-from app.engine.search import UnsupportedMode
-from app.engine.svm_training import NothingToTrainOn
+from app.engine.index.references import UnsupportedMode
+from app.engine.training.svm_training import NothingToTrainOn
 from app.evaluate import ManifestCannotBeEvaluated
 from app.operations import OperationRefused
 from app.reindex import RefitError

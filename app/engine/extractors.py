@@ -16,7 +16,7 @@ import numpy as np
 
 from app.engine.errors import ModelNotReady
 from app.engine.local_features import LocalFeatures, Orb, RootSift
-from app.engine.xfeat import XFeatFeatures
+from app.engine.models.xfeat import XFeatFeatures
 
 
 class LocalExtractor(Protocol):

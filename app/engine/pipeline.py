@@ -15,12 +15,12 @@ from pathlib import Path
 
 import numpy as np
 
-from app.engine import cnn as cnn_mod
 from app.engine.artifacts import atomic_write_bytes, library_versions
 from app.engine.codes import Binariser
 from app.engine.configs import PipelineConfig, get_config
 from app.engine.errors import IncompatibleArtifact, ModelNotReady
 from app.engine.extractors import build_extractor
+from app.engine.models import squeezenet as cnn_mod
 from app.engine.pca import PcaWhitening, l2_normalize
 from app.engine.svm_bank import SvmBank
 from app.engine.vlad import Codebook, vlad

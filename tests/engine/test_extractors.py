@@ -9,8 +9,8 @@ from app.engine.errors import ModelNotReady
 from app.engine.extractors import REGISTRY, build_extractor
 from app.engine.imageio import load_image
 from app.engine.local_features import RootSift
+from app.engine.models.xfeat import XFeatFeatures
 from app.engine.pipeline import Pipeline, load_pipeline, pipeline_dir
-from app.engine.xfeat import XFeatFeatures
 from tests.conftest import penn_photo
 
 

@@ -11,8 +11,8 @@ from app.datasets import read_manifest
 from app.engine.configs import get_config
 from app.engine.errors import IncompatibleArtifact, ModelNotReady
 from app.engine.imageio import load_image
+from app.engine.index.references import ReferenceIndex
 from app.engine.pipeline import Pipeline
-from app.engine.search import ReferenceIndex
 from app.evaluate import RowReferences
 
 

@@ -26,9 +26,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from app.engine.convert.xfeat_onnx import DESCRIPTOR_OUTPUT, INPUT_NAME, KEYPOINT_OUTPUT, RELIABILITY_OUTPUT, STRIDE
 from app.engine.local_features import LocalFeatures
-from app.engine.onnx_model import OnnxModel
-from app.engine.xfeat_onnx import DESCRIPTOR_OUTPUT, INPUT_NAME, KEYPOINT_OUTPUT, RELIABILITY_OUTPUT, STRIDE
+from app.engine.models.base import OnnxModel
 
 MODEL_FILENAME = "xfeat.onnx"
 #: The upstream matcher's default cosine threshold for mutual nearest neighbours.

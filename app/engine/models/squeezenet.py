@@ -1,6 +1,6 @@
 """SqueezeNet 1.1 (ONNX) as a feature extractor: the fire9 map as local descriptors, GeM as a global one.
 
-The model follows the one ONNX lifecycle of ``app.engine.onnx_model`` (load under a lock, predict).
+The model follows the one ONNX lifecycle of ``app.engine.models.base`` (load under a lock, predict).
 """
 
 from __future__ import annotations
@@ -10,8 +10,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from app.engine.onnx_model import OnnxModel
-from app.engine.squeezenet_onnx import FIRE9_OUTPUT, INPUT_NAME, LOGITS_OUTPUT
+from app.engine.convert.squeezenet_onnx import FIRE9_OUTPUT, INPUT_NAME, LOGITS_OUTPUT
+from app.engine.models.base import OnnxModel
 
 MODEL_FILENAME = "squeezenet1_1.onnx"
 

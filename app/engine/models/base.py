@@ -14,7 +14,7 @@ from typing import ClassVar
 import numpy as np
 
 from app.engine.errors import ModelNotReady
-from app.engine.ort import create_session
+from app.engine.models.ort import create_session
 
 
 class OnnxModel:
