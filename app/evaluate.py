@@ -138,7 +138,6 @@ def check_folds(manifest: Path, rows: list[Row], query_sets: list[list[str]]) ->
 def evaluate(
     manifest: Path,
     config: PipelineConfig,
-    cnn,
     radius_m: float = 25.0,
     folds: int = 1,
     seed: int = 0,
@@ -153,7 +152,7 @@ def evaluate(
     bank_source: str = "train",
     models_dir: Path | None = None,
 ) -> dict:
-    """``models_dir``: where learned local-feature models (XFeat) are.
+    """``models_dir``: where the built models are (the global model through the registry, XFeat).
     ``svm_bank``: off (all features), positive (features the bank predicts useful) or negative (only
     the ones it predicts confusing): the thesis ablation. The bank is trained per fold, never on that
     fold's queries: ``bank_source`` train (the train rows only) or collection (the fold's db rows as
@@ -169,7 +168,7 @@ def evaluate(
     rows = read_manifest(manifest)
     query_sets = [[r.group for r in rows if r.split == "query"]] if folds <= 1 else assign_folds(rows, folds, seed)
     check_folds(manifest, rows, query_sets)  # before the expensive extraction
-    base = Pipeline(config, cnn=cnn, models_dir=models_dir)
+    base = Pipeline(config, models_dir=models_dir)
     extracted = extract_cached(base, rows, cache_dir, workers)
 
     lat = np.array([r.lat for r in rows])
@@ -184,7 +183,7 @@ def evaluate(
         q_idx = [i for i, r in enumerate(rows) if r.group in qset and r.split != "train"]
         db_idx = [i for i, r in enumerate(rows) if r.group not in qset and r.split != "train"]
         fit_idx = db_idx + [i for i, r in enumerate(rows) if r.split == "train"]
-        pipe = Pipeline(config, cnn=cnn, models_dir=models_dir)
+        pipe = Pipeline(config, base.global_model, models_dir=models_dir)  # one session for every fold
         pipe.fit([extracted[i].features for i in fit_idx], seed=seed + f)
         progress = tqdm(db_idx, desc=f"fold {f + 1}/{len(query_sets)} encode db", unit="img", leave=False)
         index = index_of(pipe, db_idx, (extracted[i].features for i in progress))

@@ -28,12 +28,11 @@ import numpy as np
 from tqdm import tqdm
 
 from app.collection import pipeline_source
-from app.core import Encoded
 from app.encoding import EncodeItem, batched, make_engine
+from app.encoding.items import Encoded
 from app.engine.configs import get_config
 from app.engine.errors import GeolocError
 from app.engine.imageio import ImageLimits, load_image
-from app.engine.models.squeezenet import MODEL_FILENAME, SqueezeNet
 from app.engine.pipeline import Features, Pipeline, PipelineSource
 from app.engine.training.svm_training import BANK_SOURCES
 from app.store import ReferenceStore, StorageUnavailable
@@ -150,10 +149,8 @@ def fit_generation(
     rows = store.get_many(picked.tolist())
     picked = [int(i) for i in picked if int(i) in rows]
     t0 = time.perf_counter()
-    cnn = SqueezeNet(Path(models_dir) / MODEL_FILENAME) if cfg.uses_cnn else None
-    if cnn is not None:
-        cnn.load()
-    pipe = Pipeline(cfg, cnn=cnn, models_dir=Path(models_dir))
+    pipe = Pipeline(cfg, models_dir=Path(models_dir))
+    pipe.load_models()
     paths = [store.image_path(i) for i in picked]
     feats = _extract(pipe, paths, limits, options.workers, "fit: extract")
     kept = [(i, f) for i, f in zip(picked, feats, strict=True) if f is not None]

@@ -17,7 +17,6 @@ from pathlib import Path
 
 from app.datasets import read_manifest
 from app.engine.configs import CONFIGS, get_config
-from app.engine.models.squeezenet import MODEL_FILENAME, SqueezeNet
 from app.evaluate import evaluate, format_summary, write_report
 from app.runtime import tune_malloc
 
@@ -132,8 +131,6 @@ def main() -> None:
     ap.add_argument("--no-write", action="store_true", help="do not rewrite docs/RESULTS.md")
     args = ap.parse_args()
 
-    cnn = SqueezeNet(args.models_dir / MODEL_FILENAME)
-    cnn.load()
     cache = args.out / "cache"
     started = time.time()
 
@@ -142,7 +139,6 @@ def main() -> None:
         r = evaluate(
             args.manifest,
             cfg,
-            cnn,
             folds=args.folds,
             mode=mode,
             cache_dir=cache,

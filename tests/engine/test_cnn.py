@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
+from app.engine.dense import gem_pool, resize_short_side, sample_at
 from app.engine.imageio import load_image
-from app.engine.models.squeezenet import gem_pool, resize_short_side, sample_at
 
 
 def test_gem_is_unit_length_and_between_mean_and_max():

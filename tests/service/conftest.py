@@ -23,7 +23,7 @@ def fitted_models(models_dir, mini_manifest, squeezenet) -> Path:
     from app.engine.pipeline import Pipeline, pipeline_dir
 
     rows = [r for r in read_manifest(mini_manifest) if r.split in ("db", "train")]
-    pipe = Pipeline(get_config(CONFIG), cnn=squeezenet)
+    pipe = Pipeline(get_config(CONFIG), global_model=squeezenet)
     pipe.fit([pipe.extract(load_image(r.image.read_bytes()).rgb) for r in rows])
     pipe.save(pipeline_dir(models_dir, CONFIG))
     return models_dir

@@ -1,19 +1,24 @@
-"""SqueezeNet 1.1 (ONNX) as a feature extractor: the fire9 map as local descriptors, GeM as a global one.
+"""SqueezeNet 1.1 (ONNX), the default global model: its fire9 map (512 channels) is the dense map a pipeline
+pools (GeM) and samples at keypoints (``app.engine.dense``).
 
-The model follows the one ONNX lifecycle of ``app.engine.models.base`` (load under a lock, predict).
+The model follows the one ONNX lifecycle of ``app.engine.models.base`` (load under a lock, predict); it is
+registered by name in ``app.engine.models.registry``.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 
-from app.engine.convert.squeezenet_onnx import FIRE9_OUTPUT, INPUT_NAME, LOGITS_OUTPUT
+from app.engine.dense import resize_short_side
 from app.engine.models.base import OnnxModel
 
 MODEL_FILENAME = "squeezenet1_1.onnx"
+#: The graph's tensor names (the converter, ``app.engine.convert.squeezenet_onnx``, writes them).
+INPUT_NAME = "image_rgb"
+FIRE9_OUTPUT = "fire9"
+LOGITS_OUTPUT = "logits"
 
 
 @dataclass(frozen=True)
@@ -29,6 +34,8 @@ class SqueezeNet(OnnxModel):
     """The built ONNX SqueezeNet."""
 
     filename = MODEL_FILENAME
+    #: Channels of the dense map (fire9).
+    dim = 512
 
     def run(self, rgb: np.ndarray) -> CnnOutput:
         """Run the net on an RGB uint8 image at its own size (resize first if you want another)."""
@@ -40,40 +47,9 @@ class SqueezeNet(OnnxModel):
         """Resize so the short side is ``short_side`` (aspect kept), then run."""
         return self.run(resize_short_side(rgb, short_side))
 
-
-def resize_short_side(rgb: np.ndarray, short_side: int) -> np.ndarray:
-    h, w = rgb.shape[:2]
-    s = short_side / min(h, w)
-    size = (max(1, round(w * s)), max(1, round(h * s)))
-    interp = cv2.INTER_AREA if s < 1 else cv2.INTER_LINEAR
-    return cv2.resize(rgb, size, interpolation=interp)
-
-
-def gem_pool(fire9: np.ndarray, p: float = 3.0) -> np.ndarray:
-    """Generalised-mean pooling of an (H, W, C) ReLU map, L2-normalised: the global CNN descriptor."""
-    x = np.clip(fire9.reshape(-1, fire9.shape[-1]).astype(np.float64), 1e-6, None)
-    g = np.power(np.mean(np.power(x, p), axis=0), 1.0 / p)
-    return (g / max(np.linalg.norm(g), 1e-12)).astype(np.float32)
-
-
-def sample_at(fire9: np.ndarray, xy_norm: np.ndarray) -> np.ndarray:
-    """Bilinear sample of the (H, W, C) map at positions ``xy_norm`` (N, 2), given as fractions of the
-    image width and height (0..1), so the local-feature and CNN image sizes need not agree.
-    Returns (N, C) float32; map cells are taken to cover the image evenly."""
-    fh, fw, c = fire9.shape
-    if len(xy_norm) == 0:
-        return np.zeros((0, c), np.float32)
-    gx = np.clip(xy_norm[:, 0] * fw - 0.5, 0, fw - 1)
-    gy = np.clip(xy_norm[:, 1] * fh - 0.5, 0, fh - 1)
-    x0 = np.floor(gx).astype(int)
-    y0 = np.floor(gy).astype(int)
-    x1 = np.minimum(x0 + 1, fw - 1)
-    y1 = np.minimum(y0 + 1, fh - 1)
-    ax = (gx - x0)[:, None]
-    ay = (gy - y0)[:, None]
-    top = fire9[y0, x0] * (1 - ax) + fire9[y0, x1] * ax
-    bottom = fire9[y1, x0] * (1 - ax) + fire9[y1, x1] * ax
-    return (top * (1 - ay) + bottom * ay).astype(np.float32)
+    def dense(self, rgb: np.ndarray, short_side: int) -> np.ndarray:
+        """The global-model interface (``app.engine.models.base.GlobalModel``): fire9 as (H, W, 512)."""
+        return self.features(rgb, short_side).fire9
 
 
 def softmax(logits: np.ndarray) -> np.ndarray:

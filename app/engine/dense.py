@@ -1,0 +1,46 @@
+"""What a pipeline does with any global model's dense feature map: GeM pooling into one global descriptor,
+and bilinear sampling at local keypoints (the feature-level hybrid).
+
+Why apart from the models: these are the pipeline's choices, not the model's, so a new global model
+(``app.engine.models.registry``) only has to produce an (H, W, C) map and gets pooling and sampling free.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+
+def resize_short_side(rgb: np.ndarray, short_side: int) -> np.ndarray:
+    h, w = rgb.shape[:2]
+    s = short_side / min(h, w)
+    size = (max(1, round(w * s)), max(1, round(h * s)))
+    interp = cv2.INTER_AREA if s < 1 else cv2.INTER_LINEAR
+    return cv2.resize(rgb, size, interpolation=interp)
+
+
+def gem_pool(fire9: np.ndarray, p: float = 3.0) -> np.ndarray:
+    """Generalised-mean pooling of an (H, W, C) ReLU map, L2-normalised: the global CNN descriptor."""
+    x = np.clip(fire9.reshape(-1, fire9.shape[-1]).astype(np.float64), 1e-6, None)
+    g = np.power(np.mean(np.power(x, p), axis=0), 1.0 / p)
+    return (g / max(np.linalg.norm(g), 1e-12)).astype(np.float32)
+
+
+def sample_at(fire9: np.ndarray, xy_norm: np.ndarray) -> np.ndarray:
+    """Bilinear sample of the (H, W, C) map at positions ``xy_norm`` (N, 2), given as fractions of the
+    image width and height (0..1), so the local-feature and CNN image sizes need not agree.
+    Returns (N, C) float32; map cells are taken to cover the image evenly."""
+    fh, fw, c = fire9.shape
+    if len(xy_norm) == 0:
+        return np.zeros((0, c), np.float32)
+    gx = np.clip(xy_norm[:, 0] * fw - 0.5, 0, fw - 1)
+    gy = np.clip(xy_norm[:, 1] * fh - 0.5, 0, fh - 1)
+    x0 = np.floor(gx).astype(int)
+    y0 = np.floor(gy).astype(int)
+    x1 = np.minimum(x0 + 1, fw - 1)
+    y1 = np.minimum(y0 + 1, fh - 1)
+    ax = (gx - x0)[:, None]
+    ay = (gy - y0)[:, None]
+    top = fire9[y0, x0] * (1 - ax) + fire9[y0, x1] * ax
+    bottom = fire9[y1, x0] * (1 - ax) + fire9[y1, x1] * ax
+    return (top * (1 - ay) + bottom * ay).astype(np.float32)
