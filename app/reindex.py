@@ -34,7 +34,7 @@ from app.engine.configs import get_config
 from app.engine.errors import GeolocError
 from app.engine.imageio import ImageLimits, load_image
 from app.engine.pipeline import Features, Pipeline, PipelineSource
-from app.engine.training.svm_training import BANK_SOURCES
+from app.fitting import FitRefused, bank_source, check_bank_kind, train_bank
 from app.store import ReferenceStore, StorageUnavailable
 
 log = logging.getLogger("geoloc.reindex")
@@ -108,17 +108,6 @@ def _extract(pipe: Pipeline, paths: Sequence[Path], limits: ImageLimits, workers
         return list(tqdm(pool.map(one, paths), total=len(paths), desc=desc, unit="img", disable=None))
 
 
-def _bank(pipe: Pipeline, refs: dict, train: list, options: RefitOptions, source: str):
-    from app.engine.svm_bank import KINDS, BankParams
-    from app.engine.training.svm_training import fit_bank_from, index_of
-
-    if options.bank_kind not in KINDS:
-        raise RefitError(f"--svm-bank-kind must be one of {', '.join(KINDS)}")
-    ids = sorted(refs)
-    index = index_of(pipe, ids, (refs[i].features for i in ids))
-    return fit_bank_from(source, pipe, index, refs, train, BankParams(kind=options.bank_kind, seed=options.seed))
-
-
 def fit_generation(
     store: ReferenceStore, models_dir: Path, options: RefitOptions, limits: ImageLimits | None = None
 ) -> tuple[Target, RefitSummary]:
@@ -130,13 +119,11 @@ def fit_generation(
     generation, _, current = store.generation_state()
     name = options.config or current or "hybrid"
     cfg = get_config(name)
-    source = options.svm_bank or (
-        "train" if options.train_manifest else "collection" if cfg.svm_bank and cfg.local is not None else "none"
-    )
-    if source not in BANK_SOURCES:
-        raise RefitError(f"--svm-bank must be one of {', '.join(BANK_SOURCES)}, not {source!r}")
-    if source != "none" and cfg.local is None:
-        raise RefitError(f"configuration {name} has no local features: an SVM bank has nothing to select")
+    try:
+        source = bank_source(cfg, options.svm_bank, train_photos_given=options.train_manifest is not None)
+        check_bank_kind(options.bank_kind)
+    except FitRefused as e:
+        raise RefitError(str(e)) from None
     if source == "train" and options.train_manifest is None:
         raise RefitError("--svm-bank train needs --train-manifest (geotagged photos that are not references)")
     ids = store.indexed_ids()
@@ -167,7 +154,10 @@ def fit_generation(
         train = _train_photos(pipe, options.train_manifest, limits, options.workers)
         if source == "train" and not train:
             raise RefitError(f"{options.train_manifest} has no photo that could be read")
-        pipe.bank = _bank(pipe, refs, train, options, source)
+        try:
+            pipe.bank = train_bank(pipe, refs, train, source, options.bank_kind, options.seed)
+        except FitRefused as e:
+            raise RefitError(str(e)) from None
         seconds["bank"] = time.perf_counter() - t1
     target = _save(store.data_dir, pipe, generation + 1, {"refit_sample": len(kept), "svm_bank_source": source})
     summary = RefitSummary(target.generation, target.pipeline, name, fitted_on=len(kept), bank=source)
@@ -176,8 +166,8 @@ def fit_generation(
 
 
 def _train_photos(pipe: Pipeline, manifest: Path | None, limits: ImageLimits, workers: int) -> list:
-    from app.datasets import read_manifest
     from app.engine.training.svm_training import Geotagged
+    from app.evaluation.datasets import read_manifest
 
     if manifest is None:
         return []

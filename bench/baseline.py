@@ -13,7 +13,7 @@ from collections.abc import Iterable
 from pathlib import Path
 
 from app.engine.configs import DEFAULT_CONFIG, get_config
-from app.evaluate import evaluate
+from app.evaluation.evaluate import evaluate
 
 BASELINE = "sift-vlad-kmeans"
 COMPARED = (BASELINE, "sift-mbvlad", DEFAULT_CONFIG, "hybrid-bin")
@@ -29,6 +29,5 @@ def run(
             result = evaluate(
                 manifest, get_config(name), folds=folds, workers=1, cache_dir=Path(cache), models_dir=models_dir
             )
-            result.pop("queries", None)
-            out.append(result)
+            out.append(result.model_dump(exclude={"queries"}))
     return out

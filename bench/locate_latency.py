@@ -13,12 +13,12 @@ from pathlib import Path
 
 import httpx
 
-from app.datasets import Row
 from app.engine.configs import PipelineConfig
 from app.engine.extractors import build_extractor
 from app.engine.geo import haversine_m
 from app.engine.imageio import ImageLimits, load_image
 from app.engine.models.registry import build_global_model
+from app.evaluation.datasets import Row
 from app.settings import Settings
 from bench.common import is_photo, median_ms, percentiles, post_references
 

@@ -15,9 +15,9 @@ import platform
 import time
 from pathlib import Path
 
-from app.datasets import read_manifest
 from app.engine.configs import CONFIGS, get_config
-from app.evaluate import evaluate, format_summary, write_report
+from app.evaluation.datasets import read_manifest
+from app.evaluation.evaluate import evaluate, format_summary, write_report
 from app.runtime import tune_malloc
 
 REPO = Path(__file__).resolve().parents[1]
@@ -150,7 +150,7 @@ def main() -> None:
         tag = cfg.name + (f"-{mode}" if mode else "") + (f"-svm-{kind}-{bank}" if bank != "off" else "")
         write_report(r, args.out / f"{tag}.json")
         print(format_summary(r), flush=True)
-        return r
+        return r.model_dump()  # the report's JSON form, which the tables below are made from
 
     main_results = {name: run(name, None, {}) for name in CONFIGS}
     ablation = [] if args.no_sweeps else [(k, sel, run("hybrid", None, {}, sel, k)) for k, sel in ABLATION]

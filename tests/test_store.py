@@ -7,11 +7,11 @@ import sqlite3
 import numpy as np
 import pytest
 
-from app.datasets import read_manifest
 from app.engine.configs import get_config
 from app.engine.errors import IncompatibleArtifact
 from app.engine.imageio import load_image
 from app.engine.pipeline import Pipeline
+from app.evaluation.datasets import read_manifest
 from app.store import NewReference, ReferenceStore, StorageUnavailable
 
 

@@ -23,7 +23,7 @@ from app.engine import errors as e
 from app.engine.configs import UnknownConfig
 from app.engine.index.references import UnsupportedMode
 from app.engine.training.svm_training import NothingToTrainOn
-from app.evaluate import ManifestCannotBeEvaluated
+from app.evaluation.evaluate import ManifestCannotBeEvaluated
 from app.operations import OperationRefused
 from app.reindex import RefitError
 from app.store import StaleReindex, StorageUnavailable, is_storage_error

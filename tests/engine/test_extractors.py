@@ -3,7 +3,6 @@
 import numpy as np
 import pytest
 
-from app.datasets import read_manifest
 from app.engine.configs import get_config
 from app.engine.errors import ModelNotReady
 from app.engine.extractors import REGISTRY, build_extractor
@@ -11,6 +10,7 @@ from app.engine.imageio import load_image
 from app.engine.local_features import RootSift
 from app.engine.models.xfeat import XFeatFeatures
 from app.engine.pipeline import Pipeline, load_pipeline, pipeline_dir
+from app.evaluation.datasets import read_manifest
 from tests.conftest import penn_photo
 
 

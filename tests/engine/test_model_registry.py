@@ -13,13 +13,13 @@ import onnx
 import pytest
 from onnx import TensorProto, helper, numpy_helper
 
-from app.datasets import read_manifest
 from app.engine import configs as configs_mod
 from app.engine.configs import PipelineConfig, get_config
 from app.engine.dense import resize_short_side
 from app.engine.models import registry
 from app.engine.models.base import OnnxModel
 from app.engine.models.registry import GlobalModelEntry, UnknownModel, files_for
+from app.evaluation.datasets import read_manifest
 
 TOY_FILE = "toy.onnx"
 TOY_DIM = 8

@@ -7,13 +7,13 @@ import pytest
 from PIL import Image
 
 from app.core import LocateOptions, locate_features
-from app.datasets import read_manifest
 from app.engine.configs import get_config
 from app.engine.errors import IncompatibleArtifact, ModelNotReady
 from app.engine.imageio import load_image
 from app.engine.index.references import ReferenceIndex
 from app.engine.pipeline import Pipeline
-from app.evaluate import RowReferences
+from app.evaluation.datasets import read_manifest
+from app.evaluation.evaluate import RowReferences
 
 
 @pytest.fixture(scope="module")

@@ -9,8 +9,8 @@ from pathlib import Path
 
 import pytest
 
-from app.datasets import read_manifest
-from app.server_process import ServerProcess, wait_job  # noqa: F401  (re-exported for the tests)
+from app.evaluation.datasets import read_manifest
+from tools.server_process import ServerProcess, wait_job  # noqa: F401  (re-exported for the tests)
 
 CONFIG = "hybrid-bin"
 
