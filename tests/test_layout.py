@@ -75,3 +75,15 @@ def test_the_app_has_no_import_cycle():
 def test_the_cycle_finder_finds_one():
     assert find_cycle({"a": {"b"}, "b": {"c"}, "c": {"a"}}) == ["a", "b", "c", "a"]
     assert find_cycle({"a": {"b"}, "b": set()}) is None
+
+
+def test_the_docs_name_files_that_exist():
+    """README, METHOD, RESULTS and BENCHMARKS point readers at modules by path: a move must update them."""
+    import re
+
+    repo = APP.parent
+    named = set()
+    for doc in [repo / "README.md", *sorted((repo / "docs").glob("*.md"))]:
+        named |= {(doc.name, m) for m in re.findall(r"\b((?:app|tools|bench|tests)/[\w/]+\.py)\b", doc.read_text())}
+    missing = sorted((doc, path) for doc, path in named if not (repo / path).exists())
+    assert missing == []
