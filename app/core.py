@@ -28,17 +28,23 @@ import cv2
 import numpy as np
 
 from app.collection import Collection, SnapshotPolicy
+from app.encoding.items import Encoded, EncodeItem, encode_item
 from app.engine import rerank as rerank_mod
 from app.engine.calibration import candidate_probabilities
 from app.engine.errors import GeolocError, InvalidPosition, NoGpsInImage
 from app.engine.estimate import Estimate, fuse_position
 from app.engine.geo import haversine_m, valid_position
 from app.engine.imageio import ImageLimits, LoadedImage, load_image
+from app.engine.models.base import Matcher
+from app.engine.models.registry import build_matcher
 from app.engine.pipeline import Features, Pipeline
 from app.store import NewReference, Reference, ReferenceStore, StorageUnavailable, is_storage_error
 from app.text import CAPTURED_AT_MAX, LABEL_MAX, unsafe_character
 
 log = logging.getLogger("geoloc.core")
+
+#: The matcher of callers that verify without a pipeline (tests, the evaluation's analysis).
+DEFAULT_MATCHER = "sift-mnn"
 
 #: How many candidates the fused estimate is made of (after region filter and verification).
 ESTIMATE_CANDIDATES = 10
@@ -220,17 +226,26 @@ class StoreReferences:
 
 # -- the one locate path --------------------------------------------------------------------------------
 def verify_candidates(
-    query_rgb: np.ndarray, ids: Sequence[int], refs: ReferenceSource, limits: ImageLimits
+    query_rgb: np.ndarray,
+    ids: Sequence[int],
+    refs: ReferenceSource,
+    limits: ImageLimits,
+    matcher: Matcher | None = None,
 ) -> dict[int, int | None]:
     """Inliers of the chosen geometry per candidate (0: too few matches, or no geometry); None where the
     pair could not be verified (image gone or undecodable, OpenCV refused the matches)."""
     return {
-        i: None if v is None else v.inliers for i, v in verify_candidate_pairs(query_rgb, ids, refs, limits).items()
+        i: None if v is None else v.inliers
+        for i, v in verify_candidate_pairs(query_rgb, ids, refs, limits, matcher).items()
     }
 
 
 def verify_candidate_pairs(
-    query_rgb: np.ndarray, ids: Sequence[int], refs: ReferenceSource, limits: ImageLimits
+    query_rgb: np.ndarray,
+    ids: Sequence[int],
+    refs: ReferenceSource,
+    limits: ImageLimits,
+    matcher: Matcher | None = None,
 ) -> dict[int, rerank_mod.Verification | None]:
     """``verify_candidates`` with the whole outcome per pair (matches, both models' inliers), for the
     evaluation's analysis; None where the pair could not be verified.
@@ -239,7 +254,8 @@ def verify_candidate_pairs(
     0.1 s each, most of what rerank costs). Storing the strongest 480 keypoints at ingest (62 KB per
     reference; all 1,500 would take 193 KB) verified as well on penn and is the measured next step; this
     is the one place that would read them (docs/RESULTS.md, "Verification that works")."""
-    q = rerank_mod.features_for_verification(query_rgb)
+    matcher = matcher or build_matcher(DEFAULT_MATCHER)
+    q = matcher.features(query_rgb)
     out: dict[int, rerank_mod.Verification | None] = {}
     for i in ids:
         data = refs.image_bytes(int(i))
@@ -247,7 +263,7 @@ def verify_candidate_pairs(
             out[int(i)] = None
             continue
         try:
-            v = rerank_mod.verify_features(q, rerank_mod.features_for_verification(load_image(data, limits).rgb))
+            v = matcher.match(q, matcher.features(load_image(data, limits).rgb))
         except (cv2.error, GeolocError) as e:
             log.debug("verification of reference %s skipped: %s", i, e)
             out[int(i)] = None
@@ -309,7 +325,7 @@ def locate_features(
             raise ValueError("verification needs the query image")
         t0 = time.perf_counter()
         head = [i for i, _ in ranked[:RERANK_CANDIDATES]]
-        verification = verify_candidate_pairs(query_rgb, head, refs, limits or ImageLimits())
+        verification = verify_candidate_pairs(query_rgb, head, refs, limits or ImageLimits(), pipeline.matcher)
         inliers = {i: None if v is None else v.inliers for i, v in verification.items()}
         ranked = order_by_verification(ranked, inliers)
         t["rerank"] = (time.perf_counter() - t0) * 1000
@@ -488,39 +504,6 @@ def prepare_upload(
     )
 
 
-# -- encoding ---------------------------------------------------------------------------------------------
-@dataclass(frozen=True)
-class Encoded:
-    ref_id: int
-    float_code: np.ndarray | None
-    binary_code: np.ndarray | None
-    error: str | None = None  # a permanent failure (the row becomes failed)
-    retry: bool = False  # a storage failure: the row stays pending and is tried again later
-    fingerprint: str | None = None  # the pipeline that made the codes (a re-fit may switch meanwhile)
-
-
-def encode_one(pipeline: Pipeline, limits: ImageLimits, ref_id: int, path: Path) -> Encoded:
-    try:
-        data = path.read_bytes()
-    except FileNotFoundError:
-        if path.parent.is_dir():
-            return Encoded(ref_id, None, None, "the stored image is missing")
-        return Encoded(ref_id, None, None, retry=True)
-    except OSError as e:
-        log.warning("reference %d: cannot read its image now (%s); it stays queued", ref_id, e)
-        return Encoded(ref_id, None, None, retry=True)
-    return encode_data(pipeline, limits, ref_id, data)
-
-
-def encode_data(pipeline: Pipeline, limits: ImageLimits, ref_id: int, data: bytes) -> Encoded:
-    """Image bytes to codes; a bad image is a permanent failure of that row, never an exception."""
-    try:
-        codes = pipeline.encode_image(load_image(data, limits).rgb)
-    except GeolocError as e:
-        return Encoded(ref_id, None, None, str(e), fingerprint=pipeline.fingerprint)
-    return Encoded(ref_id, codes.float_, codes.binary, fingerprint=pipeline.fingerprint)
-
-
 # -- the service ------------------------------------------------------------------------------------------
 class GeolocService:
     """The use cases over one data dir. Thread-safe: the HTTP layer calls it from a thread pool."""
@@ -640,9 +623,9 @@ class GeolocService:
 
     def encode(self, batch: Sequence[tuple[int, Path]], workers: int = 1) -> list[Encoded]:
         if workers <= 1 or len(batch) <= 1:
-            return [encode_one(self.pipeline, self.limits, i, p) for i, p in batch]
+            return [encode_item(self.pipeline, self.limits, EncodeItem(i, p)) for i, p in batch]
         with ThreadPoolExecutor(max_workers=workers) as pool:
-            return list(pool.map(lambda b: encode_one(self.pipeline, self.limits, *b), batch))
+            return list(pool.map(lambda b: encode_item(self.pipeline, self.limits, EncodeItem(*b)), batch))
 
     def complete(self, results: Sequence[Encoded]) -> list[int]:
         """Record a batch in one transaction (storage failures stay pending) and bring the index up to date.

@@ -28,14 +28,13 @@ import numpy as np
 from tqdm import tqdm
 
 from app.collection import pipeline_source
-from app.core import Encoded
 from app.encoding import EncodeItem, batched, make_engine
-from app.engine.cnn import MODEL_FILENAME, SqueezeNet
+from app.encoding.items import Encoded
 from app.engine.configs import get_config
 from app.engine.errors import GeolocError
 from app.engine.imageio import ImageLimits, load_image
 from app.engine.pipeline import Features, Pipeline, PipelineSource
-from app.engine.svm_training import BANK_SOURCES
+from app.fitting import FitRefused, bank_source, check_bank_kind, train_bank
 from app.store import ReferenceStore, StorageUnavailable
 
 log = logging.getLogger("geoloc.reindex")
@@ -109,35 +108,22 @@ def _extract(pipe: Pipeline, paths: Sequence[Path], limits: ImageLimits, workers
         return list(tqdm(pool.map(one, paths), total=len(paths), desc=desc, unit="img", disable=None))
 
 
-def _bank(pipe: Pipeline, refs: dict, train: list, options: RefitOptions, source: str):
-    from app.engine.svm_bank import KINDS, BankParams
-    from app.engine.svm_training import fit_bank_from, index_of
-
-    if options.bank_kind not in KINDS:
-        raise RefitError(f"--svm-bank-kind must be one of {', '.join(KINDS)}")
-    ids = sorted(refs)
-    index = index_of(pipe, ids, (refs[i].features for i in ids))
-    return fit_bank_from(source, pipe, index, refs, train, BankParams(kind=options.bank_kind, seed=options.seed))
-
-
 def fit_generation(
     store: ReferenceStore, models_dir: Path, options: RefitOptions, limits: ImageLimits | None = None
 ) -> tuple[Target, RefitSummary]:
     """Fit the next generation's pipeline on a seeded sample of the stored references (and its SVM bank) and
     save it in the data dir atomically; returns the target to re-index into."""
-    from app.engine.svm_training import Geotagged
+    from app.engine.training.svm_training import Geotagged
 
     limits = limits or ImageLimits()
     generation, _, current = store.generation_state()
     name = options.config or current or "hybrid"
     cfg = get_config(name)
-    source = options.svm_bank or (
-        "train" if options.train_manifest else "collection" if cfg.svm_bank and cfg.local is not None else "none"
-    )
-    if source not in BANK_SOURCES:
-        raise RefitError(f"--svm-bank must be one of {', '.join(BANK_SOURCES)}, not {source!r}")
-    if source != "none" and cfg.local is None:
-        raise RefitError(f"configuration {name} has no local features: an SVM bank has nothing to select")
+    try:
+        source = bank_source(cfg, options.svm_bank, train_photos_given=options.train_manifest is not None)
+        check_bank_kind(options.bank_kind)
+    except FitRefused as e:
+        raise RefitError(str(e)) from None
     if source == "train" and options.train_manifest is None:
         raise RefitError("--svm-bank train needs --train-manifest (geotagged photos that are not references)")
     ids = store.indexed_ids()
@@ -150,10 +136,8 @@ def fit_generation(
     rows = store.get_many(picked.tolist())
     picked = [int(i) for i in picked if int(i) in rows]
     t0 = time.perf_counter()
-    cnn = SqueezeNet(Path(models_dir) / MODEL_FILENAME) if cfg.uses_cnn else None
-    if cnn is not None:
-        cnn.load()
-    pipe = Pipeline(cfg, cnn=cnn, models_dir=Path(models_dir))
+    pipe = Pipeline(cfg, models_dir=Path(models_dir))
+    pipe.load_models()
     paths = [store.image_path(i) for i in picked]
     feats = _extract(pipe, paths, limits, options.workers, "fit: extract")
     kept = [(i, f) for i, f in zip(picked, feats, strict=True) if f is not None]
@@ -170,7 +154,10 @@ def fit_generation(
         train = _train_photos(pipe, options.train_manifest, limits, options.workers)
         if source == "train" and not train:
             raise RefitError(f"{options.train_manifest} has no photo that could be read")
-        pipe.bank = _bank(pipe, refs, train, options, source)
+        try:
+            pipe.bank = train_bank(pipe, refs, train, source, options.bank_kind, options.seed)
+        except FitRefused as e:
+            raise RefitError(str(e)) from None
         seconds["bank"] = time.perf_counter() - t1
     target = _save(store.data_dir, pipe, generation + 1, {"refit_sample": len(kept), "svm_bank_source": source})
     summary = RefitSummary(target.generation, target.pipeline, name, fitted_on=len(kept), bank=source)
@@ -179,8 +166,8 @@ def fit_generation(
 
 
 def _train_photos(pipe: Pipeline, manifest: Path | None, limits: ImageLimits, workers: int) -> list:
-    from app.datasets import read_manifest
-    from app.engine.svm_training import Geotagged
+    from app.engine.training.svm_training import Geotagged
+    from app.evaluation.datasets import read_manifest
 
     if manifest is None:
         return []

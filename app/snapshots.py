@@ -24,8 +24,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from app.engine.artifacts import atomic_write_bytes
+from app.engine.index.references import ReferenceIndex
 from app.engine.pipeline import Pipeline
-from app.engine.search import ReferenceIndex
 
 if TYPE_CHECKING:
     from app.store import ReferenceStore

@@ -12,9 +12,8 @@ import tempfile
 from collections.abc import Iterable
 from pathlib import Path
 
-from app.engine.cnn import MODEL_FILENAME, SqueezeNet
 from app.engine.configs import DEFAULT_CONFIG, get_config
-from app.evaluate import evaluate
+from app.evaluation.evaluate import evaluate
 
 BASELINE = "sift-vlad-kmeans"
 COMPARED = (BASELINE, "sift-mbvlad", DEFAULT_CONFIG, "hybrid-bin")
@@ -23,13 +22,12 @@ COMPARED = (BASELINE, "sift-mbvlad", DEFAULT_CONFIG, "hybrid-bin")
 def run(
     manifest: Path, models_dir: Path, folds: int = 5, configs: Iterable[str] = COMPARED, progress=print
 ) -> list[dict]:
-    cnn = SqueezeNet(models_dir / MODEL_FILENAME)
-    cnn.load()
     out = []
     with tempfile.TemporaryDirectory(prefix="geoloc-bench-cache-") as cache:
         for name in configs:
             progress(f"baseline comparison: evaluating {name} ({folds} folds)")
-            result = evaluate(manifest, get_config(name), cnn, folds=folds, workers=1, cache_dir=Path(cache))
-            result.pop("queries", None)
-            out.append(result)
+            result = evaluate(
+                manifest, get_config(name), folds=folds, workers=1, cache_dir=Path(cache), models_dir=models_dir
+            )
+            out.append(result.model_dump(exclude={"queries"}))
     return out

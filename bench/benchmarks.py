@@ -26,12 +26,12 @@ from dataclasses import asdict
 from pathlib import Path
 
 from app.engine.configs import DEFAULT_CONFIG, get_config
-from app.server_process import ServerProcess
 from bench import baseline as baseline_mod
 from bench import compare_configs, search_scaling
 from bench.common import MANIFEST, REPO, is_photo, machine, marked_sections, penn_rows, write_section
 from bench.load import format_report, run_load
 from bench.locate_latency import Floor, collection_rows, full_size_queries, ingest, measure_locate
+from tools.server_process import ServerProcess
 
 SHARED = REPO.parent / "shared"
 COMMAND = ".venv/bin/python -m bench.benchmarks"

@@ -17,9 +17,9 @@ import httpx
 import numpy as np
 from prometheus_client.parser import text_string_to_metric_families
 
-from app.datasets import Row, read_manifest
+from app.evaluation.datasets import Row, read_manifest
 from app.runtime import tune_malloc
-from app.server_process import wait_job
+from tools.server_process import wait_job
 
 tune_malloc()  # the bench process measures the floor: same allocator settings as `geoloc serve`
 

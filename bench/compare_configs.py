@@ -21,8 +21,8 @@ from pathlib import Path
 from app.core import GeolocService, Upload
 from app.encoding import EncodeItem, LocalEngine, encode_and_complete
 from app.engine.geo import haversine_m
-from app.server_process import ServerProcess
 from bench.common import REPO, is_photo, machine, median_ms, penn_rows, percentiles, write_section
+from tools.server_process import ServerProcess
 
 COMMAND = ".venv/bin/python -m bench.compare_configs"
 

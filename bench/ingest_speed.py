@@ -34,8 +34,9 @@ for _var in ("GEOLOC_ORT_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "M
 
 import cv2  # noqa: E402
 
-from app.core import Encoded, GeolocService, Upload  # noqa: E402
+from app.core import GeolocService, Upload  # noqa: E402
 from app.encoding import EncodeItem, LocalEngine, encode_and_complete  # noqa: E402
+from app.encoding.items import Encoded  # noqa: E402
 from app.engine.imageio import load_image  # noqa: E402
 from bench.common import REPO, write_section  # noqa: E402
 
@@ -123,7 +124,7 @@ def cost_split(service: GeolocService, items: list[EncodeItem]) -> dict[str, flo
 
 
 def measure(kind: str, n: int, args, root: Path) -> dict:
-    from app.ray_engine import RayEngine
+    from app.encoding.ray import RayEngine
 
     images = uploads(kind, n)
     service, items = fresh(root, args.models_dir, args.config, images)
@@ -256,7 +257,7 @@ def main() -> None:
 
     import ray
 
-    from app.ray_engine import connect
+    from app.encoding.ray import connect
 
     cv2.setNumThreads(1)
     load0 = os.getloadavg()[0]

@@ -25,7 +25,6 @@ import httpx
 import numpy as np
 
 from app.engine.imageio import load_image
-from app.server_process import ServerProcess
 from bench.common import (
     REPO,
     is_photo,
@@ -36,6 +35,7 @@ from bench.common import (
     resident_bytes,
     synthetic_reference,
 )
+from tools.server_process import ServerProcess
 
 MAX_SECONDS = 900
 MAX_CLIENTS = 64

@@ -13,12 +13,12 @@ from pathlib import Path
 
 import httpx
 
-from app.datasets import Row
-from app.engine.cnn import MODEL_FILENAME, SqueezeNet
 from app.engine.configs import PipelineConfig
 from app.engine.extractors import build_extractor
 from app.engine.geo import haversine_m
 from app.engine.imageio import ImageLimits, load_image
+from app.engine.models.registry import build_global_model
+from app.evaluation.datasets import Row
 from app.settings import Settings
 from bench.common import is_photo, median_ms, percentiles, post_references
 
@@ -55,12 +55,12 @@ def ingest(client: httpx.Client, rows: list[Row], kind: str, batch: int = 8) -> 
 
 
 class Floor:
-    """decode + SqueezeNet + local features, as the configuration runs them, and nothing else."""
+    """decode + the global model + local features, as the configuration runs them, and nothing else."""
 
     def __init__(self, models_dir: Path, config: PipelineConfig):
         self.config = config
-        self.cnn = SqueezeNet(models_dir / MODEL_FILENAME)
-        self.cnn.load()
+        self.global_model = build_global_model(config.global_model, models_dir)
+        self.global_model.load()
         self.local = build_extractor(
             config.local, models_dir, max_keypoints=config.max_keypoints, long_side=config.local_long_side
         )
@@ -73,7 +73,7 @@ class Floor:
         t["decode"] = time.perf_counter()
         self.local(img.rgb)  # the order Pipeline.extract runs them in
         t["local_features"] = time.perf_counter()
-        self.cnn.features(img.rgb, self.config.cnn_short_side)
+        self.global_model.dense(img.rgb, self.config.cnn_short_side)
         t["cnn"] = time.perf_counter()
         out, prev = {}, t0
         for k, v in t.items():

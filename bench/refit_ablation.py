@@ -20,8 +20,8 @@ from pathlib import Path
 import numpy as np
 
 from app.core import GeolocService, LocateOptions
-from app.datasets import read_manifest
 from app.engine.geo import haversine_m
+from app.evaluation.datasets import read_manifest
 
 
 def recall(service: GeolocService, rows, radius_m: float) -> dict:

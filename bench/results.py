@@ -15,10 +15,9 @@ import platform
 import time
 from pathlib import Path
 
-from app.datasets import read_manifest
-from app.engine.cnn import MODEL_FILENAME, SqueezeNet
 from app.engine.configs import CONFIGS, get_config
-from app.evaluate import evaluate, format_summary, write_report
+from app.evaluation.datasets import read_manifest
+from app.evaluation.evaluate import evaluate, format_summary, write_report
 from app.runtime import tune_malloc
 
 REPO = Path(__file__).resolve().parents[1]
@@ -132,8 +131,6 @@ def main() -> None:
     ap.add_argument("--no-write", action="store_true", help="do not rewrite docs/RESULTS.md")
     args = ap.parse_args()
 
-    cnn = SqueezeNet(args.models_dir / MODEL_FILENAME)
-    cnn.load()
     cache = args.out / "cache"
     started = time.time()
 
@@ -142,7 +139,6 @@ def main() -> None:
         r = evaluate(
             args.manifest,
             cfg,
-            cnn,
             folds=args.folds,
             mode=mode,
             cache_dir=cache,
@@ -154,7 +150,7 @@ def main() -> None:
         tag = cfg.name + (f"-{mode}" if mode else "") + (f"-svm-{kind}-{bank}" if bank != "off" else "")
         write_report(r, args.out / f"{tag}.json")
         print(format_summary(r), flush=True)
-        return r
+        return r.model_dump()  # the report's JSON form, which the tables below are made from
 
     main_results = {name: run(name, None, {}) for name in CONFIGS}
     ablation = [] if args.no_sweeps else [(k, sel, run("hybrid", None, {}, sel, k)) for k, sel in ABLATION]

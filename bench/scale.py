@@ -21,9 +21,9 @@ from pathlib import Path
 
 import httpx
 
-from app.server_process import ServerProcess, wait_job
 from bench.common import write_section
 from bench.seed import placeholder, seed
+from tools.server_process import ServerProcess, wait_job
 
 REPO = Path(__file__).resolve().parents[1]
 PENN = REPO.parent / "shared" / "data" / "penn-campus-gps" / "photos"

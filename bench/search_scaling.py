@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from app.engine.configs import get_config
-from app.engine.search import ReferenceIndex
+from app.engine.index.references import ReferenceIndex
 from bench.common import median_ms
 
 SIZES = (1_000, 10_000, 100_000, 1_000_000)

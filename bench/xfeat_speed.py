@@ -18,7 +18,6 @@ import os
 import time
 from pathlib import Path
 
-from app.engine.cnn import MODEL_FILENAME, SqueezeNet
 from app.engine.configs import get_config
 from app.engine.extractors import build_extractor
 from app.engine.imageio import load_image
@@ -51,10 +50,9 @@ def main() -> None:
         ),
     }
     if args.extract:
-        cnn = SqueezeNet(args.models_dir / MODEL_FILENAME)
-        cnn.load()
-        stages["extract hybrid"] = Pipeline(sift_cfg, cnn=cnn, models_dir=args.models_dir).extract
-        stages["extract hybrid-xfeat"] = Pipeline(xfeat_cfg, cnn=cnn, models_dir=args.models_dir).extract
+        hybrid = Pipeline(sift_cfg, models_dir=args.models_dir)
+        stages["extract hybrid"] = hybrid.extract
+        stages["extract hybrid-xfeat"] = Pipeline(xfeat_cfg, hybrid.global_model, models_dir=args.models_dir).extract
     photos = sorted(args.photos.glob("*.jpg"))[: args.limit or None]
     rgbs = [load_image(p.read_bytes()).rgb for p in photos]
     for fn in stages.values():  # warm-up: sessions, allocator, caches

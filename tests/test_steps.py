@@ -8,7 +8,7 @@ from tests.conftest import REPO
 
 def _step(tmp_path, *cmd):
     return subprocess.run(
-        [sys.executable, str(REPO / "app" / "steps.py"), *cmd], capture_output=True, text=True, cwd=tmp_path
+        [sys.executable, str(REPO / "tools" / "steps.py"), *cmd], capture_output=True, text=True, cwd=tmp_path
     )
 
 

@@ -7,18 +7,18 @@ import sqlite3
 import numpy as np
 import pytest
 
-from app.datasets import read_manifest
 from app.engine.configs import get_config
 from app.engine.errors import IncompatibleArtifact
 from app.engine.imageio import load_image
 from app.engine.pipeline import Pipeline
+from app.evaluation.datasets import read_manifest
 from app.store import NewReference, ReferenceStore, StorageUnavailable
 
 
 @pytest.fixture(scope="module")
 def fitted(mini_manifest, squeezenet):
     rows = [r for r in read_manifest(mini_manifest) if r.split == "db"]
-    pipe = Pipeline(get_config("hybrid-bin"), cnn=squeezenet)
+    pipe = Pipeline(get_config("hybrid-bin"), global_model=squeezenet)
     feats = [pipe.extract(load_image(r.image.read_bytes()).rgb) for r in rows]
     pipe.fit(feats)
     return pipe, rows, [pipe.encode_features(f) for f in feats]
@@ -135,7 +135,7 @@ def test_a_collection_refuses_codes_from_another_pipeline(tmp_path, fitted):
     store = ReferenceStore(tmp_path)
     store.bind(pipe)
     store.add_many([_new(rows[0], codes[0])])
-    other = Pipeline(get_config("hybrid-bin"), cnn=pipe.cnn)
+    other = Pipeline(get_config("hybrid-bin"), global_model=pipe.global_model)
     other.codebook, other.pca, other.binariser = pipe.codebook, pipe.pca, None
     with pytest.raises(IncompatibleArtifact, match="--config the collection was built with"):
         store.bind(other)

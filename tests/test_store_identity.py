@@ -15,10 +15,10 @@ import stat
 import pytest
 
 from app.collection import Collection
-from app.datasets import read_manifest
 from app.engine.configs import get_config
 from app.engine.imageio import load_image
 from app.engine.pipeline import Pipeline
+from app.evaluation.datasets import read_manifest
 from app.snapshots import MANIFEST, SnapshotMismatch, SnapshotUnverifiable, check_binding
 from app.store import DB_NAME, NewReference, ReferenceStore
 
@@ -26,7 +26,7 @@ from app.store import DB_NAME, NewReference, ReferenceStore
 @pytest.fixture(scope="module")
 def fitted(mini_manifest, squeezenet):
     rows = [r for r in read_manifest(mini_manifest) if r.split == "db"][:12]
-    pipe = Pipeline(get_config("hybrid-bin"), cnn=squeezenet)
+    pipe = Pipeline(get_config("hybrid-bin"), global_model=squeezenet)
     feats = [pipe.extract(load_image(r.image.read_bytes()).rgb) for r in rows]
     pipe.fit(feats)
     return pipe, rows, [pipe.encode_features(f) for f in feats]

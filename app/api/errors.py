@@ -23,9 +23,9 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from app.core import InvalidRequest
 from app.engine import errors as e
 from app.engine.configs import UnknownConfig
-from app.engine.search import UnsupportedMode
-from app.engine.svm_training import NothingToTrainOn
-from app.evaluate import ManifestCannotBeEvaluated
+from app.engine.index.references import UnsupportedMode
+from app.engine.training.svm_training import NothingToTrainOn
+from app.evaluation.evaluate import ManifestCannotBeEvaluated
 from app.operations import OperationRefused
 from app.reindex import RefitError
 from app.store import StaleReindex, StorageUnavailable, is_storage_error

@@ -28,7 +28,11 @@ class PipelineConfig(BaseModel):
     local: Literal["sift", "orb", "xfeat"] | None = "sift"
     local_long_side: int = 640
     max_keypoints: int = 1000
-    #: CNN (SqueezeNet fire9): used as local descriptors (hybrid) and/or as a pooled global descriptor.
+    #: The global model (a registry name, ``app.engine.models.registry``): its dense map is sampled at the
+    #: keypoints (hybrid, ``cnn_local_weight``) and/or GeM-pooled into a global descriptor
+    #: (``cnn_global_weight``). The ``cnn_*`` fields are that model's settings (the names predate the
+    #: registry and stay, so pipelines fitted before it load unchanged).
+    global_model: str = "squeezenet"
     cnn_short_side: int = 448
     cnn_local_weight: float = 0.0  # > 0: feature-level hybrid, fire9 sampled at each keypoint
     cnn_global_weight: float = 0.0  # > 0: GeM vector joined to the aggregated one (image-level hybrid)
@@ -53,12 +57,15 @@ class PipelineConfig(BaseModel):
     #: only the features it keeps; False aggregates every feature. Ignored without local features. The
     #: default is True so that the definitions fitted before this field existed stay equal (Pipeline.load).
     svm_bank: bool = True
+    #: The matcher that verifies the top candidates (``rerank``), by registry name.
+    matcher: str = "sift-mnn"
 
     #: Fields that change what ``Pipeline.extract`` returns (the evaluation caches features by them).
     EXTRACTION_FIELDS: ClassVar[tuple[str, ...]] = (
         "local",
         "local_long_side",
         "max_keypoints",
+        "global_model",
         "cnn_short_side",
         "cnn_local_weight",
         "cnn_global_weight",
@@ -81,7 +88,7 @@ class PipelineConfig(BaseModel):
         return PipelineConfig.model_validate(data)
 
     @property
-    def uses_cnn(self) -> bool:
+    def uses_global_model(self) -> bool:
         return self.cnn_local_weight > 0 or self.cnn_global_weight > 0 or self.local is None
 
     @property
@@ -171,6 +178,11 @@ CONFIGS: dict[str, PipelineConfig] = {
     ]
 }
 DEFAULT_CONFIG = "hybrid"
+
+
+def register_config(config: PipelineConfig) -> None:
+    """Add a named configuration (a plug-in model's, next to its registry entry)."""
+    CONFIGS[config.name] = config
 
 
 def get_config(name: str) -> PipelineConfig:

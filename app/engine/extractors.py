@@ -16,7 +16,7 @@ import numpy as np
 
 from app.engine.errors import ModelNotReady
 from app.engine.local_features import LocalFeatures, Orb, RootSift
-from app.engine.xfeat import XFeatFeatures
+from app.engine.models.xfeat import XFeatFeatures
 
 
 class LocalExtractor(Protocol):
@@ -30,6 +30,13 @@ class LocalExtractor(Protocol):
 
 
 REGISTRY: dict[str, type] = {"sift": RootSift, "orb": Orb, "xfeat": XFeatFeatures}
+
+
+def extractor_files(name: str) -> tuple[str, ...]:
+    """Built files (relative to the models dir) the extractor ``name`` reads; none for handcrafted ones."""
+    if name not in REGISTRY:
+        raise ValueError(f"unknown local-feature extractor {name!r}; choose one of {', '.join(REGISTRY)}")
+    return tuple(getattr(REGISTRY[name], "model_files", ()))
 
 
 def build_extractor(name: str, models_dir: Path | None = None, **conf) -> LocalExtractor:

@@ -15,12 +15,14 @@ from pathlib import Path
 
 import numpy as np
 
-from app.engine import cnn as cnn_mod
 from app.engine.artifacts import atomic_write_bytes, library_versions
 from app.engine.codes import Binariser
 from app.engine.configs import PipelineConfig, get_config
+from app.engine.dense import gem_pool, sample_at
 from app.engine.errors import IncompatibleArtifact, ModelNotReady
 from app.engine.extractors import build_extractor
+from app.engine.models.base import GlobalModel, Matcher
+from app.engine.models.registry import build_global_model, build_matcher, global_model_entry
 from app.engine.pca import PcaWhitening, l2_normalize
 from app.engine.svm_bank import SvmBank
 from app.engine.vlad import Codebook, vlad
@@ -35,7 +37,7 @@ class Features:
 
     local: np.ndarray | None  # (N, D) descriptors to aggregate (RootSIFT/ORB bits, or hybrid)
     xy: np.ndarray | None  # (N, 2) keypoint positions as fractions of width/height
-    global_: np.ndarray | None  # (512,) GeM of fire9, L2-normalised
+    global_: np.ndarray | None  # (C,) GeM of the global model's dense map, L2-normalised
     timings_ms: dict[str, float] = field(default_factory=dict)
     orb_raw: np.ndarray | None = None  # packed ORB bits, for geometric re-ranking
     config: str | None = None  # the configuration that extracted them (a re-fit may change it)
@@ -73,7 +75,7 @@ class Pipeline:
     def __init__(
         self,
         config: PipelineConfig,
-        cnn: cnn_mod.SqueezeNet | None = None,
+        global_model: GlobalModel | None = None,
         codebook: Codebook | None = None,
         pca: PcaWhitening | None = None,
         binariser: Binariser | None = None,
@@ -81,9 +83,19 @@ class Pipeline:
         bank: SvmBank | None = None,
         models_dir: Path | None = None,
     ):
-        """``models_dir`` holds the learned local-feature models (XFeat); handcrafted ones need none."""
+        """``models_dir`` holds the built models (the global model, learned local extractors); a
+        ``global_model`` given here (loaded once, shared by tests or an evaluation) wins over the one the
+        registry would build from the models dir."""
         self.config = config
-        self.cnn = cnn
+        if config.uses_global_model and global_model is None:
+            if models_dir is None:
+                raise ModelNotReady(
+                    f"configuration {config.name} needs the {config.global_model} model: give the models dir"
+                )
+            global_model = build_global_model(config.global_model, models_dir)
+        self.global_model = global_model if config.uses_global_model else None
+        self.models_dir = models_dir
+        self._matcher: Matcher | None = None
         self.codebook = codebook
         self.pca = pca
         self.binariser = binariser
@@ -98,16 +110,21 @@ class Pipeline:
             if config.local
             else None
         )
-        if config.uses_cnn and cnn is None:
-            raise ModelNotReady(f"configuration {config.name} needs the SqueezeNet model")
 
     def load_models(self) -> None:
         """Load every ONNX model now (a service wants a missing file at start-up, not at its first query)."""
-        if self.cnn is not None:
-            self.cnn.load()
+        if self.global_model is not None:
+            self.global_model.load()
         model = getattr(self._local, "model", None)  # learned extractors hold an OnnxModel
         if model is not None:
             model.load()
+
+    @property
+    def matcher(self) -> Matcher:
+        """The configuration's matcher (``rerank``), built on first use: most requests never verify."""
+        if self._matcher is None:
+            self._matcher = build_matcher(self.config.matcher, self.models_dir)
+        return self._matcher
 
     # -- stage 1: features ----------------------------------------------------------------------------
     def extract(self, rgb: np.ndarray) -> Features:
@@ -118,14 +135,14 @@ class Pipeline:
             with _Timer(t, "local_features"):
                 lf = self._local(rgb)
             local, xy, orb_raw = lf.descriptors, lf.xy, lf.raw
-        if c.uses_cnn:
+        if self.global_model is not None:
             with _Timer(t, "cnn"):
-                out = self.cnn.features(rgb, c.cnn_short_side)
+                dense = self.global_model.dense(rgb, c.cnn_short_side)
             if c.cnn_global_weight > 0 or local is None:
-                gem = cnn_mod.gem_pool(out.fire9, c.gem_p)
+                gem = gem_pool(dense, c.gem_p)
             if c.cnn_local_weight > 0 and local is not None:
                 with _Timer(t, "hybrid"):
-                    sampled = cnn_mod.sample_at(out.fire9, xy)
+                    sampled = sample_at(dense, xy)
                     local = np.hstack([_unit(local), c.cnn_local_weight * _unit(sampled)]).astype(np.float32)
         return Features(local=local, xy=xy, global_=gem, timings_ms=t, orb_raw=orb_raw, config=c.name)
 
@@ -182,7 +199,8 @@ class Pipeline:
         if self.pca is not None:
             return self.pca.dim
         d = self.codebook.k * self.codebook.dim if self.codebook is not None else 0
-        return d + (512 if self.config.cnn_global_weight > 0 or self.config.local is None else 0)
+        uses_gem = self.config.cnn_global_weight > 0 or self.config.local is None
+        return d + (global_model_entry(self.config.global_model).dim if uses_gem else 0)
 
     @property
     def bits(self) -> int | None:
@@ -234,7 +252,7 @@ class Pipeline:
         atomic_write_bytes(directory / PIPELINE_MANIFEST, json.dumps(manifest, indent=1).encode())
 
     @classmethod
-    def load(cls, directory: Path, cnn: cnn_mod.SqueezeNet | None, models_dir: Path | None = None) -> Pipeline:
+    def load(cls, directory: Path, global_model: GlobalModel | None = None, models_dir: Path | None = None) -> Pipeline:
         mpath = directory / PIPELINE_MANIFEST
         if not mpath.exists():
             raise ModelNotReady(f"no fitted pipeline in {directory}: run `geoloc fit` first")
@@ -252,7 +270,7 @@ class Pipeline:
         c = known
         return cls(
             c,
-            cnn=cnn if c.uses_cnn else None,
+            global_model=global_model,
             codebook=Codebook.load(directory) if c.local else None,
             pca=PcaWhitening.load(directory) if c.pca_dim else None,
             binariser=Binariser.load(directory) if c.binary else None,
@@ -292,11 +310,7 @@ class PipelineSource:
         return cls(Path(models_dir), pipeline_dir(Path(models_dir), config_name), config_name)
 
     def load(self) -> Pipeline:
-        config = get_config(self.config)
-        cnn = cnn_mod.SqueezeNet(self.models_dir / cnn_mod.MODEL_FILENAME) if config.uses_cnn else None
-        if cnn is not None:
-            cnn.load()
-        pipe = Pipeline.load(self.directory, cnn, self.models_dir)
+        pipe = Pipeline.load(self.directory, models_dir=self.models_dir)
         pipe.load_models()
         pipe.source = self
         return pipe

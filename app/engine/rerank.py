@@ -153,6 +153,18 @@ def verify_features(query: PixelFeatures, ref: PixelFeatures) -> Verification:
     return verify(query.xy, query.descriptors, ref.xy, ref.descriptors)
 
 
+class SiftMnnMatcher:
+    """The default matcher (registry name ``sift-mnn``): RootSIFT at ``VERIFY_LONG_SIDE``, mutual nearest
+    neighbours with the ratio test, then the H-or-F geometry. Stateless, so one instance serves every
+    request."""
+
+    def features(self, rgb: np.ndarray) -> PixelFeatures:
+        return features_for_verification(rgb)
+
+    def match(self, query: PixelFeatures, candidate: PixelFeatures) -> Verification:
+        return verify_features(query, candidate)
+
+
 #: The fused score's inlier bonus: inliers up to ``FUSION_FLOOR`` count for nothing (on penn, wrong pairs'
 #: chosen-model inliers have median 12 and p99 20: MAGSAC finds a dozen F "inliers" among any matches),
 #: then the bonus rises towards ``FUSION_WEIGHT``, reached at a few times ``FUSION_SCALE`` inliers above

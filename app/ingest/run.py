@@ -25,8 +25,9 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from app.core import Encoded, GeolocService, Upload, prepare_upload
+from app.core import GeolocService, Upload, prepare_upload
 from app.encoding import EncodeItem, batched, encode_and_complete, make_engine
+from app.encoding.items import Encoded
 from app.engine.errors import (
     GeolocError,
     ImageTooLarge,

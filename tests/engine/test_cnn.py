@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from app.engine.cnn import gem_pool, resize_short_side, sample_at
+from app.engine.dense import gem_pool, resize_short_side, sample_at
 from app.engine.imageio import load_image
 
 

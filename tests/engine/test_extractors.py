@@ -3,14 +3,14 @@
 import numpy as np
 import pytest
 
-from app.datasets import read_manifest
 from app.engine.configs import get_config
 from app.engine.errors import ModelNotReady
 from app.engine.extractors import REGISTRY, build_extractor
 from app.engine.imageio import load_image
 from app.engine.local_features import RootSift
+from app.engine.models.xfeat import XFeatFeatures
 from app.engine.pipeline import Pipeline, load_pipeline, pipeline_dir
-from app.engine.xfeat import XFeatFeatures
+from app.evaluation.datasets import read_manifest
 from tests.conftest import penn_photo
 
 
@@ -49,7 +49,7 @@ def test_missing_model_file_says_how_to_build_it(tmp_path, rgb):
 def test_xfeat_configurations_fit_save_and_load(name, mini_manifest, squeezenet, models_dir, xfeat, tmp_path):
     cfg = get_config(name).with_overrides({"k": 8, "max_keypoints": 400})
     rows = [r for r in read_manifest(mini_manifest) if r.split != "query"][:12]
-    pipe = Pipeline(cfg, cnn=squeezenet, models_dir=models_dir)
+    pipe = Pipeline(cfg, global_model=squeezenet, models_dir=models_dir)
     feats = [pipe.extract(load_image(r.image.read_bytes()).rgb) for r in rows]
     dim = 64 + (512 if cfg.cnn_local_weight > 0 else 0)
     assert all(f.local.shape == (400, dim) for f in feats)
@@ -58,13 +58,13 @@ def test_xfeat_configurations_fit_save_and_load(name, mini_manifest, squeezenet,
     a = pipe.encode_features(feats[0]).float_
     assert a.shape == (pipe.float_dim,) and np.linalg.norm(a) == pytest.approx(1, abs=1e-5)
     # The overridden name is not a registered configuration: save and reload under the base name.
-    base = Pipeline(get_config(name), cnn=squeezenet, models_dir=models_dir)
+    base = Pipeline(get_config(name), global_model=squeezenet, models_dir=models_dir)
     base.codebook, base.pca, base.manifest = pipe.codebook, pipe.pca, pipe.manifest
     base.save(tmp_path)
     loaded = Pipeline.load(tmp_path, squeezenet, models_dir)
     assert np.array_equal(loaded.encode_features(feats[0]).float_, base.encode_features(feats[0]).float_)
     with pytest.raises(ModelNotReady):
-        Pipeline(get_config(name), cnn=squeezenet)  # no models dir: XFeat cannot be built
+        Pipeline(get_config(name), global_model=squeezenet)  # no models dir: XFeat cannot be built
     # A service loads every model at start-up: a models dir without the ONNX files fails there.
     empty = tmp_path / "empty-models"
     base.save(pipeline_dir(empty, name))

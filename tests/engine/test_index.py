@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from app.engine.index import VectorIndex
+from app.engine.index.vectors import VectorIndex
 
 
 def _data(binary: bool, n: int = 300, dim: int = 64):

@@ -7,13 +7,13 @@ import pytest
 from PIL import Image
 
 from app.core import LocateOptions, locate_features
-from app.datasets import read_manifest
 from app.engine.configs import get_config
 from app.engine.errors import IncompatibleArtifact, ModelNotReady
 from app.engine.imageio import load_image
+from app.engine.index.references import ReferenceIndex
 from app.engine.pipeline import Pipeline
-from app.engine.search import ReferenceIndex
-from app.evaluate import RowReferences
+from app.evaluation.datasets import read_manifest
+from app.evaluation.evaluate import RowReferences
 
 
 @pytest.fixture(scope="module")
@@ -25,7 +25,7 @@ def images(mini_manifest):
 @pytest.mark.parametrize("name", ["sift-mbvlad", "hybrid-bin", "orb-mbvlad-bin", "squeezenet-gem"])
 def test_fit_save_load_gives_identical_codes(name, images, squeezenet, tmp_path):
     rows, rgbs = images
-    pipe = Pipeline(get_config(name), cnn=squeezenet)
+    pipe = Pipeline(get_config(name), global_model=squeezenet)
     feats = [pipe.extract(x) for x in rgbs]
     pipe.fit(feats, seed=0)
     pipe.save(tmp_path)
@@ -43,7 +43,7 @@ def test_fit_save_load_gives_identical_codes(name, images, squeezenet, tmp_path)
 def test_a_reencoded_reference_is_found_first(images, squeezenet):
     """A reference photo, downscaled and re-compressed, comes back as the top candidate."""
     rows, rgbs = images
-    pipe = Pipeline(get_config("hybrid"), cnn=squeezenet)
+    pipe = Pipeline(get_config("hybrid"), global_model=squeezenet)
     feats = [pipe.extract(x) for x in rgbs]
     pipe.fit(feats, seed=0)
     index = ReferenceIndex(pipe.config, pipe.float_dim, pipe.bits)
@@ -65,7 +65,7 @@ def test_loading_needs_a_fit_and_the_same_definition(tmp_path, squeezenet, image
     with pytest.raises(ModelNotReady):
         Pipeline.load(tmp_path, squeezenet)
     rows, rgbs = images
-    pipe = Pipeline(get_config("sift-mbvlad").with_overrides({"k": 8}), cnn=None)
+    pipe = Pipeline(get_config("sift-mbvlad").with_overrides({"k": 8}), global_model=None)
     pipe.fit([pipe.extract(x) for x in rgbs[:6]])
     pipe.save(tmp_path)
     with pytest.raises(Exception, match="unknown configuration|older definition"):
@@ -74,5 +74,5 @@ def test_loading_needs_a_fit_and_the_same_definition(tmp_path, squeezenet, image
 
 def test_a_config_that_needs_the_cnn_refuses_to_start_without_it():
     with pytest.raises(ModelNotReady):
-        Pipeline(get_config("hybrid"), cnn=None)
+        Pipeline(get_config("hybrid"), global_model=None)
     _ = IncompatibleArtifact

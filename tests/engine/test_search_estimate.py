@@ -6,7 +6,7 @@ import pytest
 from app.engine.configs import CONFIGS, get_config
 from app.engine.estimate import MARGIN_M, RADIUS_FLOOR_M, fuse_position
 from app.engine.geo import haversine_m
-from app.engine.search import ReferenceIndex, UnsupportedMode
+from app.engine.index.references import ReferenceIndex, UnsupportedMode
 
 
 def _codes(n=500, dim=64, bits=64, seed=0):

@@ -7,9 +7,9 @@ import numpy as np
 import onnx
 import pytest
 
-from app.engine.cnn import MODEL_FILENAME, softmax
+from app.engine.convert.squeezenet_onnx import build_squeezenet_onnx
 from app.engine.errors import ModelBuildError
-from app.engine.squeezenet_onnx import build_squeezenet_onnx
+from app.engine.models.squeezenet import MODEL_FILENAME, softmax
 from tests.conftest import CHECK_IMAGES
 
 

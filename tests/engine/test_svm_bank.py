@@ -10,7 +10,7 @@ import pytest
 from app.engine.imageio import load_image
 from app.engine.local_features import RootSift
 from app.engine.svm_bank import BankParams, SvmBank, label_features
-from app.engine.svm_training import negative_radius
+from app.engine.training.svm_training import negative_radius
 from tests.conftest import PENN
 
 
@@ -128,7 +128,7 @@ def test_negative_radius_rule():
 
 def test_the_collection_sample_takes_whole_groups_up_to_the_cap():
     from app.engine.pipeline import Features
-    from app.engine.svm_training import Geotagged, sample_references
+    from app.engine.training.svm_training import Geotagged, sample_references
 
     none = Features(local=None, xy=None, global_=None)
     # 30 groups of 1 to 4 references each (a photo and its crops), 75 references in all.

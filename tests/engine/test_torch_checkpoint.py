@@ -8,9 +8,9 @@ import zipfile
 import numpy as np
 import pytest
 
+from app.engine.convert.torch_checkpoint import UnsafeCheckpoint, read_state_dict
+from app.engine.convert.xfeat_onnx import read_wheel, verify_wheel
 from app.engine.errors import ModelBuildError
-from app.engine.torch_checkpoint import UnsafeCheckpoint, read_state_dict
-from app.engine.xfeat_onnx import read_wheel, verify_wheel
 
 
 def test_xfeat_tensors_have_the_documented_names_and_shapes(xfeat_wheel):

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from app.engine.imageio import load_image
-from app.engine.xfeat import XFeat, grid_coords, mutual_nn, nms, pixel_shuffle, sample_bicubic
+from app.engine.models.xfeat import XFeat, grid_coords, mutual_nn, nms, pixel_shuffle, sample_bicubic
 from tests.conftest import penn_photo
 
 LONG_SIDE = 720

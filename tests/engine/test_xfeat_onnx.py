@@ -12,10 +12,10 @@ import numpy as np
 import onnx
 import pytest
 
+from app.engine.convert.torch_checkpoint import read_state_dict
+from app.engine.convert.xfeat_onnx import read_wheel
 from app.engine.imageio import load_image
-from app.engine.torch_checkpoint import read_state_dict
-from app.engine.xfeat import MODEL_FILENAME
-from app.engine.xfeat_onnx import read_wheel
+from app.engine.models.xfeat import MODEL_FILENAME
 from tests.conftest import penn_photo
 
 EPS = 1e-5

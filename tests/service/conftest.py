@@ -9,8 +9,8 @@ from pathlib import Path
 
 import pytest
 
-from app.datasets import read_manifest
-from app.server_process import ServerProcess, wait_job  # noqa: F401  (re-exported for the tests)
+from app.evaluation.datasets import read_manifest
+from tools.server_process import ServerProcess, wait_job  # noqa: F401  (re-exported for the tests)
 
 CONFIG = "hybrid-bin"
 
@@ -23,7 +23,7 @@ def fitted_models(models_dir, mini_manifest, squeezenet) -> Path:
     from app.engine.pipeline import Pipeline, pipeline_dir
 
     rows = [r for r in read_manifest(mini_manifest) if r.split in ("db", "train")]
-    pipe = Pipeline(get_config(CONFIG), cnn=squeezenet)
+    pipe = Pipeline(get_config(CONFIG), global_model=squeezenet)
     pipe.fit([pipe.extract(load_image(r.image.read_bytes()).rgb) for r in rows])
     pipe.save(pipeline_dir(models_dir, CONFIG))
     return models_dir

@@ -16,7 +16,7 @@ from urllib.parse import urlparse
 
 import pytest
 
-from app.datasets import read_manifest
+from app.evaluation.datasets import read_manifest
 from tests.conftest import CHECK_IMAGES, REPO
 from tests.service.conftest import Server, wait_job
 

@@ -4,7 +4,7 @@ import json
 
 import pytest
 
-from app.datasets import read_manifest
+from app.evaluation.datasets import read_manifest
 from tests.conftest import PENN
 from tests.service.conftest import Server, wait_job
 

@@ -243,7 +243,7 @@ def test_a_bug_answers_json_500_and_keeps_the_connection():
     from starlette.responses import JSONResponse
 
     from app.api.errors import LastResort
-    from app.server_process import free_port
+    from tools.server_process import free_port
 
     async def buggy(scope, receive, send):
         if scope["path"] == "/bug":

@@ -11,7 +11,7 @@ import time
 
 import pytest
 
-from app.datasets import read_manifest
+from app.evaluation.datasets import read_manifest
 from tests.conftest import PENN
 from tests.service.conftest import CONFIG, Server, wait_job
 

@@ -3,7 +3,7 @@ The figures it prints are not checked (they belong to docs/BENCHMARKS.md, not to
 
 import pytest
 
-from app.datasets import read_manifest
+from app.evaluation.datasets import read_manifest
 from bench.load import format_report, run_load
 from tests.service.conftest import Server
 

@@ -19,7 +19,7 @@ from tests.conftest import PENN
 from tests.service.conftest import CONFIG
 
 ray = pytest.importorskip("ray", reason="the ray extra is not installed (pip install geoloc[ray])")
-from app.ray_engine import RayEngine, RayEngineError, connect  # noqa: E402
+from app.encoding.ray import RayEngine, RayEngineError, connect  # noqa: E402
 
 pytestmark = pytest.mark.ray
 
@@ -159,8 +159,8 @@ def test_a_pool_larger_than_the_cluster_times_out_with_a_clear_error(ray_cluster
 
 
 def test_the_shipped_package_loads_the_same_pipeline(tmp_path, fitted_models):
+    from app.encoding.ray import PipelinePackage, model_files
     from app.engine.pipeline import PipelineSource
-    from app.ray_engine import PipelinePackage, model_files
 
     source = PipelineSource.default(fitted_models, CONFIG)
     package = PipelinePackage.of(source)

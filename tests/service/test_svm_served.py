@@ -11,9 +11,9 @@ import sys
 
 import pytest
 
-from app.datasets import read_manifest
-from app.engine.cnn import MODEL_FILENAME
-from app.server_process import ServerProcess, wait_job
+from app.engine.models.squeezenet import MODEL_FILENAME
+from app.evaluation.datasets import read_manifest
+from tools.server_process import ServerProcess, wait_job
 
 CONFIG = "hybrid"
 

@@ -1,4 +1,4 @@
-"""Encoding on a Ray cluster: a pool of encoder actors runs the same ``encode_data`` as the local engine.
+"""Encoding on a Ray cluster: a pool of encoder actors runs the same ``encode_item`` as the local engine.
 
 Why actors (Ray Core) and not a Ray Data pipeline: the driver streams 10^5-10^6 pending rows from a
 generator, ships their bytes and completes what comes back as it arrives. A Ray Data dataset needs its
@@ -31,8 +31,7 @@ from dataclasses import dataclass
 from itertools import islice
 from pathlib import Path
 
-from app.core import Encoded, encode_data, encode_one
-from app.encoding import EncodeItem
+from app.encoding.items import Encoded, EncodeItem, encode_item, read_item
 from app.engine.configs import get_config
 from app.engine.imageio import ImageLimits
 from app.engine.pipeline import PipelineSource
@@ -106,14 +105,10 @@ def connect(address: str, num_cpus: int | None = None, timeout_s: float = START_
 def model_files(source: PipelineSource) -> dict[str, Path]:
     """What an actor needs to load ``source``: the fitted pipeline folder and the ONNX models its
     configuration uses, by their path relative to a models dir."""
-    from app.engine import cnn, xfeat
+    from app.engine.models.registry import files_for
 
     config = get_config(source.config)
-    files: dict[str, Path] = {}
-    if config.uses_cnn:
-        files[cnn.MODEL_FILENAME] = source.models_dir / cnn.MODEL_FILENAME
-    if config.local == "xfeat":
-        files[xfeat.MODEL_FILENAME] = source.models_dir / xfeat.MODEL_FILENAME
+    files = {name: source.models_dir / name for name in files_for(config)}
     if not source.directory.is_dir():
         raise RayEngineError(f"no fitted pipeline in {source.directory}: run `geoloc fit` first")
     for f in sorted(source.directory.iterdir()):
@@ -144,22 +139,6 @@ class PipelinePackage:
         return PipelineSource(into, into / "pipelines" / self.config, self.config)
 
 
-def read_for_shipping(item: EncodeItem) -> EncodeItem | Encoded:
-    """The driver reads a row's bytes to ship them; a missing or unreadable file is answered here with the
-    same outcome ``encode_one`` gives (failed when the image is gone, pending when storage is down)."""
-    if item.data is not None:
-        return item
-    try:
-        return EncodeItem(item.ref_id, item.path, item.path.read_bytes())
-    except FileNotFoundError:
-        if item.path.parent.is_dir():
-            return Encoded(item.ref_id, None, None, "the stored image is missing")
-        return Encoded(item.ref_id, None, None, retry=True)
-    except OSError as e:
-        log.warning("reference %d: cannot read its image now (%s); it stays queued", item.ref_id, e)
-        return Encoded(item.ref_id, None, None, retry=True)
-
-
 # -- the actor ---------------------------------------------------------------------------------------------
 class EncoderActor:
     """One pool member: loads the pipeline once, then encodes batches with the local path's functions."""
@@ -185,12 +164,7 @@ class EncoderActor:
         return time.process_time()
 
     def encode(self, items: list[EncodeItem]) -> list[Encoded]:
-        return [
-            encode_data(self.pipeline, self.limits, i.ref_id, i.data)
-            if i.data is not None
-            else encode_one(self.pipeline, self.limits, i.ref_id, i.path)
-            for i in items
-        ]
+        return [encode_item(self.pipeline, self.limits, i) for i in items]
 
     def cleanup(self) -> None:
         if self.tmp is not None:
@@ -289,7 +263,7 @@ class RayEngine:
                         break
                     batch: list[EncodeItem] = []
                     for item in chunk:
-                        got = item if self.shared_fs else read_for_shipping(item)
+                        got = item if self.shared_fs else read_item(item)
                         if isinstance(got, Encoded):
                             yield got  # answered by the driver: nothing to encode
                         else:

@@ -9,12 +9,12 @@ from __future__ import annotations
 
 import threading
 from pathlib import Path
-from typing import ClassVar
+from typing import ClassVar, Protocol
 
 import numpy as np
 
 from app.engine.errors import ModelNotReady
-from app.engine.ort import create_session
+from app.engine.models.ort import create_session
 
 
 class OnnxModel:
@@ -54,3 +54,26 @@ class OnnxModel:
         if self._session is None:
             self.load()
         return self._session.run(outputs, inputs)
+
+
+class GlobalModel(Protocol):
+    """A pretrained network that turns an image into a dense (H, W, C) feature map. A pipeline GeM-pools it
+    into the global descriptor and samples it at keypoints for the feature-level hybrid
+    (``app.engine.dense``), so a model only has to produce the map. Registered by name in
+    ``app.engine.models.registry``; a configuration names it (``PipelineConfig.global_model``)."""
+
+    #: Channels of the dense map (the global descriptor's length before PCA).
+    dim: int
+
+    def load(self) -> None: ...
+
+    def dense(self, rgb: np.ndarray, short_side: int) -> np.ndarray: ...
+
+
+class Matcher(Protocol):
+    """Pairwise verification of a query against one candidate: features computed once per image, then a
+    match with geometry. Registered by name; a configuration names it (``PipelineConfig.matcher``)."""
+
+    def features(self, rgb: np.ndarray): ...
+
+    def match(self, query, candidate): ...

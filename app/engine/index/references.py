@@ -11,7 +11,7 @@ import numpy as np
 
 from app.engine.configs import PipelineConfig
 from app.engine.errors import GeolocError
-from app.engine.index import VectorIndex
+from app.engine.index.vectors import VectorIndex
 
 
 class UnsupportedMode(GeolocError):

@@ -18,25 +18,78 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from pydantic import BaseModel
 from tqdm import tqdm
 
 from app.core import LocateOptions, RefInfo, Region, locate_features
-from app.datasets import Row, read_manifest
 from app.engine.artifacts import atomic_write_bytes
 from app.engine.configs import PipelineConfig
 from app.engine.errors import GeolocError
 from app.engine.geo import haversine_m
 from app.engine.imageio import load_image
 from app.engine.pipeline import Features, Pipeline
-from app.engine.svm_bank import BankParams
-from app.engine.svm_training import Geotagged, fit_bank_from, index_of
+from app.engine.training.svm_training import Geotagged, index_of
+from app.evaluation.datasets import Row, read_manifest
+from app.fitting import EVAL_BANK_SOURCES, train_bank
 
 RECALL_AT = (1, 5, 10, 20)
-BANK_SOURCES = ("train", "collection")
 
 
 class ManifestCannotBeEvaluated(GeolocError):
     """The manifest's splits and groups leave a fold with nothing to fit on, to index or to query."""
+
+
+class EstimateErrors(BaseModel):
+    """The fused estimate's error over the queries, and how often it was confident and then right."""
+
+    median: float | None
+    p90: float | None
+    confident_fraction: float
+    confident_within_radius: float | None
+    all_within_radius: float | None
+
+
+class WithoutRerank(BaseModel):
+    """With ``rerank``: the same queries located without verification, and the time verification adds."""
+
+    recall_at: dict[str, float]
+    recall_at_per_fold: list[dict[str, float]]
+    rerank_ms_median: float
+    rerank_ms_p90: float
+
+
+class BankSummary(BaseModel):
+    selection: str
+    kind: str | None
+    source: str | None
+    kept_fraction_median: float | None
+    folds: list[dict]  # each fold's bank manifest entries, as the bank wrote them
+
+
+class EvalResult(BaseModel):
+    """One evaluation run. Its JSON form (``model_dump``) is the report ``geoloc eval --out`` writes and
+    docs/RESULTS.md is made from."""
+
+    config: str
+    manifest: str
+    folds: int
+    n_db: int
+    n_query: int
+    radius_m: float
+    mode: str
+    rerank: bool
+    region_radius_m: float | None
+    recall_at: dict[str, float]
+    recall_at_per_fold: list[dict[str, float]]
+    without_rerank: WithoutRerank | None
+    recall_curve: list[float]
+    ms_per_query: dict[str, float]
+    ms_per_query_note: str
+    bytes_per_reference: float
+    estimate_error_m: EstimateErrors
+    svm_bank: BankSummary
+    config_definition: dict
+    queries: list[dict]  # per query: image, group, fold, position, candidates, estimate (the report's rows)
 
 
 @dataclass
@@ -138,7 +191,6 @@ def check_folds(manifest: Path, rows: list[Row], query_sets: list[list[str]]) ->
 def evaluate(
     manifest: Path,
     config: PipelineConfig,
-    cnn,
     radius_m: float = 25.0,
     folds: int = 1,
     seed: int = 0,
@@ -152,8 +204,8 @@ def evaluate(
     region_radius_m: float | None = None,
     bank_source: str = "train",
     models_dir: Path | None = None,
-) -> dict:
-    """``models_dir``: where learned local-feature models (XFeat) are.
+) -> EvalResult:
+    """``models_dir``: where the built models are (the global model through the registry, XFeat).
     ``svm_bank``: off (all features), positive (features the bank predicts useful) or negative (only
     the ones it predicts confusing): the thesis ablation. The bank is trained per fold, never on that
     fold's queries: ``bank_source`` train (the train rows only) or collection (the fold's db rows as
@@ -164,12 +216,12 @@ def evaluate(
     verification and the time it adds per query."""
     if svm_bank not in ("off", "positive", "negative"):
         raise ValueError(f"svm_bank must be off, positive or negative, not {svm_bank!r}")
-    if bank_source not in BANK_SOURCES:
-        raise ValueError(f"bank_source must be one of {BANK_SOURCES}, not {bank_source!r}")
+    if bank_source not in EVAL_BANK_SOURCES:
+        raise ValueError(f"bank_source must be one of {EVAL_BANK_SOURCES}, not {bank_source!r}")
     rows = read_manifest(manifest)
     query_sets = [[r.group for r in rows if r.split == "query"]] if folds <= 1 else assign_folds(rows, folds, seed)
     check_folds(manifest, rows, query_sets)  # before the expensive extraction
-    base = Pipeline(config, cnn=cnn, models_dir=models_dir)
+    base = Pipeline(config, models_dir=models_dir)
     extracted = extract_cached(base, rows, cache_dir, workers)
 
     lat = np.array([r.lat for r in rows])
@@ -184,7 +236,7 @@ def evaluate(
         q_idx = [i for i, r in enumerate(rows) if r.group in qset and r.split != "train"]
         db_idx = [i for i, r in enumerate(rows) if r.group not in qset and r.split != "train"]
         fit_idx = db_idx + [i for i, r in enumerate(rows) if r.split == "train"]
-        pipe = Pipeline(config, cnn=cnn, models_dir=models_dir)
+        pipe = Pipeline(config, base.global_model, models_dir=models_dir)  # one session for every fold
         pipe.fit([extracted[i].features for i in fit_idx], seed=seed + f)
         progress = tqdm(db_idx, desc=f"fold {f + 1}/{len(query_sets)} encode db", unit="img", leave=False)
         index = index_of(pipe, db_idx, (extracted[i].features for i in progress))
@@ -195,8 +247,9 @@ def evaluate(
                 for i, r in enumerate(rows)
                 if r.split == "train"
             ]
-            params = BankParams(kind=bank_kind, seed=seed + f)
-            pipe.bank = fit_bank_from(bank_source, pipe, index, refs, train, params, pos_radius_m=radius_m)
+            pipe.bank = train_bank(
+                pipe, refs, train, bank_source, bank_kind, seed + f, pos_radius_m=radius_m, index=index
+            )
             pipe.bank_select = svm_bank
             bank_reports.append(
                 {
@@ -277,52 +330,54 @@ def evaluate(
     ms = {s: float(statistics.median([t.get(s, 0.0) for t in stage_times])) for s in stages}
     ms["total"] = float(statistics.median([sum(t.values()) for t in stage_times]))
     conf = [ok for c, ok in est_conf if c]
-    result = {
-        "config": config.name,
-        "manifest": str(manifest),
-        "folds": len(query_sets),
-        "n_db": n_db // len(query_sets),
-        "n_query": n_query,
-        "radius_m": radius_m,
-        "mode": mode or config.modes[0],
-        "rerank": rerank,
-        "region_radius_m": region_radius_m,
-        "recall_at": {str(n): float(np.mean([p[str(n)] for p in per_fold])) for n in RECALL_AT},
-        "recall_at_per_fold": per_fold,
-        "without_rerank": None
-        if not rerank
-        else {
-            "recall_at": {str(n): float(np.mean([p[str(n)] for p in per_fold_plain])) for n in RECALL_AT},
-            "recall_at_per_fold": per_fold_plain,
-            "rerank_ms_median": float(statistics.median(rerank_ms)) if rerank_ms else 0.0,
-            "rerank_ms_p90": float(np.percentile(rerank_ms, 90)) if rerank_ms else 0.0,
-        },
-        "recall_curve": [float(x) for x in recall_curve],
-        "ms_per_query": ms,
-        "ms_per_query_note": "median over queries; extraction ran on a 2-thread pool, so per-stage times "
-        "include contention",
-        "bytes_per_reference": bytes_per_ref,
-        "estimate_error_m": {
-            "median": float(np.median(est_err)) if est_err else None,
-            "p90": float(np.percentile(est_err, 90)) if est_err else None,
-            "confident_fraction": len(conf) / max(len(est_conf), 1),
-            "confident_within_radius": float(np.mean(conf)) if conf else None,
-            "all_within_radius": float(np.mean([ok for _, ok in est_conf])) if est_conf else None,
-        },
-        "svm_bank": {
-            "selection": svm_bank,
-            "kind": bank_kind if svm_bank != "off" else None,
-            "source": bank_source if svm_bank != "off" else None,
-            "kept_fraction_median": float(np.median(kept_fractions)) if kept_fractions else None,
-            "folds": bank_reports,
-        },
-        "config_definition": config.model_dump(),
-        "queries": per_query,
-    }
+    result = EvalResult.model_validate(
+        {
+            "config": config.name,
+            "manifest": str(manifest),
+            "folds": len(query_sets),
+            "n_db": n_db // len(query_sets),
+            "n_query": n_query,
+            "radius_m": radius_m,
+            "mode": mode or config.modes[0],
+            "rerank": rerank,
+            "region_radius_m": region_radius_m,
+            "recall_at": {str(n): float(np.mean([p[str(n)] for p in per_fold])) for n in RECALL_AT},
+            "recall_at_per_fold": per_fold,
+            "without_rerank": None
+            if not rerank
+            else {
+                "recall_at": {str(n): float(np.mean([p[str(n)] for p in per_fold_plain])) for n in RECALL_AT},
+                "recall_at_per_fold": per_fold_plain,
+                "rerank_ms_median": float(statistics.median(rerank_ms)) if rerank_ms else 0.0,
+                "rerank_ms_p90": float(np.percentile(rerank_ms, 90)) if rerank_ms else 0.0,
+            },
+            "recall_curve": [float(x) for x in recall_curve],
+            "ms_per_query": ms,
+            "ms_per_query_note": "median over queries; extraction ran on a 2-thread pool, so per-stage times "
+            "include contention",
+            "bytes_per_reference": bytes_per_ref,
+            "estimate_error_m": {
+                "median": float(np.median(est_err)) if est_err else None,
+                "p90": float(np.percentile(est_err, 90)) if est_err else None,
+                "confident_fraction": len(conf) / max(len(est_conf), 1),
+                "confident_within_radius": float(np.mean(conf)) if conf else None,
+                "all_within_radius": float(np.mean([ok for _, ok in est_conf])) if est_conf else None,
+            },
+            "svm_bank": {
+                "selection": svm_bank,
+                "kind": bank_kind if svm_bank != "off" else None,
+                "source": bank_source if svm_bank != "off" else None,
+                "kept_fraction_median": float(np.median(kept_fractions)) if kept_fractions else None,
+                "folds": bank_reports,
+            },
+            "config_definition": config.model_dump(),
+            "queries": per_query,
+        }
+    )
     return result
 
 
-def write_report(result: dict, out: Path) -> Path:
+def write_report(result: EvalResult, out: Path) -> Path:
     """Write the JSON and a Recall@N plot beside it; return the plot's path."""
     import matplotlib
 
@@ -330,23 +385,26 @@ def write_report(result: dict, out: Path) -> Path:
     import matplotlib.pyplot as plt
 
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(result, indent=1))
+    out.write_text(json.dumps(result.model_dump(), indent=1))
     png = out.with_suffix(".png")
-    n = np.arange(1, len(result["recall_curve"]) + 1)
+    n = np.arange(1, len(result.recall_curve) + 1)
     fig, ax = plt.subplots(figsize=(5, 3.5))
-    ax.plot(n, result["recall_curve"], marker="o", ms=3)
+    ax.plot(n, result.recall_curve, marker="o", ms=3)
     ax.set_xlabel("N")
-    ax.set_ylabel(f"Recall@N within {result['radius_m']:.0f} m")
+    ax.set_ylabel(f"Recall@N within {result.radius_m:.0f} m")
     ax.set_ylim(0, 1)
     ax.grid(alpha=0.3)
-    ax.set_title(f"{result['config']} ({result['n_query']} queries, {result['folds']} fold(s))")
+    ax.set_title(f"{result.config} ({result.n_query} queries, {result.folds} fold(s))")
     fig.tight_layout()
     fig.savefig(png, dpi=100)
     plt.close(fig)
     return png
 
 
-def format_summary(result: dict) -> str:
+def format_summary(result: EvalResult | dict) -> str:
+    """The summary the CLI prints; takes a report's JSON form too (bench/results.py reads reports back)."""
+    if isinstance(result, EvalResult):
+        result = result.model_dump()
     r = result["recall_at"]
     ms = result["ms_per_query"]
     e = result["estimate_error_m"]

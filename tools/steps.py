@@ -1,6 +1,6 @@
 """Run one set-up step with one line of output when nobody watches a terminal.
 
-    python3 app/steps.py NAME -- COMMAND [ARGS...]
+    python3 tools/steps.py NAME -- COMMAND [ARGS...]
 
 Why: on a terminal a person likes progress bars; in a log (CI, `make run > log`, a container) they are a
 thousand lines of noise. Off a terminal the command's output goes to out/logs/NAME.log and this prints one

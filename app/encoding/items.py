@@ -1,0 +1,71 @@
+"""What an encoding engine takes and gives back, and the one function that turns a stored reference into
+codes. Every engine (the worker's thread pool, ``geoloc ingest``, a re-index, a Ray actor) encodes through
+``encode_item``, so a row gets the same codes, and the same outcome for a missing or unreadable image,
+whichever engine ran it."""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from app.engine.errors import GeolocError
+from app.engine.imageio import ImageLimits, load_image
+from app.engine.pipeline import Pipeline
+
+log = logging.getLogger("geoloc.encoding")
+
+
+@dataclass(frozen=True)
+class EncodeItem:
+    """One stored reference to encode. ``data``: its image bytes when the driver read them (shipped to
+    workers that share no filesystem with it); None: the worker reads ``path`` itself."""
+
+    ref_id: int
+    path: Path
+    data: bytes | None = None
+
+
+@dataclass(frozen=True)
+class Encoded:
+    ref_id: int
+    float_code: np.ndarray | None
+    binary_code: np.ndarray | None
+    error: str | None = None  # a permanent failure (the row becomes failed)
+    retry: bool = False  # a storage failure: the row stays pending and is tried again later
+    fingerprint: str | None = None  # the pipeline that made the codes (a re-fit may switch meanwhile)
+
+
+def read_item(item: EncodeItem) -> EncodeItem | Encoded:
+    """The item with its bytes, or the outcome when they cannot be read: failed when the image is gone
+    (its folder is there), pending when the storage itself is unreadable (tried again later)."""
+    if item.data is not None:
+        return item
+    try:
+        return EncodeItem(item.ref_id, item.path, item.path.read_bytes())
+    except FileNotFoundError:
+        if item.path.parent.is_dir():
+            return Encoded(item.ref_id, None, None, "the stored image is missing")
+        return Encoded(item.ref_id, None, None, retry=True)
+    except OSError as e:
+        log.warning("reference %d: cannot read its image now (%s); it stays queued", item.ref_id, e)
+        return Encoded(item.ref_id, None, None, retry=True)
+
+
+def encode_data(pipeline: Pipeline, limits: ImageLimits, ref_id: int, data: bytes) -> Encoded:
+    """Image bytes to codes; a bad image is a permanent failure of that row, never an exception."""
+    try:
+        codes = pipeline.encode_image(load_image(data, limits).rgb)
+    except GeolocError as e:
+        return Encoded(ref_id, None, None, str(e), fingerprint=pipeline.fingerprint)
+    return Encoded(ref_id, codes.float_, codes.binary, fingerprint=pipeline.fingerprint)
+
+
+def encode_item(pipeline: Pipeline, limits: ImageLimits, item: EncodeItem) -> Encoded:
+    """The one encode path: read the image when the item has no bytes, then encode them."""
+    read = read_item(item)
+    if isinstance(read, Encoded):
+        return read
+    return encode_data(pipeline, limits, read.ref_id, read.data)

@@ -1,0 +1,2 @@
+"""Build-time only: our own converters from the pretrained weights' source formats to ONNX. Nothing at
+serving time imports these."""

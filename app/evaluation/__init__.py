@@ -1,0 +1,1 @@
+"""The evaluation protocol (``evaluate``) and the data sets it reads (``datasets``: manifests)."""
