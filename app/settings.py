@@ -30,6 +30,12 @@ class Settings(BaseSettings):
         "inprocess", description="inprocess: this process encodes uploads; none: a separate `geoloc worker` does"
     )
     worker_batch: int = 8
+    worker_retry_seconds: float = Field(
+        5.0,
+        gt=0,
+        description="with worker=inprocess and the worker lock held elsewhere: how often to try to "
+        "take it over (failover when that process dies)",
+    )
     locate_concurrency: int = Field(
         0, ge=0, description="/locate requests decoding and extracting at once (0: no limit); more wait"
     )
