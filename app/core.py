@@ -35,6 +35,7 @@ from app.engine.estimate import Estimate, fuse_position
 from app.engine.geo import haversine_m, valid_position
 from app.engine.imageio import ImageLimits, LoadedImage, load_image
 from app.engine.pipeline import Features, Pipeline
+from app.runtime import release_free_memory
 from app.store import NewReference, Reference, ReferenceStore, StorageUnavailable, is_storage_error
 
 log = logging.getLogger("geoloc.core")
@@ -531,7 +532,13 @@ class GeolocService:
         t0 = time.perf_counter()
         img = self.decode(data)
         decode_ms = (time.perf_counter() - t0) * 1000
-        return img, self.pipeline.extract(img.rgb), decode_ms
+        features = self.pipeline.extract(img.rgb)
+        if max(img.original_size) > 2 * self.limits.decode_long_side:
+            # A large upload (decoded at reduced scale, a PNG at full size first): the decode and extraction
+            # buffers it freed stay in glibc's per-thread arenas unless handed back; with the server's thread
+            # pool that kept 1.5 GB after 8 concurrent 49 MP uploads (bench/locate_memory.py).
+            release_free_memory()
+        return img, features, decode_ms
 
     def locate_extracted(self, img: LoadedImage, features: Features, options: LocateOptions) -> LocateAnswer:
         """Search with one generation's pipeline and index taken together (a re-fit may swap them at any

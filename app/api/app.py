@@ -147,9 +147,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.worker_lock = None
     app.state.worker_watch = None  # the failover thread, while another process holds the worker lock
     app.state.load_error = None
-    # Each /locate holds a decoded photo and its feature maps while it extracts; a limit bounds that memory.
-    # No limit by default: on 2 cores, 8 concurrent /locate clients (bench/load.py, 4 x 30 s) got 14.7
-    # requests/s without one and 12.6 with one per core, for a 10 % lower resident-memory plateau.
+    # Each /locate holds a decoded photo and its feature maps while it extracts; the limit bounds that memory.
+    # One per usable CPU by default (issue 18: with no limit, 8 concurrent 49 MP uploads took RSS up by
+    # 2.7 GB; bench/locate_memory.py). Throughput pays a little: on 2 cores, 8 concurrent clients of 1600 px
+    # photos (bench/load.py, 4 x 30 s) got 14.7 requests/s without a limit and 12.6 with one per core.
     app.state.extract_slots = (
         threading.BoundedSemaphore(settings.locate_concurrency) if settings.locate_concurrency else nullcontext()
     )
