@@ -106,3 +106,11 @@ def test_full_decodes_share_the_pixel_budget():
         t.join(10)
     assert most[0] <= 100 and budget.free == 100
     assert FULL_DECODES.capacity >= LIMITS.max_pixels  # one 50 MP image can always be decoded
+
+
+def test_free_memory_is_handed_back_on_glibc(monkeypatch):
+    from app.runtime import release_free_memory
+
+    assert release_free_memory()  # glibc's malloc_trim was found and called
+    monkeypatch.setenv("GEOLOC_MALLOC_TRIM", "0")
+    assert not release_free_memory()
