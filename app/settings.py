@@ -2,12 +2,21 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 from pydantic import Field
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
+
+
+def usable_cpus() -> int:
+    """The CPUs this process may run on (its affinity, as a container's cpuset sets it), else all of them."""
+    try:
+        return len(os.sched_getaffinity(0)) or 1
+    except (AttributeError, OSError):  # not Linux
+        return os.cpu_count() or 1
 
 
 class Settings(BaseSettings):
@@ -34,8 +43,17 @@ class Settings(BaseSettings):
         "inprocess", description="inprocess: this process encodes uploads; none: a separate `geoloc worker` does"
     )
     worker_batch: int = 8
+    worker_retry_seconds: float = Field(
+        5.0,
+        gt=0,
+        description="with worker=inprocess and the worker lock held elsewhere: how often to try to "
+        "take it over (failover when that process dies)",
+    )
     locate_concurrency: int = Field(
-        0, ge=0, description="/locate requests decoding and extracting at once (0: no limit); more wait"
+        default_factory=usable_cpus,
+        ge=0,
+        description="/locate requests decoding and extracting at once, more wait (default: one per usable "
+        "CPU; 0: no limit). Each one holds a decoded photo and its feature maps: the limit bounds memory",
     )
     thumbnail_px: int = 320
     snapshot_every_changes: int = Field(

@@ -28,13 +28,14 @@ log = logging.getLogger("geoloc.api")
 WEB_DIR = Path(__file__).resolve().parents[1] / "web" / "static"
 
 
-def _start_worker(app: FastAPI, service: GeolocService) -> None:
+def _start_worker(app: FastAPI, service: GeolocService) -> bool:
+    """Take the data dir's worker lock and, holding it, start the ingestion worker and the snapshot writer.
+    False when another process (a server or `geoloc worker`) holds the lock: nothing is started."""
     state = app.state
     s: Settings = state.settings
     lock = WorkerLock(s.data_dir)
     if not lock.acquire():
-        log.warning("another worker holds %s: this process serves searches and accepts uploads only", lock.path)
-        return
+        return False
     state.worker_lock = lock
     m = state.metrics
 
@@ -42,10 +43,45 @@ def _start_worker(app: FastAPI, service: GeolocService) -> None:
         m.ingested.labels("indexed").inc(indexed)
         m.ingested.labels("failed").inc(failed)
 
-    state.worker = IngestWorker(service, s.worker_batch, on_batch=count)
-    state.worker.start()
+    worker = IngestWorker(service, s.worker_batch, on_batch=count)
+    worker.start()
     state.snapshots = SnapshotWriter(service.collection)
     state.snapshots.start()
+    state.worker = worker  # last: /ready says in-process once everything runs
+    return True
+
+
+def _watch_worker_lock(app: FastAPI, service: GeolocService, stop: threading.Event) -> None:
+    """Failover: retry the worker lock every few seconds while another process holds it, so that uploads
+    accepted here are still indexed when that process dies (its flock goes with it). Without this they
+    stayed queued until someone restarted a worker by hand."""
+    every = app.state.settings.worker_retry_seconds
+    while not stop.wait(every):
+        try:
+            if _start_worker(app, service):
+                log.warning(
+                    "took over the worker lock of %s: this process now runs the ingestion worker",
+                    app.state.settings.data_dir,
+                )
+                return
+        except Exception:  # an unreadable lock file now may be fine at the next try
+            log.exception("taking over the worker lock failed; retrying in %.0f s", every)
+
+
+def _run_worker(app: FastAPI, service: GeolocService, stop: threading.Event) -> None:
+    """The in-process worker now, or a thread that takes it over once the lock holder is gone."""
+    if _start_worker(app, service):
+        return
+    log.warning(
+        "another worker holds %s: this process serves searches and accepts uploads, and takes the worker "
+        "over if that one stops",
+        WorkerLock(app.state.settings.data_dir).path,
+    )
+    watch = threading.Thread(
+        target=_watch_worker_lock, args=(app, service, stop), name="geoloc-worker-failover", daemon=True
+    )
+    app.state.worker_watch = watch
+    watch.start()
 
 
 def _load(app: FastAPI, stop: threading.Event) -> None:
@@ -60,7 +96,7 @@ def _load(app: FastAPI, stop: threading.Event) -> None:
                 s.data_dir, s.models_dir, s.config, s.image_limits(), s.snapshot_policy(), s.keep_queries
             )
             if s.worker == "inprocess":
-                _start_worker(app, service)
+                _run_worker(app, service, stop)
             state.service = service
             state.load_error = None
             log.info("ready: config %s, %d references", service.pipeline.config.name, service.collection.size)
@@ -83,6 +119,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         yield
         stop.set()
         loader.join(timeout=60)
+        if app.state.worker_watch is not None:  # joined first: it may be starting the worker right now
+            app.state.worker_watch.join(timeout=60)
         if app.state.worker is not None:
             app.state.worker.stop()
         if app.state.snapshots is not None:
@@ -110,10 +148,12 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.worker = None
     app.state.snapshots = None
     app.state.worker_lock = None
+    app.state.worker_watch = None  # the failover thread, while another process holds the worker lock
     app.state.load_error = None
-    # Each /locate holds a decoded photo and its feature maps while it extracts; a limit bounds that memory.
-    # No limit by default: on 2 cores, 8 concurrent /locate clients (bench/load.py, 4 x 30 s) got 14.7
-    # requests/s without one and 12.6 with one per core, for a 10 % lower resident-memory plateau.
+    # Each /locate holds a decoded photo and its feature maps while it extracts; the limit bounds that memory.
+    # One per usable CPU by default (issue 18: with no limit, 8 concurrent 49 MP uploads took RSS up by
+    # 2.7 GB; bench/locate_memory.py). Throughput pays a little: on 2 cores, 8 concurrent clients of 1600 px
+    # photos (bench/load.py, 4 x 30 s) got 14.7 requests/s without a limit and 12.6 with one per core.
     app.state.extract_slots = (
         threading.BoundedSemaphore(settings.locate_concurrency) if settings.locate_concurrency else nullcontext()
     )

@@ -106,6 +106,7 @@ def locate(
         img, features, decode_ms = core.extract(data)
     answer = core.locate_extracted(img, features, options)
     core.keep_query(data, img)
+    core.release_memory(img)  # what the search freed too, once the request holds nothing large
     timings = {"queue": (t_start - t0) * 1000, "decode": decode_ms, **answer.timings_ms}
     timings["total"] = (time.perf_counter() - t0) * 1000
     answer.timings_ms = timings

@@ -5,12 +5,19 @@ pixel is decoded (a 30000 x 30000 PNG header costs nothing to read, its pixels c
 are downscaled while decoding (libjpeg's DCT scaling) so a 12 MP phone photo never lives in memory at full
 size, and phone photos store their pixels rotated, so orientation is applied before anything else sees
 them.
+
+PNG, WebP and TIFF have no reduced decoding: a 49 MP one must be decoded whole (147 MB as RGB, from a PNG
+of a few tens of KB). It is reduced (a box filter, like the JPEG path's DCT scaling) straight after the
+decode, before any other copy is made, and such full decodes share a process-wide pixel budget, so eight
+concurrent uploads cannot hold eight of them at once (issue 18: 8 x 49 MP PNGs took RSS up by 2.7 GB).
 """
 
 from __future__ import annotations
 
 import io
 import math
+import threading
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numpy as np
@@ -44,6 +51,36 @@ class ImageLimits:
     decode_long_side: int = 1600
 
 
+class PixelBudget:
+    """A counting semaphore in pixels: decodes that must materialise a large image at full size take their
+    pixel count from it and wait while it is spent. One request larger than the whole budget takes all of it."""
+
+    def __init__(self, pixels: int):
+        self.capacity = pixels
+        self.free = pixels
+        self._cond = threading.Condition()
+
+    @contextmanager
+    def hold(self, pixels: int):
+        want = min(pixels, self.capacity)
+        with self._cond:
+            self._cond.wait_for(lambda: self.free >= want)
+            self.free -= want
+        try:
+            yield
+        finally:
+            with self._cond:
+                self.free += want
+                self._cond.notify_all()
+
+
+#: Full-size decodes of images with no reduced decoding (PNG, WebP, TIFF) that exceed the decode target:
+#: at most 50 MP of them at once in the process (one 49 MP PNG: about 150 MB as RGB, 200 MB as RGBA).
+FULL_DECODES = PixelBudget(50_000_000)
+#: Modes whose pixels can be box-averaged as they are (palette indices and 16-bit modes cannot).
+REDUCIBLE_MODES = {"L", "LA", "RGB", "RGBA", "RGBX", "CMYK", "YCbCr", "I", "F"}
+
+
 @dataclass(frozen=True)
 class LoadedImage:
     rgb: np.ndarray  # (H, W, 3) uint8, orientation applied
@@ -52,6 +89,9 @@ class LoadedImage:
     gps: tuple[float, float] | None
     captured_at: str | None
     heading: float | None = None  # EXIF GPSImgDirection in [0, 360), when the camera wrote one
+    #: True when a large non-JPEG was decoded at full size, then reduced (under FULL_DECODES); its full-size
+    #: buffers are freed by the time load_image returns.
+    full_decode: bool = False
 
 
 def sniff_format(data: bytes) -> str | None:
@@ -106,18 +146,49 @@ def load_image(data: bytes, limits: ImageLimits | None = None, decode_long_side:
     gps, captured_at = read_exif_gps(img)
     heading = read_exif_heading(img)
     target = decode_long_side or limits.decode_long_side
+    full_decode = False
     try:
         if img.format in ("JPEG", "MPO") and max(w, h) > 2 * target:
             # DCT-domain downscale by a power of two: the full-size pixels are never materialised.
             scale = max(w, h) / target
             img.draft("RGB", (math.ceil(w / scale), math.ceil(h / scale)))
+        elif max(w, h) > 2 * target:
+            img, full_decode = _decode_reduced(img, max(w, h) // target), True
         img = ImageOps.exif_transpose(img)
         rgb = _to_rgb(img)
     except Image.DecompressionBombError as e:
         raise ImageTooLarge(str(e)) from None
     except (OSError, ValueError, SyntaxError) as e:
         raise UnreadableImage(f"the {kind} data is damaged or truncated: {e}") from None
-    return LoadedImage(rgb=rgb, format=kind, original_size=(w, h), gps=gps, captured_at=captured_at, heading=heading)
+    return LoadedImage(
+        rgb=rgb,
+        format=kind,
+        original_size=(w, h),
+        gps=gps,
+        captured_at=captured_at,
+        heading=heading,
+        full_decode=full_decode,
+    )
+
+
+def _decode_reduced(img: Image.Image, factor: int) -> Image.Image:
+    """Decode at full size under the process's pixel budget and reduce by ``factor`` at once (the long
+    side stays at least the decode target, as with JPEG's DCT scaling); only the reduced image outlives
+    the budget. The EXIF block (orientation) is carried over for exif_transpose."""
+    w, h = img.size
+    with FULL_DECODES.hold(w * h):
+        exif = img.getexif()  # reads the file's EXIF (PNG's eXIf chunk) before the full image goes
+        img.load()
+        if img.mode in ("P", "PA"):
+            img = img.convert("RGBA" if img.mode == "PA" or "transparency" in img.info else "RGB")
+        elif img.mode == "1":
+            img = img.convert("L")
+        elif img.mode not in REDUCIBLE_MODES:  # 16-bit grey: 32-bit integers average correctly
+            img = img.convert("I")
+        small = img.reduce(factor)
+        img.close()
+    small.info["exif"] = exif.tobytes()
+    return small
 
 
 def _to_rgb(img: Image.Image) -> np.ndarray:
