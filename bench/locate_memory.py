@@ -28,9 +28,9 @@ from PIL import Image
 
 from app.engine.configs import get_config
 from app.engine.pipeline import pipeline_dir
-from app.server_process import ServerProcess
 from app.settings import Settings, usable_cpus
 from bench.common import REPO, is_photo, machine, penn_rows, post_references, write_section
+from tools.server_process import ServerProcess
 
 SIDE = 7000  # 49 MP, under the 50 MP default limit
 SETTINGS = {  # label -> server environment
@@ -79,10 +79,10 @@ def ensure_models(models_dir: Path, config: str, rows, work: Path = REPO / "out"
         return work
     if pipeline_dir(models_dir, config).exists() and (models_dir / "squeezenet1_1.onnx").exists():
         return models_dir
-    from app.engine.cnn import MODEL_FILENAME, SqueezeNet
+    from app.engine.convert.squeezenet_onnx import build_squeezenet_onnx
     from app.engine.imageio import load_image
+    from app.engine.models.squeezenet import MODEL_FILENAME, SqueezeNet
     from app.engine.pipeline import Pipeline
-    from app.engine.squeezenet_onnx import build_squeezenet_onnx
 
     out = work
     out.mkdir(parents=True, exist_ok=True)
