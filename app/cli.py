@@ -87,9 +87,10 @@ def fit(
     """Fit codebook, PCA-whitening and binariser on the manifest's db and train rows, then the SVM bank."""
     from app.engine.configs import get_config
     from app.engine.pipeline import Pipeline, pipeline_dir
+    from app.errors import FitRefused
     from app.evaluation.datasets import read_manifest
     from app.evaluation.evaluate import extract_all
-    from app.fitting import FitRefused, bank_source, check_bank_kind
+    from app.fitting import bank_source, check_bank_kind
 
     cfg = get_config(config)
     try:

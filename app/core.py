@@ -38,8 +38,9 @@ from app.engine.imageio import ImageLimits, LoadedImage, load_image
 from app.engine.models.base import Matcher
 from app.engine.models.registry import build_matcher
 from app.engine.pipeline import Features, Pipeline
+from app.errors import InvalidRequest, StorageUnavailable
 from app.runtime import release_free_memory
-from app.store import NewReference, Reference, ReferenceStore, StorageUnavailable, is_storage_error
+from app.store import NewReference, Reference, ReferenceStore, is_storage_error
 from app.text import CAPTURED_AT_MAX, LABEL_MAX, unsafe_character
 
 log = logging.getLogger("geoloc.core")
@@ -51,10 +52,6 @@ DEFAULT_MATCHER = "sift-mnn"
 ESTIMATE_CANDIDATES = 10
 #: How many of the best candidates geometric verification looks at.
 RERANK_CANDIDATES = 10
-
-
-class InvalidRequest(GeolocError):
-    """Parameters that cannot describe a request (an empty or inverted region, a bad heading...)."""
 
 
 # -- requests and answers -------------------------------------------------------------------------------

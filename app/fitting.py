@@ -9,19 +9,14 @@ the evaluation measured was not what `fit` built.
 from __future__ import annotations
 
 from app.engine.configs import PipelineConfig
-from app.engine.errors import GeolocError
 from app.engine.index.references import ReferenceIndex
 from app.engine.pipeline import Pipeline
 from app.engine.svm_bank import KINDS, BankParams, SvmBank
 from app.engine.training.svm_training import BANK_SOURCES, Geotagged, fit_bank_from, index_of
+from app.errors import FitRefused
 
 #: Where an evaluation's bank learns, per fold (never "none": the evaluation's ``svm_bank=off`` says that).
 EVAL_BANK_SOURCES = ("train", "collection")
-
-
-class FitRefused(GeolocError):
-    """A fit asked for something its configuration or its data cannot give (a bank without local
-    features, a train-only bank without training photos, an unknown source or kind)."""
 
 
 def bank_source(config: PipelineConfig, asked: str | None, train_photos_given: bool = False) -> str:

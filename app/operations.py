@@ -20,7 +20,7 @@ import numpy as np
 
 from app.apikey import KEY_FILE, key_path
 from app.collection import pipeline_source
-from app.engine.errors import GeolocError
+from app.errors import OperationRefused
 from app.orphans import MIN_AGE_S, retry_removals, sweep
 from app.snapshots import (
     MANIFEST,
@@ -35,10 +35,6 @@ from app.store import CODES, DB_NAME, IMAGES, ReferenceStore
 BACKUP_MANIFEST = "backup.json"
 KEY_NOTE = f"this backup holds the API key ({KEY_FILE}, mode 0600): keep it as private as the key itself"
 PIPELINES = "pipelines"  # the data dir's re-fitted pipelines, one folder per generation
-
-
-class OperationRefused(GeolocError):
-    """A backup or restore that would overwrite something, or read something that is not a backup."""
 
 
 @dataclass

@@ -34,17 +34,14 @@ from app.engine.configs import get_config
 from app.engine.errors import GeolocError
 from app.engine.imageio import ImageLimits, load_image
 from app.engine.pipeline import Features, Pipeline, PipelineSource
-from app.fitting import FitRefused, bank_source, check_bank_kind, train_bank
-from app.store import ReferenceStore, StorageUnavailable
+from app.errors import FitRefused, RefitError, StorageUnavailable
+from app.fitting import bank_source, check_bank_kind, train_bank
+from app.store import ReferenceStore
 
 log = logging.getLogger("geoloc.reindex")
 
 #: How many passes over the references may end with rows the storage could not read before giving up.
 MAX_RETRY_PASSES = 5
-
-
-class RefitError(GeolocError):
-    """The re-fit cannot run as asked (nothing stored, a bank source without its photos...)."""
 
 
 @dataclass(frozen=True)

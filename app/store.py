@@ -31,8 +31,9 @@ from pathlib import Path
 
 import numpy as np
 
-from app.engine.errors import GeolocError, IncompatibleArtifact
+from app.engine.errors import IncompatibleArtifact
 from app.engine.pipeline import Pipeline
+from app.errors import StaleReindex, StorageUnavailable
 from app.permissions import PRIVATE_FILE, create_private_file, private_dir
 
 log = logging.getLogger("geoloc.store")
@@ -132,11 +133,6 @@ CODES = (
     "CASE WHEN s.ref_id IS NULL THEN r.float_code ELSE s.float_code END, "
     "CASE WHEN s.ref_id IS NULL THEN r.binary_code ELSE s.binary_code END"
 )
-
-
-class StorageUnavailable(GeolocError):
-    """The data dir cannot be written or read right now (permissions, full disk, read-only database).
-    Nothing already stored is lost; the same request can be retried once the storage is back."""
 
 
 @dataclass(frozen=True)
@@ -1017,7 +1013,3 @@ class ReferenceStore:
             )
             db.execute("DELETE FROM switched_codes WHERE ref_id <= ?", (rows[-1][0],))
         return len(rows)
-
-
-class StaleReindex(GeolocError):
-    """The re-index this process runs is no longer the data dir's target (another one took over)."""

@@ -11,8 +11,9 @@ from app.engine.configs import get_config
 from app.engine.errors import IncompatibleArtifact
 from app.engine.imageio import load_image
 from app.engine.pipeline import Pipeline
+from app.errors import StorageUnavailable
 from app.evaluation.datasets import read_manifest
-from app.store import NewReference, ReferenceStore, StorageUnavailable
+from app.store import NewReference, ReferenceStore
 
 
 @pytest.fixture(scope="module")

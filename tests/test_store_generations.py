@@ -5,7 +5,8 @@ tests/service/test_refit.py)."""
 import numpy as np
 import pytest
 
-from app.store import NewReference, ReferenceStore, StaleReindex
+from app.errors import StaleReindex
+from app.store import NewReference, ReferenceStore
 
 TARGET = {"generation": 1, "pipeline": "pipelines/x-g1", "config": "x", "fp": "x:new"}
 

@@ -20,15 +20,9 @@ from pydantic import BaseModel, Field
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from app.core import InvalidRequest
 from app.engine import errors as e
-from app.engine.configs import UnknownConfig
-from app.engine.index.references import UnsupportedMode
-from app.engine.training.svm_training import NothingToTrainOn
-from app.evaluation.evaluate import ManifestCannotBeEvaluated
-from app.operations import OperationRefused
-from app.reindex import RefitError
-from app.store import StaleReindex, StorageUnavailable, is_storage_error
+from app.errors import code_of
+from app.store import is_storage_error
 
 log = logging.getLogger("geoloc.api")
 
@@ -62,29 +56,6 @@ ERRORS: dict[str, ErrorCode] = {
     "storage_unavailable": ErrorCode(503, "the data dir cannot be written (disk full, read-only, permissions)"),
 }
 
-#: Engine exception classes to codes. A subclass maps like its nearest listed base; an unlisted domain
-#: error is a mapping bug and answers ``internal_error``.
-DOMAIN_CODES: dict[type[Exception], str] = {
-    e.UnreadableImage: "unreadable_image",
-    e.ImageTooSmall: "image_too_small",
-    e.ImageTooLarge: "too_large",
-    e.UnsupportedImageFormat: "unsupported_image_format",
-    e.NoGpsInImage: "no_gps_in_image",
-    e.InvalidPosition: "invalid_position",
-    UnsupportedMode: "unsupported_mode",
-    UnknownConfig: "invalid_request",
-    e.ModelNotReady: "not_ready",
-    e.IncompatibleArtifact: "not_ready",
-    e.ModelBuildError: "not_ready",
-    InvalidRequest: "invalid_request",
-    StorageUnavailable: "storage_unavailable",
-    OperationRefused: "invalid_request",  # CLI-only (backup/restore), listed so no domain error is unmapped
-    NothingToTrainOn: "invalid_request",  # CLI-only (fit/eval on a manifest that leaves nothing to fit)
-    ManifestCannotBeEvaluated: "invalid_request",  # CLI-only (eval on a manifest whose folds are empty)
-    RefitError: "invalid_request",  # CLI-only (geoloc refit: nothing to fit on, a changed pipeline folder)
-    StaleReindex: "not_ready",  # CLI-only (another re-index took over, or a switch is still being copied)
-}
-
 #: Refusals raised by Starlette/FastAPI themselves (routing, multipart parsing, static files).
 FRAMEWORK_CODES: dict[int, str] = {
     400: "malformed_request",
@@ -111,11 +82,8 @@ class ApiError(Exception):
 
 
 def domain_code(exc: Exception) -> str:
-    """The code of an engine exception (by class, most specific first)."""
-    for cls in type(exc).__mro__:
-        if cls in DOMAIN_CODES:
-            return DOMAIN_CODES[cls]
-    return "internal_error"
+    """The code of a service or engine error (``app.errors.code_of``: each error carries or maps to one)."""
+    return code_of(exc)
 
 
 def framework_code(status: int) -> str:
@@ -168,7 +136,7 @@ def install(app: FastAPI) -> None:
         if code == "storage_unavailable":
             log.warning("storage unavailable: %s", exc)
         if code == "internal_error":
-            log.error("domain error %s has no API code: add it to DOMAIN_CODES", type(exc).__name__)
+            log.error("domain error %s has no API code: give it a code in app/errors.py", type(exc).__name__)
         return _json(code, str(exc))
 
     @app.exception_handler(RequestValidationError)

@@ -24,19 +24,15 @@ from tqdm import tqdm
 from app.core import LocateOptions, RefInfo, Region, locate_features
 from app.engine.artifacts import atomic_write_bytes
 from app.engine.configs import PipelineConfig
-from app.engine.errors import GeolocError
 from app.engine.geo import haversine_m
 from app.engine.imageio import load_image
 from app.engine.pipeline import Features, Pipeline
 from app.engine.training.svm_training import Geotagged, index_of
+from app.errors import ManifestCannotBeEvaluated
 from app.evaluation.datasets import Row, read_manifest
 from app.fitting import EVAL_BANK_SOURCES, train_bank
 
 RECALL_AT = (1, 5, 10, 20)
-
-
-class ManifestCannotBeEvaluated(GeolocError):
-    """The manifest's splits and groups leave a fold with nothing to fit on, to index or to query."""
 
 
 class EstimateErrors(BaseModel):

@@ -1,0 +1,95 @@
+"""The service's errors, each with its API code, and the codes of the engine's errors.
+
+Why here and not in the HTTP layer: a use case raises the error it means (a re-fit with nothing to fit on,
+a backup into a folder that is not empty), and the code a client sees is part of that meaning. The HTTP
+layer (``app/api/errors.py``) only looks the code up, so it needs none of the modules that raise them,
+and a new error is one class with its code, here. The codes themselves are the frozen list in
+``app/api/errors.py`` (``ERRORS``); a test checks that every code used here is in it.
+"""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+from app.engine import errors as engine
+from app.engine.configs import UnknownConfig
+from app.engine.index.references import UnsupportedMode
+from app.engine.training.svm_training import NothingToTrainOn
+
+
+class ServiceError(engine.GeolocError):
+    """An error of the application layer; ``code`` is its API error code."""
+
+    code: ClassVar[str] = "internal_error"
+
+
+class InvalidRequest(ServiceError):
+    """Parameters that cannot describe a request (an empty or inverted region, a bad heading...)."""
+
+    code = "invalid_request"
+
+
+class StorageUnavailable(ServiceError):
+    """The data dir cannot be written or read right now (permissions, full disk, read-only database).
+    Nothing already stored is lost; the same request can be retried once the storage is back."""
+
+    code = "storage_unavailable"
+
+
+class StaleReindex(ServiceError):
+    """The re-index this process runs is no longer the data dir's target (another one took over)."""
+
+    code = "not_ready"
+
+
+class OperationRefused(ServiceError):
+    """A backup or restore that would overwrite something, or read something that is not a backup."""
+
+    code = "invalid_request"
+
+
+class ManifestCannotBeEvaluated(ServiceError):
+    """The manifest's splits and groups leave a fold with nothing to fit on, to index or to query."""
+
+    code = "invalid_request"
+
+
+class RefitError(ServiceError):
+    """The re-fit cannot run as asked (nothing stored, a bank source without its photos...)."""
+
+    code = "invalid_request"
+
+
+class FitRefused(ServiceError):
+    """A fit asked for something its configuration or its data cannot give (a bank without local
+    features, a train-only bank without training photos, an unknown source or kind)."""
+
+    code = "invalid_request"
+
+
+#: The engine's exception classes to codes (the engine knows nothing of the API). A subclass maps like its
+#: nearest listed base.
+ENGINE_CODES: dict[type[Exception], str] = {
+    engine.UnreadableImage: "unreadable_image",
+    engine.ImageTooSmall: "image_too_small",
+    engine.ImageTooLarge: "too_large",
+    engine.UnsupportedImageFormat: "unsupported_image_format",
+    engine.NoGpsInImage: "no_gps_in_image",
+    engine.InvalidPosition: "invalid_position",
+    UnsupportedMode: "unsupported_mode",
+    UnknownConfig: "invalid_request",
+    engine.ModelNotReady: "not_ready",
+    engine.IncompatibleArtifact: "not_ready",
+    engine.ModelBuildError: "not_ready",
+    NothingToTrainOn: "invalid_request",  # fit/eval on a manifest that leaves nothing to fit
+}
+
+
+def code_of(exc: BaseException) -> str:
+    """The API code of a service or engine error; ``internal_error`` for one nobody mapped (a bug)."""
+    if isinstance(exc, ServiceError):
+        return exc.code
+    for cls in type(exc).__mro__:
+        if cls in ENGINE_CODES:
+            return ENGINE_CODES[cls]
+    return "internal_error"
