@@ -1,0 +1,107 @@
+"""The layout change (issue 19) changed no answer: the code of the commit before it, taken from git history,
+and the code of today fit, ingest and locate the same penn photos through the same CLI commands, on this
+machine, and must agree (same fitted state, same ids, scores within 1e-6).
+
+Why run the old code rather than compare with stored answers: both sides then share the machine, the
+libraries and the converted model, so any difference is the code's."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tarfile
+from pathlib import Path
+
+import pytest
+
+from tests.conftest import REPO, penn_photo
+
+#: main just before the layout change: the hardening of issue 18 merged, nothing of issue 19.
+BEFORE = "f1f95e88cdd4f95e404df19c9f18ec988a0ba536"
+CONFIG = "hybrid-bin"
+QUERIES = ["img_00001.jpg", "img_00006.jpg", "img_00011.jpg"]  # the mini manifest's query captures
+
+
+def _old_code(tmp: Path) -> Path:
+    """The ``app`` package as it was at ``BEFORE``, unpacked from git history."""
+    archive = tmp / "before.tar"
+    out = subprocess.run(
+        ["git", "-C", str(REPO), "archive", "--format=tar", "-o", str(archive), BEFORE, "app"],
+        capture_output=True, text=True,
+    )  # fmt: skip
+    if out.returncode != 0:
+        pytest.fail(f"commit {BEFORE} is not in this clone's history (a shallow clone?): {out.stderr}")
+    root = tmp / "before"
+    with tarfile.open(archive) as tar:
+        tar.extractall(root, filter="data")
+    return root
+
+
+def _cli(code_root: Path, *args: str) -> str:
+    """``python -m app.cli ARGS`` with ``code_root``'s ``app`` first on the path (its cwd)."""
+    env = {**os.environ, "PYTHONUNBUFFERED": "1", "GEOLOC_ORT_THREADS": "1", "PYTHONPATH": str(code_root)}
+    out = subprocess.run(
+        [sys.executable, "-m", "app.cli", *args], cwd=code_root, capture_output=True, text=True, timeout=900, env=env
+    )
+    assert out.returncode == 0, f"{code_root.name}: geoloc {' '.join(args)}\n{out.stdout}\n{out.stderr}"
+    return out.stdout
+
+
+def _run_side(code_root: Path, work: Path, models_dir: Path, manifest: Path) -> dict:
+    """Fit, ingest the db rows, locate the query photos (with and without verification): what a user runs."""
+    models = work / "models"
+    models.mkdir(parents=True)
+    shutil.copy(models_dir / "squeezenet1_1.onnx", models / "squeezenet1_1.onnx")
+    data = work / "data"
+    common = ["--models-dir", str(models), "--config", CONFIG]
+    _cli(code_root, "fit", "--manifest", str(manifest), "--svm-bank", "none", *common)
+    _cli(
+        code_root,
+        "ingest",
+        "--manifest",
+        str(manifest),
+        "--split",
+        "db",
+        "--workers",
+        "1",
+        "--data-dir",
+        str(data),
+        *common,
+    )
+    fitted = json.loads((models / "pipelines" / CONFIG / "pipeline.json").read_text())
+    answers = {}
+    for name in QUERIES:
+        for rerank in ([], ["--rerank"]):
+            out = _cli(
+                code_root, "locate", str(penn_photo(name)), "--top-k", "5", *rerank, "--data-dir", str(data), *common
+            )
+            answer = json.loads(out)
+            answer.pop("timings_ms", None)
+            answers[f"{name}{rerank}"] = answer
+    return {"fitted": {k: fitted.get(k) for k in ("float_dim", "bits", "n_train_images")}, "answers": answers}
+
+
+def _close(a, b, path: str = "") -> list[str]:
+    """Where two JSON values differ: floats beyond 1e-6 (relative to their size), anything else at all."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        if set(a) != set(b):
+            return [f"{path}: keys {sorted(set(a) ^ set(b))}"]
+        return [d for k in a for d in _close(a[k], b[k], f"{path}.{k}")]
+    if isinstance(a, list) and isinstance(b, list):
+        if len(a) != len(b):
+            return [f"{path}: {len(a)} against {len(b)} items"]
+        return [d for i, (x, y) in enumerate(zip(a, b, strict=True)) for d in _close(x, y, f"{path}[{i}]")]
+    if isinstance(a, float) and isinstance(b, float):
+        return [] if abs(a - b) <= 1e-6 * max(1.0, abs(a)) else [f"{path}: {a} against {b}"]
+    return [] if a == b else [f"{path}: {a!r} against {b!r}"]
+
+
+def test_fit_ingest_and_locate_answer_as_before_the_layout_change(tmp_path, models_dir, mini_manifest):
+    before = _run_side(_old_code(tmp_path), tmp_path / "old", models_dir, mini_manifest)
+    after = _run_side(REPO, tmp_path / "new", models_dir, mini_manifest)
+    assert before["fitted"] == after["fitted"]
+    assert any(a["candidates"] for a in after["answers"].values())
+    assert _close(before["answers"], after["answers"]) == []
