@@ -20,7 +20,7 @@ import pytest
 from tests.conftest import REPO, penn_photo
 
 #: main just before the layout change: the hardening of issue 18 merged, nothing of issue 19.
-BEFORE = "f1f95e88cdd4f95e404df19c9f18ec988a0ba536"
+BEFORE = "7150a8d8d88842dfdb0802a40d5f67da14f0ca6f"
 CONFIG = "hybrid-bin"
 QUERIES = ["img_00001.jpg", "img_00006.jpg", "img_00011.jpg"]  # the mini manifest's query captures
 
