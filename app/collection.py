@@ -23,8 +23,9 @@ import numpy as np
 
 from app.engine.index.references import ReferenceIndex
 from app.engine.pipeline import Pipeline, PipelineSource
-from app.snapshots import SnapshotInvalid, SnapshotMismatch, load_snapshot, write_snapshot
-from app.store import Change, ReferenceStore
+from app.storage.changes import Change
+from app.storage.snapshots import SnapshotInvalid, SnapshotMismatch, load_snapshot, write_snapshot
+from app.storage.store import ReferenceStore
 
 log = logging.getLogger("geoloc.collection")
 
@@ -176,14 +177,14 @@ class Collection:
             if (self.store.data_dir / "index.json").exists():
                 log.warning("snapshot not used (%s): rebuilding the index from the codes in SQLite", e)
             if isinstance(e, SnapshotMismatch):
-                self.store.retire_snapshot(e.manifest)
+                self.store.retire_snapshot(e.manifest.version, e.manifest.ref_high_water)
             return self._rebuild()
-        version = int(manifest["version"])
+        version = manifest.version
         changes = self.store.changes_since(version)
         apply_changes(index, changes)
         self.stats.replayed_at_start = len(changes)
         self.stats.snapshot_version = version
-        self.stats.snapshot_written_at = float(manifest.get("written_at") or 0) or None
+        self.stats.snapshot_written_at = float(manifest.written_at or 0) or None
         log.info("index loaded from the snapshot of version %d and %d later changes", version, len(changes))
         return index, changes[-1].version if changes else version
 
@@ -209,13 +210,13 @@ class Collection:
         pipeline = pipeline_source(self.store.data_dir, self.models_dir, ref, name or self.pipeline.config.name).load()
         try:
             index, manifest = load_snapshot(self.store.data_dir, pipeline, self.store)
-            if int(manifest.get("generation", -1)) != generation:
+            if manifest.generation != generation:
                 raise SnapshotInvalid("the snapshot is of another generation")
-            version, rebuilt = int(manifest["version"]), False
+            version, rebuilt = manifest.version, False
         except SnapshotInvalid as e:
             if isinstance(e, SnapshotMismatch):
                 log.warning("snapshot not used (%s)", e)
-                self.store.retire_snapshot(e.manifest)
+                self.store.retire_snapshot(e.manifest.version, e.manifest.ref_high_water)
             gen, version, ids, fcodes, bcodes = self.store.generation_codes()
             if gen != generation:  # switched again while we loaded: the next catch-up loads that one
                 return False
@@ -335,7 +336,7 @@ class Collection:
             self.stats.snapshot_writes += 1
             self.stats.snapshot_version = v0
             self._first_pending_at = time.time() if self.version > v0 else None
-            self.stats.snapshot_written_at = manifest["written_at"]
+            self.stats.snapshot_written_at = manifest.written_at
             log.info(
                 "snapshot of version %d written (%d references) in %.2f s", v0, copy.size, time.perf_counter() - t0
             )

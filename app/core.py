@@ -40,7 +40,9 @@ from app.engine.models.registry import build_matcher
 from app.engine.pipeline import Features, Pipeline
 from app.errors import InvalidRequest, StorageUnavailable
 from app.runtime import release_free_memory
-from app.store import NewReference, Reference, ReferenceStore, is_storage_error
+from app.storage.errors import is_storage_error
+from app.storage.queue import Job
+from app.storage.store import NewReference, Reference, ReferenceStore
 from app.text import CAPTURED_AT_MAX, LABEL_MAX, unsafe_character
 
 log = logging.getLogger("geoloc.core")
@@ -580,7 +582,7 @@ class GeolocService:
         if not self.keep_queries:
             return
         from app.permissions import private_dir
-        from app.store import sha256_of, write_image_file
+        from app.storage.files import sha256_of, write_image_file
 
         try:
             folder = self.store.data_dir / "queries"
@@ -670,7 +672,7 @@ class GeolocService:
     def list(self, offset: int, limit: int, bbox=None) -> tuple[list[Reference], int]:
         return self.store.list(offset, limit, bbox)
 
-    def job(self, job_id: str) -> dict | None:
+    def job(self, job_id: str) -> Job | None:
         return self.store.job(job_id)
 
     def image_path(self, ref_id: int) -> Path | None:

@@ -11,7 +11,6 @@ from __future__ import annotations
 import json
 import os
 import shutil
-import sqlite3
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -21,8 +20,11 @@ import numpy as np
 from app.apikey import KEY_FILE, key_path
 from app.collection import pipeline_source
 from app.errors import OperationRefused
-from app.orphans import MIN_AGE_S, retry_removals, sweep
-from app.snapshots import (
+from app.storage.database import DB_NAME
+from app.storage.files import IMAGES
+from app.storage.maintenance import copy_database, image_names
+from app.storage.orphans import MIN_AGE_S, retry_removals, sweep
+from app.storage.snapshots import (
     MANIFEST,
     SnapshotInvalid,
     SnapshotUnverifiable,
@@ -30,7 +32,7 @@ from app.snapshots import (
     read_manifest,
     snapshot_files,
 )
-from app.store import CODES, DB_NAME, IMAGES, ReferenceStore
+from app.storage.store import ReferenceStore
 
 BACKUP_MANIFEST = "backup.json"
 KEY_NOTE = f"this backup holds the API key ({KEY_FILE}, mode 0600): keep it as private as the key itself"
@@ -54,7 +56,7 @@ def check_data_dir(data_dir: Path, models_dir: Path, config: str | None) -> Chec
         r.problems.append(f"{data_dir / DB_NAME} does not exist")
         return r
     store = ReferenceStore(data_dir, read_only=True)
-    if not store.db.execute("SELECT 1 FROM sqlite_master WHERE type='table' AND name='refs'").fetchone():
+    if not store.holds_tables():
         r.problems.append(
             f"{data_dir / DB_NAME} holds no tables: its content is still in a -wal file that is not here "
             "(a copy without it?); copy the data dir with `geoloc backup`"
@@ -62,13 +64,10 @@ def check_data_dir(data_dir: Path, models_dir: Path, config: str | None) -> Chec
         return r
     counts = {s: store.count(s) for s in ("indexed", "pending", "failed")}
     r.lines.append(f"rows: {counts['indexed']} indexed, {counts['pending']} pending, {counts['failed']} failed")
-    rows = store.db.execute(
-        f"SELECT r.id, r.sha256, r.image_ext, r.status, {CODES} FROM refs r "
-        "LEFT JOIN switched_codes s ON s.ref_id = r.id"
-    ).fetchall()
-    named = {f"{sha}.{ext}" for _, sha, ext, *_ in rows}
+    rows = store.stored_rows()
+    named = {row.image for row in rows}
     on_disk = {p.name for p in (data_dir / IMAGES).iterdir() if not p.name.startswith(".")}
-    missing = [i for i, sha, ext, *_ in rows if f"{sha}.{ext}" not in on_disk]
+    missing = [row.id for row in rows if row.image not in on_disk]
     orphans = sorted(on_disk - named)
     r.lines.append(f"images: {len(on_disk)} files, {len(missing)} missing, {len(orphans)} not named by any row")
     if missing:
@@ -82,14 +81,17 @@ def check_data_dir(data_dir: Path, models_dir: Path, config: str | None) -> Chec
     fsize = 4 * (pipeline.float_dim or 0)
     bsize = (pipeline.bits or 0) // 8
     bad_codes = [
-        i
-        for i, _, _, status, f, b in rows
-        if status == "indexed"
-        and ((fsize and (f is None or len(f) != fsize)) or (bsize and (b is None or len(b) != bsize)))
+        row.id
+        for row in rows
+        if row.status == "indexed"
+        and (
+            (fsize and (row.float_code is None or len(row.float_code) != fsize))
+            or (bsize and (row.binary_code is None or len(row.binary_code) != bsize))
+        )
     ]
     if bad_codes:
         r.problems.append(f"indexed references without codes of the pipeline's size: {_sample(bad_codes)}")
-    indexed = np.array(sorted(i for i, _, _, status, *_ in rows if status == "indexed"), np.int64)
+    indexed = np.array(sorted(row.id for row in rows if row.status == "indexed"), np.int64)
     try:
         index, manifest = load_snapshot(data_dir, pipeline, store)
     except SnapshotInvalid as e:
@@ -99,12 +101,12 @@ def check_data_dir(data_dir: Path, models_dir: Path, config: str | None) -> Chec
         return r
     from app.collection import apply_changes
 
-    changes = store.changes_since(int(manifest["version"]))
+    changes = store.changes_since(manifest.version)
     apply_changes(index, changes)
     idx = index.float or index.binary
     in_index = np.sort(idx.ids()) if idx is not None else np.zeros(0, np.int64)
     r.lines.append(
-        f"index: snapshot of version {manifest['version']} verified, {len(changes)} later changes in the log, "
+        f"index: snapshot of version {manifest.version} verified, {len(changes)} later changes in the log, "
         f"{len(in_index)} references after replay"
     )
     not_indexed = np.setdiff1d(indexed, in_index)
@@ -153,17 +155,10 @@ def backup_data_dir(data_dir: Path, dest: Path) -> dict:
     if dest.exists() and any(dest.iterdir()):
         raise OperationRefused(f"{dest} is not empty: back up into a new or empty folder")
     (dest / IMAGES).mkdir(parents=True, exist_ok=True)
-    src = sqlite3.connect(data_dir / DB_NAME)
-    dst = sqlite3.connect(dest / DB_NAME)
-    try:
-        src.backup(dst)  # a consistent copy while other processes keep writing
-    finally:
-        src.close()
-    rows = dst.execute("SELECT sha256, image_ext FROM refs").fetchall()
-    dst.close()
+    copy_database(data_dir, dest)  # a consistent copy while other processes keep writing
+    names = image_names(dest)
     copied = missing = 0
-    for sha, ext in rows:
-        name = f"{sha}.{ext}"
+    for name in names:
         try:
             shutil.copy2(data_dir / IMAGES / name, dest / IMAGES / name)
             copied += 1
@@ -175,12 +170,12 @@ def backup_data_dir(data_dir: Path, dest: Path) -> dict:
     try:
         for path in snapshot_files(data_dir):
             shutil.copy2(path, dest / path.name)
-        version = read_manifest(dest)["version"]
+        version = read_manifest(dest).version
     except (SnapshotInvalid, FileNotFoundError):
         pass  # no snapshot (or replaced meanwhile): a restore rebuilds the index from SQLite
     holds_key = _copy_key(data_dir, dest)
     summary = {
-        "references": len(rows),
+        "references": len(names),
         "images": copied,
         "missing_images": missing,
         "snapshot_version": version,
@@ -199,13 +194,7 @@ def restore_data_dir(source: Path, data_dir: Path) -> dict:
     if data_dir.exists() and any(p for p in data_dir.iterdir() if p.name != "README.md"):
         raise OperationRefused(f"{data_dir} is not empty: restore into a new or empty data dir")
     data_dir.mkdir(parents=True, exist_ok=True)
-    src = sqlite3.connect(source / DB_NAME)
-    dst = sqlite3.connect(data_dir / DB_NAME)
-    try:
-        src.backup(dst)
-    finally:
-        src.close()
-        dst.close()
+    copy_database(source, data_dir)
     shutil.copytree(source / IMAGES, data_dir / IMAGES, dirs_exist_ok=True)
     if (source / PIPELINES).is_dir():
         shutil.copytree(source / PIPELINES, data_dir / PIPELINES, dirs_exist_ok=True)

@@ -36,7 +36,8 @@ from app.engine.imageio import ImageLimits, load_image
 from app.engine.pipeline import Features, Pipeline, PipelineSource
 from app.errors import FitRefused, RefitError, StorageUnavailable
 from app.fitting import bank_source, check_bank_kind, train_bank
-from app.store import ReferenceStore
+from app.storage.generations import ReindexTarget
+from app.storage.store import ReferenceStore
 
 log = logging.getLogger("geoloc.reindex")
 
@@ -58,16 +59,8 @@ class RefitOptions:
 
 
 @dataclass(frozen=True)
-class Target:
-    """The generation being built: what ``next_codes`` belongs to (recorded as meta ``reindex_target``)."""
-
-    generation: int
-    pipeline: str  # the fitted pipeline's folder, relative to the data dir
-    config: str
-    fingerprint: str
-
-    def as_meta(self) -> dict:
-        return {"generation": self.generation, "pipeline": self.pipeline, "config": self.config, "fp": self.fingerprint}
+class Target(ReindexTarget):
+    """The generation being built (``ReindexTarget``, as the store records it) and where its pipeline is."""
 
     def source(self, data_dir: Path, models_dir: Path) -> PipelineSource:
         return pipeline_source(data_dir, models_dir, self.pipeline, self.config)
@@ -190,10 +183,10 @@ def _save(data_dir: Path, pipe: Pipeline, generation: int, extra: dict) -> Targe
 def resumable_target(store: ReferenceStore, models_dir: Path, config: str | None) -> Target | None:
     """The interrupted re-index recorded in the data dir, when it can continue (same configuration asked,
     its pipeline folder intact, and still the next generation)."""
-    meta = store.reindex_target()
-    if not meta:
+    recorded = store.reindex_target()
+    if recorded is None:
         return None
-    target = Target(int(meta["generation"]), meta["pipeline"], meta["config"], meta["fp"])
+    target = Target(recorded.generation, recorded.pipeline, recorded.config, recorded.fingerprint)
     if (config and config != target.config) or target.generation != store.generation_state()[0] + 1:
         return None
     return target if (store.data_dir / target.pipeline / "pipeline.json").exists() else None
@@ -219,7 +212,6 @@ def reindex(
     """Encode every indexed reference without a code of ``target`` and record the codes, one transaction per
     batch, pass after pass until a pass finds nothing (uploads indexed meanwhile are found by the next one).
     ``limit``: stop after that many (an interrupted re-index, for tests). Returns (encoded, failed)."""
-    meta = target.as_meta()
     done = failed = retry_passes = 0
     while True:
         after, found, retried = 0, 0, 0
@@ -235,7 +227,7 @@ def reindex(
                 final = [(r.ref_id, r.float_code, r.binary_code, r.error) for r in results if not r.retry]
                 retried += len(results) - len(final)
                 if final:
-                    store.put_next_codes(meta, final)
+                    store.put_next_codes(target, final)
                 found += len(final)
                 done += len(final)
                 failed += sum(1 for r in results if r.error is not None)
@@ -254,7 +246,7 @@ def reindex(
 
 def switch(store: ReferenceStore, target: Target) -> int | None:
     """The switch transaction (``ReferenceStore.switch_generation``); None while references are missing."""
-    return store.switch_generation(target.as_meta(), target.fingerprint, target.config)
+    return store.switch_generation(target)
 
 
 def refit(
@@ -276,7 +268,7 @@ def refit(
         log.info("continuing the interrupted re-index into generation %d", target.generation)
     else:
         target, summary = fit_generation(store, models_dir, options, limits)
-    already = store.start_reindex(target.as_meta())
+    already = store.start_reindex(target)
     t0 = time.perf_counter()
     pipeline = target.source(data_dir, models_dir).load()
     if pipeline.fingerprint != target.fingerprint:

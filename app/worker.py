@@ -18,8 +18,8 @@ from collections.abc import Callable
 from pathlib import Path
 
 from app.core import GeolocService
-from app.orphans import Janitor
-from app.store import is_storage_error
+from app.storage.errors import is_storage_error
+from app.storage.orphans import Janitor
 
 log = logging.getLogger("geoloc.worker")
 
@@ -92,7 +92,7 @@ class IngestWorker:
 
     def run_forever(self) -> None:
         """Encode until stopped. The writer's housekeeping (queued file removals, the hourly orphan sweep:
-        ``app.orphans.Janitor``) runs beside it in its own thread for as long as this loop runs."""
+        ``app.storage.orphans.Janitor``) runs beside it in its own thread for as long as this loop runs."""
         janitor = Janitor(self.service.store).start()
         try:
             self._loop()

@@ -22,7 +22,7 @@ from app.core import GeolocService
 from app.ingest.progress import Progress
 from app.ingest.run import IngestOptions, IngestRun
 from app.ingest.sources import open_source
-from app.journal import JOURNAL_NAME
+from app.storage.journal import JOURNAL_NAME
 from bench.common import REPO, median_ms
 
 

@@ -22,7 +22,7 @@ import numpy as np
 from PIL import Image
 
 from app.engine.pipeline import load_pipeline
-from app.store import NewReference, ReferenceStore
+from app.storage.store import NewReference, ReferenceStore
 
 CENTRE = (39.9526, -75.1652)  # Philadelphia City Hall
 SIDE_M = 10_000.0

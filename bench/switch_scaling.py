@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from app.store import ReferenceStore
+from app.storage.store import ReferenceStore
 
 
 def _fill(store: ReferenceStore, n: int, dim: int) -> None:

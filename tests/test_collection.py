@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from app.collection import Collection, SnapshotPolicy
-from app.snapshots import MANIFEST
-from app.store import NewReference, ReferenceStore
+from app.storage.snapshots import MANIFEST
+from app.storage.store import NewReference, ReferenceStore
 from tests.test_store import fitted  # noqa: F401  (the module's fitted pipeline and codes)
 
 

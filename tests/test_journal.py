@@ -1,6 +1,6 @@
 """The ingestion journal: a file is known by path, size and mtime; anything else is a different file."""
 
-from app.journal import JOURNAL_NAME, FileKey, Journal
+from app.storage.journal import JOURNAL_NAME, FileKey, Journal
 
 
 def test_lookup_finds_only_files_recorded_with_the_same_size_and_mtime(tmp_path):

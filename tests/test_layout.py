@@ -87,3 +87,29 @@ def test_the_docs_name_files_that_exist():
         named |= {(doc.name, m) for m in re.findall(r"\b((?:app|tools|bench|tests)/[\w/]+\.py)\b", doc.read_text())}
     missing = sorted((doc, path) for doc, path in named if not (repo / path).exists())
     assert missing == []
+
+
+SQL_CALLS = {"execute", "executescript", "executemany"}
+
+
+def sql_outside_storage() -> list[str]:
+    """Modules of app/ outside app/storage/ that import sqlite3 or run SQL (``x.execute(...)``,
+    ``executescript``, ``executemany``): SQL lives in storage/ only, behind methods that return typed values."""
+    storage = APP / "storage"
+    found = []
+    for path in sorted(APP.rglob("*.py")):
+        if path.is_relative_to(storage):
+            continue
+        for node in ast.walk(ast.parse(path.read_text())):
+            where = f"{path.relative_to(APP.parent)}:{getattr(node, 'lineno', 0)}"
+            if isinstance(node, ast.Import) and any(a.name.split(".")[0] == "sqlite3" for a in node.names):
+                found.append(f"{where} imports sqlite3")
+            elif isinstance(node, ast.ImportFrom) and (node.module or "").split(".")[0] == "sqlite3":
+                found.append(f"{where} imports from sqlite3")
+            elif isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and node.func.attr in SQL_CALLS:
+                found.append(f"{where} calls .{node.func.attr}(")
+    return found
+
+
+def test_sql_lives_in_storage_only():
+    assert sql_outside_storage() == []

@@ -13,7 +13,7 @@ from app.engine.imageio import load_image
 from app.engine.pipeline import Pipeline
 from app.errors import StorageUnavailable
 from app.evaluation.datasets import read_manifest
-from app.store import NewReference, ReferenceStore
+from app.storage.store import NewReference, ReferenceStore
 
 
 @pytest.fixture(scope="module")
@@ -44,10 +44,10 @@ def test_bulk_add_logs_index_changes_only(tmp_path, fitted):
     # Pending rows (an upload accepted, not encoded): rows change, the index version does not.
     items, job = store.add_many([_new(r) for r in rows[:4]], job=True)
     assert all(created for _, created in items) and store.version == 0 and store.count("pending") == 4
-    assert store.job(job)["status"] == "queued"
+    assert store.job(job).status == "queued"
     ids = [i for i, _ in items]
     done = store.complete([(i, c.float_, c.binary, None) for i, c in zip(ids, codes, strict=False)])
-    assert done == ids and store.version == 4 and store.job(job)["status"] == "done"
+    assert done == ids and store.version == 4 and store.job(job).status == "done"
     assert store.complete([(ids[0], codes[0].float_, codes[0].binary, None)]) == []  # idempotent
     assert store.version == 4
     # Pre-encoded rows (the bulk path of seeding) are indexed at once and logged in the same transaction.

@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from app.store import NewReference, ReferenceStore
+from app.storage.store import NewReference, ReferenceStore
 
 
 def _pending(store: ReferenceStore, n: int) -> list[int]:

@@ -12,8 +12,8 @@ from pathlib import Path
 import pytest
 
 from app.errors import StorageUnavailable
-from app.orphans import retry_removals, sweep
-from app.store import NewReference, ReferenceStore
+from app.storage.orphans import retry_removals, sweep
+from app.storage.store import NewReference, ReferenceStore
 from tests.conftest import PENN
 
 CROPS = sorted((PENN / "crops").glob("img_0000*_0.jpg"))

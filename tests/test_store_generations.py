@@ -2,13 +2,16 @@
 fingerprint guard on completion (SQLite only: codes are plain arrays here, the pipelines are tested in
 tests/service/test_refit.py)."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
 from app.errors import StaleReindex
-from app.store import NewReference, ReferenceStore
+from app.storage.generations import ReindexTarget
+from app.storage.store import NewReference, ReferenceStore
 
-TARGET = {"generation": 1, "pipeline": "pipelines/x-g1", "config": "x", "fp": "x:new"}
+TARGET = ReindexTarget(generation=1, pipeline="pipelines/x-g1", config="x", fingerprint="x:new")
 
 
 def _store(tmp_path, n=4):
@@ -29,11 +32,11 @@ def test_switch_needs_every_code_then_readers_see_the_new_ones_before_and_after_
     assert store.start_reindex(TARGET) == 0
     store.put_next_codes(TARGET, [(i, np.full(4, 100 + i, np.float32), None, None) for i in ids[:3]])
     assert store.reindex_missing() == 1 and [i for i, _ in store.reindex_todo(10)] == [ids[3]]
-    assert store.switch_generation(TARGET, "x:new", "x") is None  # one reference has no new code yet
+    assert store.switch_generation(TARGET) is None  # one reference has no new code yet
     assert store.start_reindex(TARGET) == 3  # the same target again continues
     store.put_next_codes(TARGET, [(ids[3], None, None, "cannot decode")])
     old = _codes(store)
-    assert store.switch_generation(TARGET, "x:new", "x") == 1
+    assert store.switch_generation(TARGET) == 1
     assert store.head()[1] == 1 and store.get_meta("fingerprint") == "x:new"
     assert store.get_meta("pipeline") == "pipelines/x-g1" and store.reindex_target() is None
     assert store.get(ids[3]).status == "failed" and "cannot decode" in store.get(ids[3]).error
@@ -52,12 +55,12 @@ def test_another_target_starts_over_and_the_old_one_is_refused(tmp_path):
     store, ids = _store(tmp_path, 2)
     store.start_reindex(TARGET)
     store.put_next_codes(TARGET, [(ids[0], np.zeros(4, np.float32), None, None)])
-    other = {**TARGET, "fp": "x:other"}
+    other = replace(TARGET, fingerprint="x:other")
     assert store.start_reindex(other) == 0  # a different target: the codes so far are dropped
     with pytest.raises(StaleReindex):
         store.put_next_codes(TARGET, [(ids[1], np.zeros(4, np.float32), None, None)])
     with pytest.raises(StaleReindex):
-        store.switch_generation(TARGET, "x:new", "x")
+        store.switch_generation(TARGET)
     store.abandon_reindex()
     assert store.reindex_target() is None and store.head()[1] == 0
 

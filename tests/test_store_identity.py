@@ -19,8 +19,10 @@ from app.engine.configs import get_config
 from app.engine.imageio import load_image
 from app.engine.pipeline import Pipeline
 from app.evaluation.datasets import read_manifest
-from app.snapshots import MANIFEST, SnapshotMismatch, SnapshotUnverifiable, check_binding
-from app.store import DB_NAME, NewReference, ReferenceStore
+from app.storage.database import DB_NAME
+from app.storage.snapshots import MANIFEST, SnapshotMismatch, SnapshotUnverifiable, check_binding
+from app.storage.snapshots import read_manifest as read_manifest_of
+from app.storage.store import NewReference, ReferenceStore
 
 
 @pytest.fixture(scope="module")
@@ -100,7 +102,7 @@ def test_a_snapshot_ahead_of_its_database_is_refused_and_its_ids_never_come_back
 
     store = ReferenceStore(copy)
     with pytest.raises(SnapshotMismatch, match="ahead of the database"):
-        check_binding(json.loads((copy / MANIFEST).read_text()), store)
+        check_binding(read_manifest_of(copy), store)
     served = Collection(store, pipe)
     assert served.stats.full_rebuilds == 1 and served.size == store.count() == 3
     new = _add(store, rows[8:10], codes[8:10])
@@ -120,7 +122,7 @@ def test_a_snapshot_of_another_database_is_refused(tmp_path, fitted):
     _copy_snapshot(a, b)
     store = ReferenceStore(b)
     with pytest.raises(SnapshotMismatch, match="made from database"):
-        check_binding(json.loads((b / MANIFEST).read_text()), store)
+        check_binding(read_manifest_of(b), store)
     assert Collection(store, pipe).stats.full_rebuilds == 1
 
 
@@ -139,7 +141,7 @@ def test_a_snapshot_whose_change_log_diverged_is_refused(tmp_path, fitted):
     _copy_snapshot(orig, copy)
     store = ReferenceStore(copy)
     with pytest.raises(SnapshotMismatch, match="change log at version 4"):
-        check_binding(json.loads((copy / MANIFEST).read_text()), store)
+        check_binding(read_manifest_of(copy), store)
     served = Collection(store, pipe)
     assert served.stats.full_rebuilds == 1 and served.size == 5
 
@@ -154,7 +156,7 @@ def test_a_snapshot_from_an_older_version_is_rebuilt_once(tmp_path, fitted):
         del m[key]
     (tmp_path / MANIFEST).write_text(json.dumps(m))
     with pytest.raises(SnapshotUnverifiable):
-        check_binding(m, writer.store)
+        check_binding(read_manifest_of(tmp_path), writer.store)
     served = Collection(ReferenceStore(tmp_path), pipe)
     assert served.stats.full_rebuilds == 1 and served.size == 3
     served.write_snapshot()

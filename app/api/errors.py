@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import logging
 import re
-import sqlite3
 from dataclasses import dataclass
 from typing import Literal
 
@@ -22,7 +21,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from app.engine import errors as e
 from app.errors import code_of
-from app.store import is_storage_error
+from app.storage.errors import STORAGE_EXCEPTIONS, is_storage_error
 
 log = logging.getLogger("geoloc.api")
 
@@ -157,7 +156,8 @@ def install(app: FastAPI) -> None:
         return _json("internal_error", f"internal error ({type(exc).__name__}); see the server log")
 
     app.add_exception_handler(OSError, _storage)
-    app.add_exception_handler(sqlite3.Error, _storage)
+    for kind in STORAGE_EXCEPTIONS:
+        app.add_exception_handler(kind, _storage)
 
     @app.exception_handler(Exception)
     async def _unexpected(_: Request, exc: Exception):

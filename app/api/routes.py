@@ -217,7 +217,7 @@ def get_job(job_id: str, core: Core) -> JobOut:
     job = core.job(job_id)
     if job is None:
         raise ApiError(404, "not_found", f"no job {job_id}")
-    return JobOut(**job)
+    return JobOut.model_validate(job, from_attributes=True)
 
 
 def _ref_out(ref) -> ReferenceOut:

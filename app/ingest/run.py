@@ -8,7 +8,7 @@ Why this shape:
 - Accepted rows are the core's ``pending`` rows, so a crash loses nothing; the run claims them for a lease
   so that a running server's worker (which reads ``store.pending``) does not encode the same rows, and a
   crashed run's claims simply expire and the server's worker takes the rows over.
-- The journal (``app.journal``) lets a re-run skip unchanged files on a ``stat``; content hashes still
+- The journal (``app.storage.journal``) lets a re-run skip unchanged files on a ``stat``; content hashes still
   find duplicates among the files it does read.
 - Skipped files go to a CSV report (path, reason) written as the run goes, never held in memory.
 """
@@ -38,8 +38,8 @@ from app.engine.errors import (
 )
 from app.ingest.progress import Progress
 from app.ingest.sources import Source, SourceItem
-from app.journal import FileKey, Journal
-from app.store import NewReference
+from app.storage.journal import FileKey, Journal
+from app.storage.store import NewReference
 
 #: How long this run's claim on a row lasts: the row is encoded within seconds of being claimed, so a
 #: claim that outlives this belongs to a run that died, and a worker may take the row over.

@@ -2,7 +2,7 @@
 
 from app.collection import Collection
 from app.engine.pipeline import load_pipeline
-from app.store import ReferenceStore
+from app.storage.store import ReferenceStore
 from bench.seed import seed
 from tests.service.conftest import CONFIG
 from tests.test_cli import geoloc

@@ -14,7 +14,7 @@ from app.core import LocateOptions, StoreReferences, locate_features
 from app.engine.configs import get_config
 from app.engine.imageio import load_image
 from app.engine.pipeline import load_pipeline
-from app.store import ReferenceStore
+from app.storage.store import ReferenceStore
 from tests.conftest import PENN
 from tests.service.conftest import CONFIG, Server
 from tests.test_cli import geoloc

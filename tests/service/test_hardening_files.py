@@ -14,7 +14,8 @@ from pathlib import Path
 import httpx
 
 from app.apikey import key_path, load_or_create
-from app.store import ReferenceStore, sha256_of
+from app.storage.files import sha256_of
+from app.storage.store import ReferenceStore
 from tests.conftest import PENN
 from tests.service.conftest import Server, wait_job
 from tests.test_cli import geoloc

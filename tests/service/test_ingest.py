@@ -13,7 +13,7 @@ from pathlib import Path
 import cv2
 import pytest
 
-from app.store import NewReference, ReferenceStore
+from app.storage.store import NewReference, ReferenceStore
 from tests.conftest import PENN
 from tests.service.conftest import CONFIG, Server
 

@@ -16,7 +16,7 @@ from app.encoding import EncodeItem, LocalEngine
 from app.engine.imageio import ImageLimits
 from app.evaluation.datasets import read_manifest
 from app.reindex import RefitOptions, fit_generation, reindex, switch
-from app.store import NewReference, ReferenceStore
+from app.storage.store import NewReference, ReferenceStore
 from tests.service.conftest import CONFIG, Server, wait_job
 from tests.test_cli import geoloc
 
@@ -111,7 +111,7 @@ def test_uploads_and_deletions_during_the_reindex_reach_the_new_generation(templ
     data = _copy(template, tmp_path)
     store = ReferenceStore(data)
     target, _ = fit_generation(store, fitted_models, RefitOptions(sample=12, svm_bank="none", seed=5))
-    store.start_reindex(target.as_meta())
+    store.start_reindex(target)
     engine = LocalEngine(target.source(data, fitted_models).load(), ImageLimits())
     first, _ = reindex(store, target, engine, batch=4, limit=8)  # the re-index is half-way ...
     assert first == 8 and switch(store, target) is None  # ... and cannot switch yet
@@ -144,7 +144,7 @@ def test_a_stale_worker_never_records_old_codes(template, fitted_models, tmp_pat
     old = GeolocService.open(data, fitted_models, CONFIG)
     old_fp = old.pipeline.fingerprint
     target, _ = fit_generation(store, fitted_models, RefitOptions(sample=12, svm_bank="none", seed=3))
-    store.start_reindex(target.as_meta())
+    store.start_reindex(target)
     engine = LocalEngine(target.source(data, fitted_models).load(), ImageLimits())
     reindex(store, target, engine, batch=8)
     assert switch(store, target) == 1
@@ -167,7 +167,7 @@ def test_an_interrupted_reindex_leaves_the_old_generation_and_a_rerun_continues(
     data = _copy(template, tmp_path)
     store = ReferenceStore(data)
     target, _ = fit_generation(store, fitted_models, RefitOptions(sample=12, svm_bank="none", seed=9))
-    store.start_reindex(target.as_meta())
+    store.start_reindex(target)
     engine = LocalEngine(target.source(data, fitted_models).load(), ImageLimits())
     assert reindex(store, target, engine, batch=3, limit=6) == (6, 0)  # then the process dies
     store.close()

@@ -20,7 +20,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from app.store import storage_guard
+from app.storage.errors import storage_guard
 
 JOURNAL_NAME = "ingest-journal.sqlite"
 SCHEMA = """

@@ -20,18 +20,71 @@ from __future__ import annotations
 import hashlib
 import json
 import time
+from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 from app.engine.artifacts import atomic_write_bytes
 from app.engine.index.references import ReferenceIndex
 from app.engine.pipeline import Pipeline
-
-if TYPE_CHECKING:
-    from app.store import ReferenceStore
+from app.storage.identity import Binding, Identity
 
 MANIFEST = "index.json"
 FORMAT = 2
+
+
+@dataclass(frozen=True)
+class SnapshotFile:
+    """One index file of a snapshot: its name in the data dir, size, checksum and deleted ids."""
+
+    file: str
+    bytes: int
+    sha256: str
+    tombstones: list[int]
+
+
+@dataclass(frozen=True)
+class SnapshotManifest:
+    """``index.json``: what a snapshot holds and what it was made from (its keys, in this order, on disk)."""
+
+    format: int
+    version: int  # the change-log version the snapshot holds
+    generation: int
+    size: int
+    config: str | None
+    fingerprint: str | None  # the fitted pipeline's
+    float_dim: int | None
+    bits: int | None
+    files: dict[str, SnapshotFile]  # by kind: float, binary
+    written_at: float | None
+    # The binding (``Identity.binding``); None in a snapshot written by an older version.
+    database_id: str | None = None
+    ref_high_water: int | None = None
+    last_change: list | None = None
+
+    def to_json(self) -> str:
+        return json.dumps(asdict(self), indent=1)
+
+    @classmethod
+    def from_dict(cls, m: dict) -> SnapshotManifest:
+        """Raises ``SnapshotInvalid`` for a manifest whose fields are missing or of the wrong type."""
+        try:
+            return cls(
+                format=m["format"],
+                version=int(m["version"]),
+                generation=int(m.get("generation", -1)),
+                size=int(m.get("size") or 0),
+                config=m.get("config"),
+                fingerprint=m.get("fingerprint"),
+                float_dim=m.get("float_dim"),
+                bits=m.get("bits"),
+                files={kind: SnapshotFile(**entry) for kind, entry in m["files"].items()},
+                written_at=m.get("written_at"),
+                database_id=m.get("database_id"),
+                ref_high_water=m.get("ref_high_water"),
+                last_change=m.get("last_change"),
+            )
+        except (KeyError, TypeError, ValueError, AttributeError) as e:
+            raise SnapshotInvalid(f"the snapshot cannot be loaded ({type(e).__name__}: {e})") from None
 
 
 class SnapshotInvalid(Exception):
@@ -45,7 +98,7 @@ class SnapshotUnverifiable(SnapshotInvalid):
 class SnapshotMismatch(SnapshotInvalid):
     """A snapshot of another database, or of this one at a state it no longer has."""
 
-    def __init__(self, message: str, manifest: dict):
+    def __init__(self, message: str, manifest: SnapshotManifest):
         super().__init__(message)
         self.manifest = manifest
 
@@ -59,22 +112,22 @@ def _same_change(ours: list | None, theirs: list | None) -> bool:
     return ours[:2] == theirs[:2] and same_sha
 
 
-def check_binding(manifest: dict, store: ReferenceStore) -> None:
+def check_binding(manifest: SnapshotManifest, store: Identity) -> None:
     """Raise unless the snapshot was made from this database at a version it still holds. The manifest is
     read before the database: a snapshot another process writes meanwhile is never ahead of what we read."""
-    if not manifest.get("database_id"):
+    if not manifest.database_id:
         raise SnapshotUnverifiable("the snapshot names no database (written by an older version): rebuilding it")
-    version = int(manifest.get("version", 0))
+    version = manifest.version
     database_id, head, change = store.binding_state(version)
     why = None
-    if manifest["database_id"] != database_id:
-        why = f"it was made from database {manifest['database_id']}, this one is {database_id}"
+    if manifest.database_id != database_id:
+        why = f"it was made from database {manifest.database_id}, this one is {database_id}"
     elif version > head:
         why = (
             f"its change-log version {version} is ahead of the database's {head}: the database lost rows it "
             "indexes (a copy without its -wal file?)"
         )
-    elif version and not _same_change(change, manifest.get("last_change")):
+    elif version and not _same_change(change, manifest.last_change):
         why = f"the change log at version {version} is not the one it was made from (the database diverged)"
     if why:
         raise SnapshotMismatch(f"the snapshot does not belong to this database: {why}", manifest)
@@ -85,46 +138,43 @@ def write_snapshot(
     index: ReferenceIndex,
     pipeline: Pipeline,
     version: int,
-    generation: int = 0,
-    binding: dict | None = None,
-) -> dict:
+    generation: int,
+    binding: Binding,
+) -> SnapshotManifest:
     """Files named by generation and version (two generations at one version never share a file name); the
     manifest carries the pipeline's fingerprint, so one generation's snapshot is never loaded for another,
     and ``binding`` (``ReferenceStore.binding``), so it is never loaded for another database."""
-    files: dict[str, dict] = {}
+    files: dict[str, SnapshotFile] = {}
     for kind, idx in (("float", index.float), ("binary", index.binary)):
         if idx is not None:
             name = f"{kind}-g{generation}-v{version}.faiss"
             data = idx.to_bytes()
             atomic_write_bytes(data_dir / name, data)
-            files[kind] = {
-                "file": name,
-                "bytes": len(data),
-                "sha256": hashlib.sha256(data).hexdigest(),
-                "tombstones": sorted(idx.tombstones),
-            }
-    manifest = {
-        "format": FORMAT,
-        "version": version,
-        "generation": generation,
-        "size": index.size,
-        "config": pipeline.config.name,
-        "fingerprint": pipeline.fingerprint,
-        "float_dim": pipeline.float_dim,
-        "bits": pipeline.bits,
-        "files": files,
-        "written_at": time.time(),
-        **(binding or {}),
-    }
-    atomic_write_bytes(data_dir / MANIFEST, json.dumps(manifest, indent=1).encode())
-    keep = {f["file"] for f in files.values()}
+            files[kind] = SnapshotFile(name, len(data), hashlib.sha256(data).hexdigest(), sorted(idx.tombstones))
+    manifest = SnapshotManifest(
+        format=FORMAT,
+        version=version,
+        generation=generation,
+        size=index.size,
+        config=pipeline.config.name,
+        fingerprint=pipeline.fingerprint,
+        float_dim=pipeline.float_dim,
+        bits=pipeline.bits,
+        files=files,
+        written_at=time.time(),
+        database_id=binding.database_id,
+        ref_high_water=binding.ref_high_water,
+        last_change=binding.last_change,
+    )
+    atomic_write_bytes(data_dir / MANIFEST, manifest.to_json().encode())
+    keep = {f.file for f in files.values()}
     for old in data_dir.glob("*-v*.faiss"):
         if old.name not in keep:
             old.unlink(missing_ok=True)
     return manifest
 
 
-def read_manifest(data_dir: Path) -> dict:
+def read_manifest(data_dir: Path) -> SnapshotManifest:
     path = data_dir / MANIFEST
     try:
         manifest = json.loads(path.read_text())
@@ -134,16 +184,16 @@ def read_manifest(data_dir: Path) -> dict:
         raise SnapshotInvalid(f"{path} is unreadable or not JSON ({e})") from None
     if not isinstance(manifest, dict) or manifest.get("format") != FORMAT:
         raise SnapshotInvalid(f"{path} is not a snapshot manifest of format {FORMAT}")
-    return manifest
+    return SnapshotManifest.from_dict(manifest)
 
 
 def load_snapshot(
-    data_dir: Path, pipeline: Pipeline, store: ReferenceStore | None = None
-) -> tuple[ReferenceIndex, dict]:
+    data_dir: Path, pipeline: Pipeline, store: Identity | None = None
+) -> tuple[ReferenceIndex, SnapshotManifest]:
     """The snapshot's index and its manifest, every file verified against its checksum and, with ``store``,
     the snapshot checked to be of that database (every caller that serves or checks it passes one)."""
     m = read_manifest(data_dir)
-    if m.get("fingerprint") != pipeline.fingerprint:
+    if m.fingerprint != pipeline.fingerprint:
         raise SnapshotInvalid("the snapshot was made with another fitted pipeline")
     if store is not None:
         check_binding(m, store)
@@ -152,12 +202,11 @@ def load_snapshot(
         for kind, idx in (("float", index.float), ("binary", index.binary)):
             if idx is None:
                 continue
-            entry = m["files"][kind]
-            data = (data_dir / entry["file"]).read_bytes()
-            if len(data) != entry["bytes"] or hashlib.sha256(data).hexdigest() != entry["sha256"]:
-                raise SnapshotInvalid(f"{entry['file']} does not match its checksum (corrupt or truncated)")
-            idx.load_bytes(data, entry["tombstones"])
-        int(m["version"])
+            entry = m.files[kind]
+            data = (data_dir / entry.file).read_bytes()
+            if len(data) != entry.bytes or hashlib.sha256(data).hexdigest() != entry.sha256:
+                raise SnapshotInvalid(f"{entry.file} does not match its checksum (corrupt or truncated)")
+            idx.load_bytes(data, entry.tombstones)
     except SnapshotInvalid:
         raise
     except (OSError, KeyError, TypeError, ValueError, RuntimeError) as e:
@@ -168,4 +217,4 @@ def load_snapshot(
 def snapshot_files(data_dir: Path) -> list[Path]:
     """The manifest and the files it names (what a backup copies)."""
     m = read_manifest(data_dir)
-    return [data_dir / MANIFEST] + [data_dir / f["file"] for f in m["files"].values()]
+    return [data_dir / MANIFEST] + [data_dir / f.file for f in m.files.values()]

@@ -7,7 +7,7 @@ removal stays queued). None of them is ever read, but they hold disk and, for ph
 Why an age threshold: an upload writes its files *before* the transaction that commits its rows, so a
 young file no row names may be an upload in flight. Only files older than ``MIN_AGE_S`` are removed, and
 each unlink happens under the database's write lock after re-checking that no row names the file (an add
-of the same bytes re-checks its file under that lock too: see ``app.store.REMOVALS_SCHEMA``).
+of the same bytes re-checks its file under that lock too: see ``app.storage.removals``).
 
 Cost: a sweep lists every file of ``images/``, stats the unnamed ones and looks each name up in the sha256
 index, so it is O(collection); the writer process runs it in a background thread once an hour
@@ -25,7 +25,8 @@ import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 
-from app.store import ReferenceStore, is_storage_error
+from app.storage.errors import is_storage_error
+from app.storage.store import ReferenceStore
 
 log = logging.getLogger("geoloc.orphans")
 

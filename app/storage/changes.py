@@ -1,0 +1,73 @@
+"""The index's change log: every change *of the index* (a reference encoded and added, an indexed reference
+deleted or moved) appends one row ``(version, ref_id, op)`` in the same transaction as the change itself. The
+index version is the log's last version; a process holding the index at version ``v`` catches up by reading
+exactly the changes after ``v`` (with their codes, in one query)."""
+
+from __future__ import annotations
+
+import sqlite3
+from dataclasses import dataclass
+
+import numpy as np
+
+from app.storage.database import Database
+from app.storage.generations import CODES
+
+CHANGES_SCHEMA = """
+-- The index's change log: one row per reference added to or deleted from the index.
+CREATE TABLE IF NOT EXISTS changes (
+    version INTEGER PRIMARY KEY AUTOINCREMENT,
+    ref_id INTEGER NOT NULL,
+    op TEXT NOT NULL CHECK (op IN ('add', 'delete', 'move'))
+);
+"""
+
+
+@dataclass(frozen=True)
+class Change:
+    version: int
+    ref_id: int
+    op: str  # add | delete
+    float_code: bytes | None
+    binary_code: bytes | None
+
+
+class ChangeLog(Database):
+    def _log_change(self, db: sqlite3.Connection, ref_id: int, op: str) -> None:
+        """Inside a write transaction: append one change of the index."""
+        db.execute("INSERT INTO changes(ref_id, op) VALUES(?, ?)", (ref_id, op))
+
+    @property
+    def version(self) -> int:
+        """The index version: the change log's last entry. Pending uploads do not move it. Read under the
+        store's lock: on the connection this process shares between threads, a read inside another thread's
+        open write transaction would see changes that may yet roll back."""
+        with self._lock:
+            return int(self.db.execute("SELECT COALESCE(MAX(version), 0) FROM changes").fetchone()[0])
+
+    def changes_since(self, version: int) -> list[Change]:
+        """The index changes after ``version``, oldest first, each add with its codes (NULL when the row was
+        deleted since: a later delete entry follows). Under the lock, like ``version``."""
+        with self._lock:
+            rows = self.db.execute(
+                f"SELECT c.version, c.ref_id, c.op, {CODES} FROM changes c "
+                "LEFT JOIN refs r ON r.id = c.ref_id AND r.status = 'indexed' AND c.op = 'add' "
+                "LEFT JOIN switched_codes s ON s.ref_id = r.id "
+                "WHERE c.version > ? ORDER BY c.version",
+                (version,),
+            ).fetchall()
+        return [Change(*r) for r in rows]
+
+    def all_codes(self) -> tuple[int, np.ndarray, list[bytes | None], list[bytes | None]]:
+        """Every indexed row's codes and the index version they make up, read in one consistent snapshot."""
+        with self.read_snapshot() as db:
+            version = int(db.execute("SELECT COALESCE(MAX(version), 0) FROM changes").fetchone()[0])
+            rows = db.execute(
+                f"SELECT r.id, {CODES} FROM refs r LEFT JOIN switched_codes s ON s.ref_id = r.id "
+                "WHERE r.status='indexed' ORDER BY r.id"
+            ).fetchall()
+        return version, np.array([r[0] for r in rows], np.int64), [r[1] for r in rows], [r[2] for r in rows]
+
+    def indexed_ids(self) -> np.ndarray:
+        rows = self.db.execute("SELECT id FROM refs WHERE status='indexed' ORDER BY id").fetchall()
+        return np.array([r[0] for r in rows], np.int64)

@@ -1,0 +1,155 @@
+"""The ingestion queue: pending rows are the durable queue. A bulk run claims the rows it encodes itself;
+an upload's job records which references it created, so its progress can be read back."""
+
+from __future__ import annotations
+
+import sqlite3
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from app.storage.changes import ChangeLog
+from app.storage.database import blob, ids_json
+
+JOBS_SCHEMA = """
+CREATE TABLE IF NOT EXISTS jobs (
+    id TEXT PRIMARY KEY,
+    created_at TEXT NOT NULL
+);
+CREATE TABLE IF NOT EXISTS job_items (
+    job_id TEXT NOT NULL REFERENCES jobs(id),
+    position INTEGER NOT NULL,
+    ref_id INTEGER NOT NULL,
+    duplicate INTEGER NOT NULL DEFAULT 0,
+    PRIMARY KEY (job_id, position)
+);
+"""
+#: Claims: pending rows a bulk run (``geoloc ingest``) encodes itself. A worker skips them until the lease
+#: ends, so the rows of a run that crashed go back to the queue by themselves.
+CLAIMS_SCHEMA = """
+CREATE TABLE IF NOT EXISTS claims (
+    ref_id INTEGER PRIMARY KEY,
+    owner TEXT NOT NULL,
+    expires REAL NOT NULL
+);
+CREATE INDEX IF NOT EXISTS claims_owner ON claims(owner);
+"""
+
+
+@dataclass(frozen=True)
+class JobItem:
+    reference_id: int
+    duplicate: bool
+    status: str  # pending, indexed, failed, or deleted (no row any more)
+    error: str | None
+
+
+@dataclass(frozen=True)
+class Job:
+    """An upload's progress: its items in upload order and how many are in each state."""
+
+    id: str
+    created_at: str
+    status: str  # queued, running, done or failed
+    total: int
+    pending: int
+    indexed: int
+    failed: int
+    deleted: int
+    items: list[JobItem]
+
+
+def _job_status(items: Sequence[JobItem], counts: dict[str, int]) -> str:
+    if counts["pending"] == len(items):
+        return "queued"
+    if counts["pending"]:
+        return "running"
+    return "failed" if counts["failed"] == len(items) else "done"
+
+
+class Queue(ChangeLog):
+    def pending(self, limit: int, after: int = 0) -> list[tuple[int, Path]]:
+        """The next pending rows in id order, except those another run claimed and whose lease still runs."""
+        rows = self.db.execute(
+            "SELECT r.id, r.sha256, r.image_ext FROM refs r LEFT JOIN claims c ON c.ref_id = r.id "
+            "WHERE r.status='pending' AND r.id > ? AND (c.expires IS NULL OR c.expires <= ?) ORDER BY r.id LIMIT ?",
+            (after, time.time(), limit),
+        ).fetchall()
+        return [(r[0], self.image_path_for(r[1], r[2])) for r in rows]
+
+    def claim(self, ids: Sequence[int], owner: str, lease_s: float) -> None:
+        """Claim rows for ``owner`` for ``lease_s`` seconds (one statement for the whole list); a claim held
+        by another owner is taken over only once its lease has ended."""
+        with self.transaction() as db:
+            db.execute(
+                "INSERT INTO claims(ref_id, owner, expires) SELECT value, ?, ? FROM json_each(?) WHERE true "
+                "ON CONFLICT(ref_id) DO UPDATE SET owner=excluded.owner, expires=excluded.expires "
+                "WHERE claims.owner = excluded.owner OR claims.expires <= ?",
+                (owner, time.time() + lease_s, ids_json(ids), time.time()),
+            )
+
+    def release(self, owner: str, ids: Sequence[int] | None = None) -> None:
+        """Drop ``owner``'s claims on ``ids`` (all of them when None): done rows, or the end of a run."""
+        with self.transaction() as db:
+            if ids is None:
+                db.execute("DELETE FROM claims WHERE owner=?", (owner,))
+            else:
+                db.execute(
+                    "DELETE FROM claims WHERE owner=? AND ref_id IN (SELECT value FROM json_each(?))",
+                    (owner, ids_json(ids)),
+                )
+
+    def complete(
+        self,
+        results: Sequence[tuple[int, np.ndarray | None, np.ndarray | None, str | None]],
+        fingerprint: str | None = None,
+    ) -> list[int]:
+        """Record encoded codes (or an error) for pending rows, in one transaction, logging each newly indexed
+        row; return those ids. Rows deleted meanwhile are skipped, and re-running a batch changes nothing:
+        completing is idempotent, so a worker killed anywhere can simply start again. ``fingerprint``: the
+        pipeline that encoded the batch; when a re-fit has switched the data dir to another one meanwhile,
+        nothing is recorded and the rows stay pending (to be encoded again by the new pipeline)."""
+        done = []
+        with self.transaction() as db:
+            if fingerprint is not None and not self._fingerprint_is(db, fingerprint):
+                return []
+            for ref_id, fcode, bcode, error in results:
+                if error is not None:
+                    db.execute(
+                        "UPDATE refs SET status='failed', error=? WHERE id=? AND status='pending'", (error, ref_id)
+                    )
+                    continue
+                cur = db.execute(
+                    "UPDATE refs SET float_code=?, binary_code=?, status='indexed' WHERE id=? AND status='pending'",
+                    (blob(fcode, np.float32), blob(bcode, np.uint8), ref_id),
+                )
+                if cur.rowcount:
+                    self._log_change(db, ref_id, "add")
+                    done.append(ref_id)
+        return done
+
+    def _record_job(
+        self, db: sqlite3.Connection, job_id: str, created_at: str, items: Sequence[tuple[int, bool]]
+    ) -> None:
+        """Inside an add's write transaction: the job of ``items`` ((reference id, created), in order)."""
+        db.execute("INSERT INTO jobs(id, created_at) VALUES(?, ?)", (job_id, created_at))
+        db.executemany(
+            "INSERT INTO job_items(job_id, position, ref_id, duplicate) VALUES(?,?,?,?)",
+            [(job_id, n, ref_id, int(not created)) for n, (ref_id, created) in enumerate(items)],
+        )
+
+    def job(self, job_id: str) -> Job | None:
+        row = self.db.execute("SELECT created_at FROM jobs WHERE id=?", (job_id,)).fetchone()
+        if row is None:
+            return None
+        rows = self.db.execute(
+            "SELECT j.position, j.ref_id, j.duplicate, r.status, r.error FROM job_items j "
+            "LEFT JOIN refs r ON r.id = j.ref_id WHERE j.job_id=? ORDER BY j.position",
+            (job_id,),
+        ).fetchall()
+        items = [JobItem(i[1], bool(i[2]), i[3] or "deleted", i[4]) for i in rows]
+        counts = {s: sum(1 for it in items if it.status == s) for s in ("pending", "indexed", "failed", "deleted")}
+        return Job(job_id, row[0], _job_status(items, counts), len(items), items=items, **counts)

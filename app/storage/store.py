@@ -1,0 +1,367 @@
+"""The data directory: SQLite rows with their codes (the source of truth), stored images, a change log.
+
+Why this shape: SQLite in WAL mode gives durable, atomic commits, so an accepted reference is a row that
+survives a crash, and the codes live in that same row, so the FAISS indexes are only a cache. What keeps
+that cache cheap to maintain is the change log (``app.storage.changes``): every change *of the index*
+appends one row in the same transaction as the change itself, so the cost of a change never depends on the
+collection's size. Accepting an upload (a ``pending`` row) is a change of rows, not of the index, and
+appends nothing.
+
+``ReferenceStore`` is one class composed of the storage's parts (each a ``Database`` subclass over the same
+connection, each owning its tables): this module holds the rows and their images; ``queue`` the pending
+rows, claims and jobs; ``changes`` the change log; ``generations`` a re-fit's codes; ``identity`` the
+database's id and checkpoints; ``removals`` the image files to remove; ``maintenance`` what a check reads.
+Why one class rather than separate components: an add writes rows, the change log, a job and the removal
+queue in one transaction on one connection under one lock, and callers keep ``store.pending(...)``.
+
+Every storage failure (unwritable folder, full disk, read-only database) surfaces as ``StorageUnavailable``
+so callers answer "try again later" without losing what is already stored.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import sqlite3
+import time
+import uuid
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from app.engine.errors import IncompatibleArtifact
+from app.engine.pipeline import Pipeline
+from app.errors import StorageUnavailable
+from app.storage.changes import CHANGES_SCHEMA
+from app.storage.database import META_SCHEMA, blob, ids_json
+from app.storage.errors import storage_guard
+from app.storage.files import SYNC_EACH_UP_TO, fsync_dir, sha256_of, syncfs, write_image_file
+from app.storage.generations import GENERATIONS_SCHEMA, Generations
+from app.storage.identity import Identity
+from app.storage.maintenance import Maintenance
+from app.storage.queue import CLAIMS_SCHEMA, JOBS_SCHEMA, Queue
+from app.storage.removals import REMOVALS_SCHEMA, Removals
+
+log = logging.getLogger("geoloc.store")
+
+ROWS_SCHEMA = """
+CREATE TABLE IF NOT EXISTS refs (
+    id INTEGER PRIMARY KEY AUTOINCREMENT,
+    sha256 TEXT NOT NULL UNIQUE,
+    lat REAL NOT NULL,
+    lon REAL NOT NULL,
+    heading REAL,
+    captured_at TEXT,
+    label TEXT,
+    source TEXT,
+    image_ext TEXT,
+    created_at TEXT NOT NULL,
+    float_code BLOB,
+    binary_code BLOB,
+    status TEXT NOT NULL DEFAULT 'indexed',  -- pending (accepted, not encoded yet), indexed, failed
+    error TEXT
+);
+CREATE INDEX IF NOT EXISTS refs_lat_lon ON refs(lat, lon);
+CREATE INDEX IF NOT EXISTS refs_status ON refs(status);
+"""
+
+
+@dataclass(frozen=True)
+class Reference:
+    id: int
+    sha256: str
+    lat: float
+    lon: float
+    heading: float | None
+    captured_at: str | None
+    label: str | None
+    source: str | None
+    created_at: str
+    status: str = "indexed"
+    error: str | None = None
+
+    def as_dict(self) -> dict:
+        return {k: getattr(self, k) for k in self.__dataclass_fields__}
+
+
+_COLS = "id, sha256, lat, lon, heading, captured_at, label, source, created_at, status, error"
+
+
+@dataclass
+class NewReference:
+    """One reference to store. With codes it is stored indexed (bulk loads of pre-encoded references);
+    without, it is stored ``pending`` for the ingestion worker."""
+
+    image: bytes
+    ext: str
+    lat: float
+    lon: float
+    heading: float | None = None
+    captured_at: str | None = None
+    label: str | None = None
+    source: str | None = None
+    float_code: np.ndarray | None = None
+    binary_code: np.ndarray | None = None
+    sha256: str = field(default="")
+
+    def __post_init__(self):
+        if not self.sha256:
+            self.sha256 = sha256_of(self.image)
+
+    @property
+    def encoded(self) -> bool:
+        return self.float_code is not None or self.binary_code is not None
+
+
+def _now() -> str:
+    return time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
+
+
+class ReferenceStore(Queue, Generations, Identity, Removals, Maintenance):
+    """One data directory bound to one fitted pipeline (its fingerprint is recorded on first use)."""
+
+    SCHEMAS = (
+        ROWS_SCHEMA,
+        META_SCHEMA,
+        JOBS_SCHEMA,
+        CHANGES_SCHEMA,
+        CLAIMS_SCHEMA,
+        GENERATIONS_SCHEMA,
+        REMOVALS_SCHEMA,
+    )
+
+    def __init__(self, data_dir: Path, read_only: bool = False):
+        super().__init__(data_dir, read_only)
+        if not read_only:
+            with storage_guard("opening the data dir"):
+                self._ensure_database_id()
+
+    def close(self) -> None:
+        """Checkpoint (a writer's rows go into the main file, the WAL is emptied), then close."""
+        if not self.read_only:
+            self.checkpoint("TRUNCATE")
+        super().close()
+
+    def bind(self, pipeline: Pipeline) -> None:
+        """Record which fitted pipeline encoded this collection; refuse a different one."""
+        fp = self.get_meta("fingerprint")
+        if fp is not None and fp != pipeline.fingerprint and self.count(None) > 0:
+            raise IncompatibleArtifact(
+                f"{self.data_dir} holds codes from pipeline {fp}, not {pipeline.fingerprint}: use the models dir "
+                "and --config the collection was built with, or start a new --data-dir"
+            )
+        if not self.read_only and fp != pipeline.fingerprint:
+            self.set_meta("fingerprint", pipeline.fingerprint)
+            self.set_meta("config", pipeline.config.name)
+
+    # -- adding ---------------------------------------------------------------------------------------
+    def existing_ids(self, shas: Sequence[str]) -> dict[str, int]:
+        rows = self.db.execute(
+            "SELECT sha256, id FROM refs WHERE sha256 IN (SELECT value FROM json_each(?))", (json.dumps(list(shas)),)
+        ).fetchall()
+        return {s: i for s, i in rows}
+
+    def write_images(self, items: Sequence[NewReference], skip: set[str] = frozenset()) -> None:
+        """Images first, then their data and the folder synced once per batch: a row is committed only after
+        the file it names (and the folder entry) is on disk."""
+        todo = [it for it in items if it.sha256 not in skip]
+        each = len(todo) <= SYNC_EACH_UP_TO
+        with storage_guard("writing images"):
+            written = False
+            for it in todo:
+                path = self.image_path_for(it.sha256, it.ext)
+                if not path.exists():
+                    write_image_file(path, it.image, sync=each)
+                    written = True
+            if written:
+                if not each:
+                    syncfs(self.images_dir)
+                fsync_dir(self.images_dir)
+
+    def insert_rows(
+        self, items: Sequence[NewReference], job: bool = False
+    ) -> tuple[list[tuple[int, bool]], str | None]:
+        """Insert rows in one transaction; identical bytes (already stored, or racing in from another process
+        at this very moment) come back as the existing id with ``created`` False. Encoded items are stored
+        indexed and logged as index changes in the same transaction. Each created row's file is checked (and
+        written again if a delete removed it meanwhile) before the commit: see ``app.storage.removals``."""
+        out: list[tuple[int, bool]] = []
+        job_id = uuid.uuid4().hex if job else None
+        now = _now()
+        created: list[NewReference] = []
+        with self.transaction() as db:
+            for it in items:
+                row = db.execute(
+                    "INSERT INTO refs(sha256, lat, lon, heading, captured_at, label, source, image_ext, created_at, "
+                    "float_code, binary_code, status) VALUES(?,?,?,?,?,?,?,?,?,?,?,?) "
+                    "ON CONFLICT(sha256) DO NOTHING RETURNING id",
+                    (
+                        it.sha256,
+                        it.lat,
+                        it.lon,
+                        it.heading,
+                        it.captured_at,
+                        it.label,
+                        it.source,
+                        it.ext,
+                        now,
+                        blob(it.float_code, np.float32),
+                        blob(it.binary_code, np.uint8),
+                        "indexed" if it.encoded else "pending",
+                    ),
+                ).fetchone()
+                if row is not None:
+                    out.append((int(row[0]), True))
+                    created.append(it)
+                    if it.encoded:
+                        self._log_change(db, int(row[0]), "add")
+                else:
+                    existing = db.execute("SELECT id FROM refs WHERE sha256=?", (it.sha256,)).fetchone()
+                    out.append((int(existing[0]), False))
+            self._files_for(db, created)
+            if job_id is not None:
+                self._record_job(db, job_id, now, out)
+        return out, job_id
+
+    def add_many(self, items: Sequence[NewReference], job: bool = False) -> tuple[list[tuple[int, bool]], str | None]:
+        """The bulk path: images written and synced, then every row in one transaction (with its job).
+        Returns ``[(id, created)]`` in order, and the job id when ``job``."""
+        known = self.existing_ids([it.sha256 for it in items])
+        self.write_images(items, skip=set(known))
+        return self.insert_rows(items, job)
+
+    def add(self, image: bytes, ext: str, lat: float, lon: float, float_code=None, binary_code=None, **meta):
+        """One reference (tests and small tools); see ``add_many``."""
+        ((ref_id, created),), _ = self.add_many(
+            [NewReference(image, ext, lat, lon, float_code=float_code, binary_code=binary_code, **meta)]
+        )
+        return ref_id, created
+
+    def _files_for(self, db: sqlite3.Connection, created: Sequence[NewReference]) -> None:
+        """Inside an add's write transaction: every created row's file is on disk when it commits. The files
+        were written (or found) before the transaction, so this is one ``stat`` per row; only a file that a
+        delete (or the orphan sweep) removed after that is written again here, under the lock. Removals
+        queued for these names are dropped: the names are in use again."""
+        if not created:
+            return
+        folder = str(self.images_dir)
+        names = [f"{it.sha256}.{it.ext}" for it in created]
+        gone = [(it, name) for it, name in zip(created, names, strict=True) if not os.path.exists(f"{folder}/{name}")]
+        for it, name in gone:
+            write_image_file(self.images_dir / name, it.image, sync=True)
+        if gone:
+            fsync_dir(self.images_dir)
+        self._unqueue_removals(db, names)
+
+    # -- deleting -------------------------------------------------------------------------------------
+    def delete(self, ref_id: int) -> str | None:
+        """Delete the row (an indexed one is logged so every process drops it from its index) and queue its
+        file for removal in the same transaction, then remove the file. Returns None when there is no such
+        reference, ``"removed"``, or ``"queued"`` when the file could not be removed now: the reference is
+        gone all the same, and the removal is retried (``remove_queued``) by the writer process and by
+        ``geoloc check --repair``."""
+        with self.transaction() as db:
+            row = db.execute("SELECT sha256, image_ext, status FROM refs WHERE id=?", (ref_id,)).fetchone()
+            if row is None:
+                return None
+            db.execute("DELETE FROM refs WHERE id=?", (ref_id,))
+            if row[2] == "indexed":
+                self._log_change(db, ref_id, "delete")
+            name = self.image_path_for(row[0], row[1]).name
+            self._queue_removal(db, name)
+        try:
+            _, failed = self.remove_queued([name])
+        except StorageUnavailable as e:
+            log.warning("reference %d deleted; removing its image is queued (%s)", ref_id, e)
+            return "queued"
+        return "queued" if failed else "removed"
+
+    # -- editing --------------------------------------------------------------------------------------
+    EDITABLE = ("lat", "lon", "heading", "label", "captured_at")
+
+    def update(self, ref_id: int, fields: dict) -> Reference | None:
+        """Change metadata in one transaction; a position change is logged ('move') like any change of where
+        a reference is, so every process that follows the log learns of it. None: no such reference."""
+        unknown = set(fields) - set(self.EDITABLE)
+        if unknown:
+            raise ValueError(f"not editable: {sorted(unknown)}")
+        with self.transaction() as db:
+            row = db.execute("SELECT lat, lon FROM refs WHERE id=?", (ref_id,)).fetchone()
+            if row is None:
+                return None
+            if fields:
+                sets = ", ".join(f"{k}=?" for k in fields)
+                db.execute(f"UPDATE refs SET {sets} WHERE id=?", (*fields.values(), ref_id))
+            if (fields.get("lat", row[0]), fields.get("lon", row[1])) != tuple(row):
+                self._log_change(db, ref_id, "move")
+        return self.get(ref_id)
+
+    # -- reading --------------------------------------------------------------------------------------
+    def get(self, ref_id: int) -> Reference | None:
+        row = self.db.execute(f"SELECT {_COLS} FROM refs WHERE id=?", (ref_id,)).fetchone()
+        return Reference(*row) if row else None
+
+    def get_many(self, ids: Sequence[int]) -> dict[int, Reference]:
+        """Rows of many ids in one read (the candidates of a search)."""
+        if len(ids) == 0:
+            return {}
+        rows = self.db.execute(
+            f"SELECT {_COLS} FROM refs WHERE id IN (SELECT value FROM json_each(?))", (ids_json(ids),)
+        ).fetchall()
+        return {r[0]: Reference(*r) for r in rows}
+
+    def image_path(self, ref_id: int) -> Path | None:
+        """Where the reference's image is (or should be); None when there is no such reference."""
+        row = self.db.execute("SELECT sha256, image_ext FROM refs WHERE id=?", (ref_id,)).fetchone()
+        return self.image_path_for(row[0], row[1]) if row else None
+
+    def list(
+        self, offset: int = 0, limit: int = 50, bbox: tuple[float, float, float, float] | None = None
+    ) -> tuple[list[Reference], int]:
+        where, args = "", []
+        if bbox is not None:
+            min_lon, min_lat, max_lon, max_lat = bbox
+            where, args = "WHERE lat BETWEEN ? AND ? AND lon BETWEEN ? AND ?", [min_lat, max_lat, min_lon, max_lon]
+        total = self.db.execute(f"SELECT COUNT(*) FROM refs {where}", args).fetchone()[0]
+        rows = self.db.execute(
+            f"SELECT {_COLS} FROM refs {where} ORDER BY id LIMIT ? OFFSET ?", [*args, limit, offset]
+        ).fetchall()
+        return [Reference(*r) for r in rows], total
+
+    def in_bbox(self, bbox: tuple[float, float, float, float]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(ids, lats, lons) of indexed references inside a bbox, in one read."""
+        min_lon, min_lat, max_lon, max_lat = bbox
+        rows = self.db.execute(
+            "SELECT id, lat, lon FROM refs WHERE lat BETWEEN ? AND ? AND lon BETWEEN ? AND ? AND status='indexed'",
+            (min_lat, max_lat, min_lon, max_lon),
+        ).fetchall()
+        if not rows:
+            return np.zeros(0, np.int64), np.zeros(0), np.zeros(0)
+        a = np.array(rows, np.float64)
+        return a[:, 0].astype(np.int64), a[:, 1], a[:, 2]
+
+    def ids_in_bbox(self, bbox: tuple[float, float, float, float]) -> np.ndarray:
+        return self.in_bbox(bbox)[0]
+
+    def count(self, status: str | None = "indexed") -> int:
+        """References in the index (by default), or of another status, or all (None)."""
+        if status is None:
+            return self.db.execute("SELECT COUNT(*) FROM refs").fetchone()[0]
+        return self.db.execute("SELECT COUNT(*) FROM refs WHERE status=?", (status,)).fetchone()[0]
+
+    def positions(self, ids) -> tuple[np.ndarray, np.ndarray]:
+        """(lats, lons) in the order of ``ids`` (NaN where unknown), for id lists of any length."""
+        ids = [int(i) for i in ids]
+        if not ids:
+            return np.zeros(0), np.zeros(0)
+        found = {
+            r[0]: (r[1], r[2])
+            for r in self.db.execute(
+                "SELECT id, lat, lon FROM refs WHERE id IN (SELECT value FROM json_each(?))", (ids_json(ids),)
+            )
+        }
+        pos = np.array([found.get(i, (np.nan, np.nan)) for i in ids], np.float64)
+        return pos[:, 0], pos[:, 1]
