@@ -17,8 +17,8 @@ import threading
 from collections.abc import Callable
 from pathlib import Path
 
-from app.core import GeolocService
 from app.orphans import Janitor
+from app.service import GeolocService
 from app.store import is_storage_error
 
 log = logging.getLogger("geoloc.worker")

@@ -18,11 +18,11 @@ import tempfile
 import time
 from pathlib import Path
 
-from app.core import GeolocService
 from app.ingest.progress import Progress
 from app.ingest.run import IngestOptions, IngestRun
 from app.ingest.sources import open_source
 from app.journal import JOURNAL_NAME
+from app.service import GeolocService
 from bench.common import REPO, median_ms
 
 
