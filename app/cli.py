@@ -171,10 +171,10 @@ def ingest(
     chunks as pending rows, claimed by this run, encoded and completed in batches. Resumable: files stored by
     an earlier run (same path, size and mtime) are not read again, and identical images are stored once.
     Files that cannot be used are skipped and listed in a CSV report; a completed run exits 0."""
-    from app.core import GeolocService
     from app.ingest.progress import Progress
     from app.ingest.run import IngestOptions, IngestRun
     from app.ingest.sources import SourceError, open_source
+    from app.service import GeolocService
     from app.worker import IngestWorker, WorkerLock
 
     try:
@@ -224,7 +224,7 @@ def _print_summary(service, summary, left: int) -> None:
 
 
 def _region_option(lat: float | None, lon: float | None, radius_m: float | None, bbox: str | None):
-    from app.core import Region
+    from app.domain import Region
 
     if bbox:
         try:
@@ -258,7 +258,9 @@ def locate(
     config: ConfigOpt = _S.config,
 ) -> None:
     """Print ranked candidates and the fused estimate as JSON (the same answer as POST /locate)."""
-    from app.core import GeolocService, LocateOptions
+    from app.api.schemas import LocateOut
+    from app.domain import LocateOptions
+    from app.service import GeolocService
 
     service = GeolocService.open(data_dir, models_dir, config)
     options = LocateOptions(
@@ -266,7 +268,7 @@ def locate(
     )
     data = image.read_bytes()
     answer = service.locate(data, options)
-    out = answer.as_dict()
+    out = LocateOut.of(answer).model_dump()
     if compare_exif:
         out["exif_check"] = _exif_check(service.decode(data).gps, answer)
     typer.echo(json.dumps(out, indent=1))
@@ -408,7 +410,7 @@ def worker_cmd(
     import signal
 
     from app.collection import SnapshotWriter
-    from app.core import GeolocService
+    from app.service import GeolocService
     from app.worker import IngestWorker, WorkerLock
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")

@@ -17,7 +17,7 @@ import threading
 from collections.abc import Callable
 from pathlib import Path
 
-from app.core import GeolocService
+from app.service import GeolocService
 from app.storage.errors import is_storage_error
 from app.storage.orphans import Janitor
 

@@ -34,10 +34,11 @@ for _var in ("GEOLOC_ORT_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "M
 
 import cv2  # noqa: E402
 
-from app.core import GeolocService, Upload  # noqa: E402
+from app.domain import Upload  # noqa: E402
 from app.encoding import EncodeItem, LocalEngine, encode_and_complete  # noqa: E402
 from app.encoding.items import Encoded  # noqa: E402
 from app.engine.imageio import load_image  # noqa: E402
+from app.service import GeolocService  # noqa: E402
 from bench.common import REPO, write_section  # noqa: E402
 
 PENN = REPO.parent / "shared" / "data" / "penn-campus-gps"

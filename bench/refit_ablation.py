@@ -19,9 +19,10 @@ from pathlib import Path
 
 import numpy as np
 
-from app.core import GeolocService, LocateOptions
+from app.domain import LocateOptions
 from app.engine.geo import haversine_m
 from app.evaluation.datasets import read_manifest
+from app.service import GeolocService
 
 
 def recall(service: GeolocService, rows, radius_m: float) -> dict:

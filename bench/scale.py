@@ -114,7 +114,8 @@ def measure(size: int, root: Path, models: Path, config: str, photos: list[Path]
 def interleaved(sizes: list[int], root: Path, models: Path, config: str, photos: list[Path]) -> dict[int, dict]:
     """The same use cases in one process, size by size for each photo (the fairest comparison on a shared
     machine): locate through the core, and one upload accepted, encoded and completed (the job)."""
-    from app.core import GeolocService, LocateOptions, Upload
+    from app.domain import LocateOptions, Upload
+    from app.service import GeolocService
     from app.worker import IngestWorker
 
     svcs = {n: GeolocService.open(root / f"n{n}", models, config) for n in sizes}

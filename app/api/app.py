@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import logging
 import threading
-from contextlib import asynccontextmanager, nullcontext
+from contextlib import asynccontextmanager
 from pathlib import Path
 
 from fastapi import FastAPI
@@ -16,9 +16,9 @@ from app import __version__, apikey
 from app.api import docs, errors, security
 from app.api.limits import BodyLimits
 from app.api.metrics import Metrics, MetricsMiddleware
-from app.api.routes import router
+from app.api.routes import ROUTERS, ROUTES
 from app.collection import SnapshotWriter
-from app.core import GeolocService
+from app.service import GeolocService
 from app.settings import Settings
 from app.worker import IngestWorker, WorkerLock
 
@@ -93,7 +93,13 @@ def _load(app: FastAPI, stop: threading.Event) -> None:
     while not stop.is_set():
         try:
             service = GeolocService.open(
-                s.data_dir, s.models_dir, s.config, s.image_limits(), s.snapshot_policy(), s.keep_queries
+                s.data_dir,
+                s.models_dir,
+                s.config,
+                s.image_limits(),
+                s.snapshot_policy(),
+                s.keep_queries,
+                s.locate_concurrency,  # the extraction slots: app/service.py, extraction_slots
             )
             if s.worker == "inprocess":
                 _run_worker(app, service, stop)
@@ -150,20 +156,14 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.worker_lock = None
     app.state.worker_watch = None  # the failover thread, while another process holds the worker lock
     app.state.load_error = None
-    # Each /locate holds a decoded photo and its feature maps while it extracts; the limit bounds that memory.
-    # One per usable CPU by default (issue 18: with no limit, 8 concurrent 49 MP uploads took RSS up by
-    # 2.7 GB; bench/locate_memory.py). Throughput pays a little: on 2 cores, 8 concurrent clients of 1600 px
-    # photos (bench/load.py, 4 x 30 s) got 14.7 requests/s without a limit and 12.6 with one per core.
-    app.state.extract_slots = (
-        threading.BoundedSemaphore(settings.locate_concurrency) if settings.locate_concurrency else nullcontext()
-    )
     # Outermost first: metrics see every answer; body limits and keys come before any body is read; a bug
     # still answers JSON and keeps the connection.
     app.add_middleware(errors.LastResort)
-    app.add_middleware(BodyLimits, settings=settings, routes=router.routes)
+    app.add_middleware(BodyLimits, settings=settings, routes=ROUTES)
     app.add_middleware(MetricsMiddleware, metrics=app.state.metrics)
     errors.install(app)
-    app.include_router(router)
+    for router in ROUTERS:
+        app.include_router(router)
     app.mount("/static", StaticFiles(directory=WEB_DIR), name="static")
     docs.install(app, WEB_DIR)
 

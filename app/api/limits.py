@@ -3,7 +3,7 @@
 FastAPI parses a multipart form (spooling its files to temporary files) before any dependency runs, so a
 size check in a route, or the key check of ``write_access``, comes after the whole body has been read: a
 300 MB body with no key used to get its 401 after 224 MB had been spooled. This pure ASGI middleware runs
-first: it finds the route, runs the route's own access dependencies (app/api/auth.py) on the headers,
+first: it finds the route, runs the route's own access dependencies (app/api/deps.py) on the headers,
 refuses a declared ``Content-Length`` over the route's limit, and counts the bytes as the app reads them,
 answering 413 the moment they pass the limit. A refusal with body bytes still unread closes the
 connection (``Connection: close``): uvicorn would otherwise read the rest to reach the next request."""
@@ -16,7 +16,7 @@ from starlette.requests import HTTPConnection
 from starlette.routing import BaseRoute, Match
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from app.api.auth import ACCESS_CHECKS
+from app.api.deps import ACCESS_CHECKS
 from app.api.errors import ApiError, error_response
 from app.settings import Settings
 
@@ -42,7 +42,7 @@ class _TooLarge(Exception):
 
 
 class BodyLimits:
-    """``routes``: the API's routes (the router's own, whose dependencies name the access checks)."""
+    """``routes``: the API's routes (the routers' own, whose dependencies name the access checks)."""
 
     def __init__(self, app: ASGIApp, settings: Settings, routes: Sequence[BaseRoute]):
         self.app = app

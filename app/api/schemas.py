@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
-from typing import Annotated
+from pydantic import BaseModel, Field, field_validator
 
-from pydantic import AfterValidator, BaseModel, ConfigDict, Field
-
-from app.text import CAPTURED_AT_MAX, LABEL_MAX, readable
+from app.domain import LocateAnswer, ReferenceEdit
 
 
 class CandidateOut(BaseModel):
+    # One ``app.domain.Candidate``, read by attribute; its score to 6 decimals.
     reference_id: int
     lat: float
     lon: float
@@ -24,6 +23,11 @@ class CandidateOut(BaseModel):
         description="calibrated probability that this reference lies within 25 m of where the photo was taken "
         "(cross-validated on penn-campus-gps; given for the first 10 candidates)",
     )
+
+    @field_validator("score")
+    @classmethod
+    def _six_decimals(cls, v: float) -> float:
+        return round(v, 6)
 
 
 class EstimateOut(BaseModel):
@@ -53,6 +57,22 @@ class LocateOut(BaseModel):
     features: FeaturesOut
     timings_ms: dict[str, float]
     index: IndexOut
+
+    @classmethod
+    def of(cls, answer: LocateAnswer) -> LocateOut:
+        """The answer of /locate and of `geoloc locate`, the one declaration of its JSON: the candidates and
+        the estimate read from the domain's, the estimate only when confident, timings to 3 decimals."""
+        e = answer.confident_estimate
+        return cls(
+            candidates=[CandidateOut.model_validate(c, from_attributes=True) for c in answer.candidates],
+            estimate=None if e is None else EstimateOut.model_validate(e, from_attributes=True),
+            reason=answer.reason,
+            mode=answer.mode,
+            config=answer.config,
+            features=FeaturesOut(extracted=answer.features_extracted, kept=answer.features_kept),
+            timings_ms={k: round(v, 3) for k, v in answer.timings_ms.items()},
+            index=IndexOut(size=answer.index_size, version=answer.index_version, generation=answer.index_generation),
+        )
 
 
 class ReferenceOut(BaseModel):
@@ -86,31 +106,8 @@ class AcceptedOut(BaseModel):
     )
 
 
-Label = Annotated[str, Field(max_length=LABEL_MAX), AfterValidator(readable)]
-CapturedAt = Annotated[str, Field(max_length=CAPTURED_AT_MAX), AfterValidator(readable)]
-
-
-class ReferenceFields(BaseModel):
-    """A reference's writable fields as a client gives them: the one model for the form fields of
-    POST /references, each item of its ``metadata`` and (with ranges on the position) PATCH.
-
-    Strict: a boolean is not a number and an object is not a string (lax mode stores ``true`` as 1.0).
-    The range of an upload's lat/lon is checked by the core (``invalid_position``, as for EXIF positions)."""
-
-    model_config = ConfigDict(extra="forbid", strict=True)
-
-    lat: float | None = None
-    lon: float | None = None
-    heading: float | None = Field(None, ge=0, lt=360)
-    captured_at: CapturedAt | None = None
-    label: Label | None = None
-
-
-class ReferencePatch(ReferenceFields):
+class ReferencePatch(ReferenceEdit):
     """PATCH /references/{id}: every field optional; only those given change."""
-
-    lat: float | None = Field(None, ge=-90, le=90)
-    lon: float | None = Field(None, ge=-180, le=180)
 
 
 class JobItem(BaseModel):

@@ -1,7 +1,7 @@
 """The evaluation protocol of METHOD.md: Recall@N within d metres, estimate error, time per stage, bytes.
 
 Every image is decoded and its features extracted once; each fold then fits the pipeline on its own db
-and train rows, indexes the db rows in memory and queries the query rows through ``core.locate_features``,
+and train rows, indexes the db rows in memory and queries the query rows through ``app.locate.locate_features``,
 the function /locate calls. With ``folds`` > 1 the query role rotates over the non-train groups (a capture and its
 crops move together), because on a set this small one query moves Recall@1 by points.
 """
@@ -21,7 +21,7 @@ import numpy as np
 from pydantic import BaseModel
 from tqdm import tqdm
 
-from app.core import LocateOptions, RefInfo, Region, locate_features
+from app.domain import LocateOptions, RefInfo, Region
 from app.engine.artifacts import atomic_write_bytes
 from app.engine.configs import PipelineConfig
 from app.engine.geo import haversine_m
@@ -31,6 +31,7 @@ from app.engine.training.svm_training import Geotagged, index_of
 from app.errors import ManifestCannotBeEvaluated
 from app.evaluation.datasets import Row, read_manifest
 from app.fitting import EVAL_BANK_SOURCES, train_bank
+from app.locate import locate_features
 
 RECALL_AT = (1, 5, 10, 20)
 
@@ -207,7 +208,7 @@ def evaluate(
     fold's queries: ``bank_source`` train (the train rows only) or collection (the fold's db rows as
     training photos, plus the train rows: the rule ``geoloc fit`` serves). ``rerank`` and
     ``region_radius_m`` (a circle of that radius around each query's true position) ask the same of the
-    core as /locate's ``rerank`` and region do: queries go through ``core.locate_features``. With ``rerank``
+    core as /locate's ``rerank`` and region do: queries go through ``app.locate.locate_features``. With ``rerank``
     each query is also located without it (the same search), so one run reports recall with and without
     verification and the time it adds per query."""
     if svm_bank not in ("off", "positive", "negative"):

@@ -82,8 +82,9 @@ def toy_registered(monkeypatch, tmp_path):
 
 def test_a_toy_global_model_fits_ingests_and_locates(toy_registered, mini_manifest, tmp_path):
     from app.cli import fit
-    from app.core import GeolocService, LocateOptions, Upload
+    from app.domain import LocateOptions, Upload
     from app.encoding.ray import model_files
+    from app.service import GeolocService
     from app.worker import IngestWorker
 
     models = toy_registered

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from app.core import LocateOptions, locate_features
+from app.domain import LocateOptions
 from app.engine.configs import get_config
 from app.engine.errors import IncompatibleArtifact, ModelNotReady
 from app.engine.imageio import load_image
@@ -14,6 +14,7 @@ from app.engine.index.references import ReferenceIndex
 from app.engine.pipeline import Pipeline
 from app.evaluation.datasets import read_manifest
 from app.evaluation.evaluate import RowReferences
+from app.locate import locate_features
 
 
 @pytest.fixture(scope="module")

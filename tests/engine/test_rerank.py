@@ -4,7 +4,6 @@ import cv2
 import numpy as np
 import pytest
 
-from app.core import order_by_verification, verify_candidates
 from app.engine.geo import haversine_m
 from app.engine.imageio import ImageLimits, load_image
 from app.engine.rerank import (
@@ -15,6 +14,7 @@ from app.engine.rerank import (
     mutual_matches,
     verify,
 )
+from app.locate import order_by_verification, verify_candidates
 from tests.conftest import PENN, penn_photo
 
 

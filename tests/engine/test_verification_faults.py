@@ -6,9 +6,9 @@ import itertools
 import cv2
 import numpy as np
 
-from app.core import order_by_verification, verify_candidates
 from app.engine import rerank
 from app.engine.imageio import ImageLimits, load_image
+from app.locate import order_by_verification, verify_candidates
 from tests.conftest import PENN
 
 

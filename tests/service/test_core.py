@@ -9,11 +9,13 @@ import sys
 import numpy as np
 import pytest
 
+from app.api.schemas import LocateOut
 from app.collection import index_from_codes
-from app.core import LocateOptions, StoreReferences, locate_features
+from app.domain import LocateOptions
 from app.engine.configs import get_config
 from app.engine.imageio import load_image
 from app.engine.pipeline import load_pipeline
+from app.locate import StoreReferences, locate_features
 from app.storage.store import ReferenceStore
 from tests.conftest import PENN
 from tests.service.conftest import CONFIG, Server
@@ -40,7 +42,9 @@ def test_every_face_gives_the_same_answer(ingested, fitted_models):
     version, ids, f, b = store.all_codes()
     index = index_from_codes(pipe, ids, f, b)
     features = pipe.extract(load_image(photo.read_bytes()).rgb)
-    core = locate_features(pipe, index, StoreReferences(store), features, LocateOptions(top_k=5)).as_dict()
+    core = LocateOut.of(
+        locate_features(pipe, index, StoreReferences(store), features, LocateOptions(top_k=5))
+    ).model_dump()
     for other in (cli, api):
         assert [c["reference_id"] for c in other["candidates"]] == [c["reference_id"] for c in core["candidates"]]
         assert [c["score"] for c in other["candidates"]] == pytest.approx(

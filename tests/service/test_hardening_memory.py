@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 from PIL import Image, ImageOps
 
-from app.api.app import create_app
 from app.engine.imageio import FULL_DECODES, ImageLimits, PixelBudget, load_image
+from app.service import extraction_slots
 from app.settings import Settings, usable_cpus
 from tests.conftest import PENN
 
@@ -34,8 +34,7 @@ def test_locate_concurrency_defaults_to_the_usable_cpus(monkeypatch, tmp_path):
     s = Settings(data_dir=tmp_path)
     assert s.locate_concurrency == usable_cpus() > 0
     assert usable_cpus() == len(os.sched_getaffinity(0))
-    app = create_app(s)
-    assert isinstance(app.state.extract_slots, threading.BoundedSemaphore)
+    assert isinstance(extraction_slots(s.locate_concurrency), threading.BoundedSemaphore)
     monkeypatch.setenv("GEOLOC_LOCATE_CONCURRENCY", "0")  # still the way to turn the limit off
     assert Settings(data_dir=tmp_path).locate_concurrency == 0
 

@@ -13,8 +13,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from app.core import GeolocService, Upload
+from app.domain import Upload
 from app.encoding import EncodeItem, LocalEngine, encode_and_complete, make_engine
+from app.service import GeolocService
 from tests.conftest import PENN
 from tests.service.conftest import CONFIG
 

@@ -1,118 +1,24 @@
-"""The service's endpoints. Each handler parses the request, calls the application core, shapes JSON."""
+"""/references (add, list, get, thumbnail, edit, delete) and /jobs (an upload's progress): parse, call the
+service, shape."""
 
 from __future__ import annotations
 
 import io
-import math
-import time
 from typing import Annotated
 
-from fastapi import APIRouter, Depends, File, Form, Path, Query, Request, UploadFile
+from fastapi import APIRouter, Depends, File, Form, Query, Request, UploadFile
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, Response
 from PIL import Image, ImageOps
-from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from pydantic import TypeAdapter, ValidationError
 
-from app.api.auth import read_access, write_access
-from app.api.errors import ApiError, error_response, error_responses
-from app.api.schemas import (
-    AcceptedOut,
-    HealthOut,
-    JobOut,
-    LocateOut,
-    ReadyOut,
-    ReferenceFields,
-    ReferenceList,
-    ReferenceOut,
-    ReferencePatch,
-)
-from app.core import GeolocService, LocateOptions, ReferenceEdit, Region, Upload
+from app.api.deps import Core, RefId, parse_bbox, read_access, read_upload, write_access
+from app.api.errors import ApiError, error_responses
+from app.api.schemas import AcceptedOut, JobOut, ReferenceList, ReferenceOut, ReferencePatch
+from app.domain import ReferenceFields, Region, Upload
 from app.text import CAPTURED_AT_MAX, LABEL_MAX
 
 router = APIRouter()
-
-
-# -- dependencies -------------------------------------------------------------------------------------
-def service(request: Request) -> GeolocService:
-    state = request.app.state
-    if state.service is None:
-        raise ApiError(503, "not_ready", state.load_error or "the model, pipeline and index are still loading")
-    return state.service
-
-
-Core = Annotated[GeolocService, Depends(service)]
-#: SQLite integers are 64-bit: a larger id is a 422, not an overflow deep in the store.
-RefId = Annotated[int, Path(ge=1, le=2**63 - 1, description="reference id")]
-
-
-def _read_upload(request: Request, upload: UploadFile) -> bytes:
-    limit = request.app.state.settings.max_upload_bytes
-    data = upload.file.read(limit + 1)
-    if len(data) > limit:
-        raise ApiError(413, "too_large", f"{upload.filename or 'the image'} is larger than {limit} bytes")
-    return data
-
-
-def _parse_bbox(text: str) -> tuple[float, float, float, float]:
-    try:
-        parts = [float(x) for x in text.split(",")]
-    except ValueError:
-        raise ApiError(422, "invalid_request", "bbox must be min_lon,min_lat,max_lon,max_lat (numbers)") from None
-    if len(parts) != 4 or not all(math.isfinite(p) for p in parts):
-        raise ApiError(422, "invalid_request", "bbox must be four finite numbers: min_lon,min_lat,max_lon,max_lat")
-    min_lon, min_lat, max_lon, max_lat = parts
-    return min_lon, min_lat, max_lon, max_lat
-
-
-def _region(lat, lon, radius_m, bbox) -> Region | None:
-    if bbox is not None:
-        return Region(lat=lat, lon=lon, radius_m=radius_m, bbox=_parse_bbox(bbox))
-    if lat is None and lon is None and radius_m is None:
-        return None
-    return Region(lat=lat, lon=lon, radius_m=radius_m)
-
-
-# -- /locate --------------------------------------------------------------------------------------------
-@router.post(
-    "/locate",
-    response_model=LocateOut,
-    responses=error_responses(400, 401, 413, 415, 422, 503),
-    dependencies=[Depends(read_access)],
-    summary="Where was this photo taken? Ranked GPS candidates and a fused estimate",
-)
-def locate(
-    request: Request,
-    core: Core,
-    image: Annotated[UploadFile, File(description="the photo (JPEG, PNG, WebP or TIFF)")],
-    top_k: Annotated[int, Form(ge=1, le=100)] = 10,
-    mode: Annotated[str | None, Form(description="float, binary or two-stage; default: the best available")] = None,
-    rerank: Annotated[bool, Form(description="geometric verification of the top candidates (slower)")] = False,
-    lat: Annotated[float | None, Form(description="region centre (with lon and radius_m)")] = None,
-    lon: Annotated[float | None, Form()] = None,
-    radius_m: Annotated[float | None, Form()] = None,
-    bbox: Annotated[str | None, Form(description="region as min_lon,min_lat,max_lon,max_lat")] = None,
-    min_score: Annotated[float, Form(ge=0, le=1)] = 0.0,
-) -> LocateOut:
-    metrics = request.app.state.metrics
-    t0 = time.perf_counter()
-    options = LocateOptions(
-        top_k=top_k, mode=mode, rerank=rerank, region=_region(lat, lon, radius_m, bbox), min_score=min_score
-    )
-    core.collection.check_mode(mode)
-    with request.app.state.extract_slots:
-        t_start = time.perf_counter()
-        data = _read_upload(request, image)
-        img, features, decode_ms = core.extract(data)
-    answer = core.locate_extracted(img, features, options)
-    core.keep_query(data, img)
-    core.release_memory(img)  # what the search freed too, once the request holds nothing large
-    timings = {"queue": (t_start - t0) * 1000, "decode": decode_ms, **answer.timings_ms}
-    timings["total"] = (time.perf_counter() - t0) * 1000
-    answer.timings_ms = timings
-    for stage, ms in timings.items():
-        metrics.stage.labels(stage).observe(ms / 1000)
-    return LocateOut(**answer.as_dict())
 
 
 #: ``metadata`` is bounded before it is parsed: a label of 200 characters written as JSON escapes, a capture
@@ -151,7 +57,6 @@ def _parse_metadata(text: str, n_images: int) -> list[ReferenceFields]:
     return metas
 
 
-# -- /references ----------------------------------------------------------------------------------------
 @router.post(
     "/references",
     status_code=202,
@@ -190,7 +95,7 @@ def add_references(
         given = {"lat": lat, "lon": lon, "heading": heading, "captured_at": captured_at, "label": label}
         metas = [_validated(given, ())] * len(image)
     uploads = [
-        Upload(data=_read_upload(request, upload), filename=upload.filename, **meta.model_dump())
+        Upload(read_upload(request, upload), upload.filename, **meta.model_dump())
         for upload, meta in zip(image, metas, strict=True)
     ]
     accepted = core.accept(uploads)
@@ -221,7 +126,7 @@ def get_job(job_id: str, core: Core) -> JobOut:
 
 
 def _ref_out(ref) -> ReferenceOut:
-    return ReferenceOut(**ref.as_dict())
+    return ReferenceOut.model_validate(ref, from_attributes=True)
 
 
 @router.get(
@@ -237,7 +142,7 @@ def list_references(
     limit: Annotated[int, Query(ge=1, le=500)] = 50,
     bbox: Annotated[str | None, Query(description="min_lon,min_lat,max_lon,max_lat")] = None,
 ) -> ReferenceList:
-    refs, total = core.list(offset, limit, Region(bbox=_parse_bbox(bbox)).bbox if bbox else None)
+    refs, total = core.list(offset, limit, Region(bbox=parse_bbox(bbox)).bbox if bbox else None)
     return ReferenceList(items=[_ref_out(r) for r in refs], total=total, offset=offset, limit=limit)
 
 
@@ -295,10 +200,7 @@ def reference_image(request: Request, ref_id: RefId, core: Core) -> Response:
     summary="Edit a reference's metadata (position, heading, label, capture time)",
 )
 def patch_reference(ref_id: RefId, patch: ReferencePatch, core: Core) -> ReferenceOut:
-    given = patch.model_fields_set
-    if any(name in given and getattr(patch, name) is None for name in ("lat", "lon")):
-        raise ApiError(422, "invalid_request", "lat and lon cannot be cleared, only changed")
-    ref = core.update(ref_id, ReferenceEdit(**patch.model_dump(), given=frozenset(given)))
+    ref = core.update(ref_id, patch)
     if ref is None:
         raise ApiError(404, "not_found", f"no reference {ref_id}")
     return _ref_out(ref)
@@ -318,39 +220,3 @@ def delete_reference(ref_id: RefId, core: Core) -> dict:
     if outcome is None:
         raise ApiError(404, "not_found", f"no reference {ref_id}")
     return {"deleted": ref_id, "image_removal": "done" if outcome == "removed" else "queued"}
-
-
-# -- operations -----------------------------------------------------------------------------------------
-@router.get("/health", response_model=HealthOut, summary="The process is alive")
-def health() -> HealthOut:
-    return HealthOut(status="ok")
-
-
-@router.get(
-    "/ready",
-    response_model=ReadyOut,
-    responses=error_responses(503),
-    summary="Model, pipeline and index are loaded (503 until then)",
-)
-def ready(request: Request):
-    state = request.app.state
-    if state.service is None:
-        return error_response("not_ready", state.load_error or "loading")
-    col = state.service.collection
-    col.catch_up()
-    return ReadyOut(
-        status="ready",
-        config=col.pipeline.config.name,
-        index_size=col.size,
-        version=col.version,
-        generation=col.generation,
-        worker="in-process" if state.worker is not None else "external",
-    )
-
-
-@router.get("/metrics", response_class=Response, summary="Prometheus metrics")
-def metrics(request: Request) -> Response:
-    state = request.app.state
-    if state.service is not None:
-        state.metrics.observe_collection(state.service.collection)
-    return Response(generate_latest(state.metrics.registry), media_type=CONTENT_TYPE_LATEST)

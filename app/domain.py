@@ -1,0 +1,183 @@
+"""The application's value types: what a locate asks and answers, what an upload and an edit carry.
+
+A reference's editable fields (lat, lon, heading, captured_at, label) are declared once, here, as
+``ReferenceFields``: their names, types and bounds. The API's models (app/api/schemas.py) subclass it,
+``ReferenceEdit`` (a PATCH, the update path) narrows the position to its range, and ``Upload`` takes its
+field names from it. The stored row is ``app.storage.store.Reference``."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, make_dataclass
+from typing import Annotated, Any
+
+import numpy as np
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field
+
+from app.engine import rerank as rerank_mod
+from app.engine.estimate import Estimate
+from app.engine.geo import haversine_m, valid_position
+from app.errors import InvalidRequest
+from app.text import CAPTURED_AT_MAX, LABEL_MAX, readable
+
+
+# -- locate: the request and the answer ------------------------------------------------------------------
+@dataclass(frozen=True)
+class Region:
+    """A circle (lat, lon, radius_m) or a bbox (min_lon, min_lat, max_lon, max_lat)."""
+
+    lat: float | None = None
+    lon: float | None = None
+    radius_m: float | None = None
+    bbox: tuple[float, float, float, float] | None = None
+
+    def __post_init__(self):
+        if self.bbox is not None:
+            if any(v is not None for v in (self.lat, self.lon, self.radius_m)):
+                raise InvalidRequest("give either bbox or lat+lon+radius_m, not both")
+            min_lon, min_lat, max_lon, max_lat = self.bbox
+            if (
+                not all(math.isfinite(v) for v in self.bbox)
+                or not (valid_position(min_lat, min_lon) and valid_position(max_lat, max_lon))
+                or min_lon > max_lon
+                or min_lat > max_lat
+            ):
+                raise InvalidRequest("bbox is out of range or inverted (min must not exceed max)")
+            return
+        if not all(v is not None for v in (self.lat, self.lon, self.radius_m)):
+            raise InvalidRequest("a circular region needs lat, lon and radius_m together")
+        if not valid_position(self.lat, self.lon):
+            raise InvalidRequest(f"region centre {self.lat},{self.lon} is out of range")
+        if not (math.isfinite(self.radius_m) and self.radius_m > 0):
+            raise InvalidRequest("radius_m must be a positive number of metres")
+
+    def bounding_box(self) -> tuple[float, float, float, float]:
+        if self.bbox is not None:
+            return self.bbox
+        dlat = self.radius_m / 111_320
+        dlon = self.radius_m / (111_320 * max(math.cos(math.radians(self.lat)), 1e-6))
+        return self.lon - dlon, self.lat - dlat, self.lon + dlon, self.lat + dlat
+
+    def contains(self, lats: np.ndarray, lons: np.ndarray) -> np.ndarray:
+        if self.bbox is not None:
+            min_lon, min_lat, max_lon, max_lat = self.bbox
+            return (lats >= min_lat) & (lats <= max_lat) & (lons >= min_lon) & (lons <= max_lon)
+        return haversine_m(self.lat, self.lon, lats, lons) <= self.radius_m
+
+
+@dataclass(frozen=True)
+class LocateOptions:
+    top_k: int = 10
+    mode: str | None = None
+    rerank: bool = False
+    region: Region | None = None
+    min_score: float = 0.0
+
+
+@dataclass(frozen=True)
+class RefInfo:
+    """What a candidate carries besides its score."""
+
+    lat: float
+    lon: float
+    label: str | None = None
+    captured_at: str | None = None
+    heading: float | None = None
+
+
+@dataclass(frozen=True)
+class Candidate:
+    reference_id: int
+    lat: float
+    lon: float
+    score: float
+    label: str | None = None
+    captured_at: str | None = None
+    heading: float | None = None
+    inliers: int | None = None  # geometric verification, when asked (None: not verified)
+    p_within_25m: float | None = None  # calibrated probability that it lies within 25 m of the photo
+    distance_m: float | None = None  # from the confident estimate
+
+
+@dataclass
+class LocateAnswer:
+    """What a locate found, unrounded. Its JSON (/locate, `geoloc locate`) is ``app.api.schemas.LocateOut``."""
+
+    candidates: list[Candidate]
+    estimate: Estimate  # the fused position, confident or not (the evaluation measures both)
+    reason: str | None  # why there is no confident estimate; None when there is one
+    mode: str
+    config: str
+    features_extracted: int
+    features_kept: int
+    timings_ms: dict[str, float] = field(default_factory=dict)
+    index_size: int = 0
+    index_version: int = 0
+    index_generation: int = 0
+    #: The verification outcome per verified candidate (rerank only): not in the JSON, for the evaluation.
+    verification: dict[int, rerank_mod.Verification | None] = field(default_factory=dict)
+
+    @property
+    def confident_estimate(self) -> Estimate | None:
+        return self.estimate if self.reason is None else None
+
+
+# -- a reference's editable fields: declared once ----------------------------------------------------------
+Latitude = Annotated[float, Field(ge=-90, le=90)]
+Longitude = Annotated[float, Field(ge=-180, le=180)]
+Heading = Annotated[float, Field(ge=0, lt=360)]
+Label = Annotated[str, Field(max_length=LABEL_MAX), AfterValidator(readable)]
+CapturedAt = Annotated[str, Field(max_length=CAPTURED_AT_MAX), AfterValidator(readable)]
+
+
+class ReferenceFields(BaseModel):
+    """A reference's writable fields as a client gives them: the one model for the form fields of
+    POST /references, each item of its ``metadata`` and (with ranges on the position) PATCH.
+
+    Strict: a boolean is not a number and an object is not a string (lax mode stores ``true`` as 1.0).
+    The range of an upload's lat/lon is checked by the core (``invalid_position``, as for EXIF positions)."""
+
+    model_config = ConfigDict(extra="forbid", strict=True)
+
+    lat: float | None = None
+    lon: float | None = None
+    heading: Heading | None = None
+    captured_at: CapturedAt | None = None
+    label: Label | None = None
+
+
+#: The names of a reference's editable fields, in their declared order.
+REFERENCE_FIELDS: tuple[str, ...] = tuple(ReferenceFields.model_fields)
+
+
+class ReferenceEdit(ReferenceFields):
+    """An edit of a reference's metadata: every field optional; only those given change (a None heading,
+    label or capture time clears it; a position can be changed, never cleared)."""
+
+    lat: Latitude | None = None
+    lon: Longitude | None = None
+
+    @property
+    def given(self) -> dict[str, Any]:
+        """The fields the caller set, with their values."""
+        return {name: getattr(self, name) for name in REFERENCE_FIELDS if name in self.model_fields_set}
+
+
+# -- uploads ---------------------------------------------------------------------------------------------
+Upload = make_dataclass(
+    "Upload",
+    [("data", bytes), ("filename", str | None, None), *((name, Any, None) for name in REFERENCE_FIELDS)],
+)
+Upload.__module__ = __name__
+Upload.__doc__ = """One image to add: its bytes, its file name, and the reference's fields as given
+    (``REFERENCE_FIELDS``, in that order; not validated yet: ``app.uploads.prepare_upload`` does, naming the
+    image). A position of None reads it from the photo's EXIF."""
+
+
+@dataclass(frozen=True)
+class Accepted:
+    job_id: str
+    reference_ids: list[int]
+    duplicates: list[bool]
+    #: One line per duplicate whose upload asked for other metadata than the stored reference has.
+    notes: list[str] = field(default_factory=list)

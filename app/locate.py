@@ -1,0 +1,240 @@
+"""The one locate path, for every face (/locate, `geoloc locate`, the evaluation, the benchmarks), so that
+what the evaluation measures is what /locate serves.
+
+``locate_features`` searches (restricted to a region when asked), verifies geometrically when asked, fuses
+the estimate, then reads the candidates' metadata in one batched read. It works on anything that searches
+(a live ``Collection`` or an in-memory ``ReferenceIndex``) and anything that knows the references (the
+store, or the evaluation's rows), so the evaluation calls it unchanged.
+
+The estimate rule, one for every face: fuse the first ``ESTIMATE_CANDIDATES`` candidates after the region
+filter and verification, before ``min_score`` and before cutting to ``top_k``, so the estimate never
+depends on how many candidates the caller asked for.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Sequence
+from typing import Protocol
+
+import cv2
+import numpy as np
+
+from app.domain import Candidate, LocateAnswer, LocateOptions, RefInfo, Region
+from app.engine import rerank as rerank_mod
+from app.engine.calibration import candidate_probabilities
+from app.engine.errors import GeolocError
+from app.engine.estimate import fuse_position
+from app.engine.geo import haversine_m
+from app.engine.imageio import ImageLimits, load_image
+from app.engine.models.base import Matcher
+from app.engine.models.registry import build_matcher
+from app.engine.pipeline import Features, Pipeline
+from app.storage.store import ReferenceStore
+
+log = logging.getLogger("geoloc.locate")
+
+#: The matcher of callers that verify without a pipeline (tests, the evaluation's analysis).
+DEFAULT_MATCHER = "sift-mnn"
+
+#: How many candidates the fused estimate is made of (after region filter and verification).
+ESTIMATE_CANDIDATES = 10
+#: How many of the best candidates geometric verification looks at.
+RERANK_CANDIDATES = 10
+
+
+class Searchable(Protocol):
+    def check_mode(self, mode: str | None) -> str: ...
+
+    def search(self, float_code, binary_code, k: int, mode: str | None = None, allowed=None): ...
+
+
+class ReferenceSource(Protocol):
+    """What locate needs to know about references besides their codes."""
+
+    def info(self, ids: Sequence[int]) -> dict[int, RefInfo]: ...
+
+    def in_region(self, region: Region) -> np.ndarray: ...
+
+    def image_bytes(self, ref_id: int) -> bytes | None: ...
+
+
+class StoreReferences:
+    """The data dir as a ``ReferenceSource``: every read is one batched query."""
+
+    def __init__(self, store: ReferenceStore):
+        self.store = store
+
+    def info(self, ids: Sequence[int]) -> dict[int, RefInfo]:
+        return {
+            i: RefInfo(r.lat, r.lon, r.label, r.captured_at, r.heading) for i, r in self.store.get_many(ids).items()
+        }
+
+    def in_region(self, region: Region) -> np.ndarray:
+        ids, lats, lons = self.store.in_bbox(region.bounding_box())
+        return ids[region.contains(lats, lons)] if len(ids) else ids
+
+    def image_bytes(self, ref_id: int) -> bytes | None:
+        path = self.store.image_path(ref_id)
+        try:
+            return path.read_bytes() if path is not None else None
+        except OSError:
+            return None
+
+
+# -- the one locate path --------------------------------------------------------------------------------
+def verify_candidates(
+    query_rgb: np.ndarray,
+    ids: Sequence[int],
+    refs: ReferenceSource,
+    limits: ImageLimits,
+    matcher: Matcher | None = None,
+) -> dict[int, int | None]:
+    """Inliers of the chosen geometry per candidate (0: too few matches, or no geometry); None where the
+    pair could not be verified (image gone or undecodable, OpenCV refused the matches)."""
+    return {
+        i: None if v is None else v.inliers
+        for i, v in verify_candidate_pairs(query_rgb, ids, refs, limits, matcher).items()
+    }
+
+
+def verify_candidate_pairs(
+    query_rgb: np.ndarray,
+    ids: Sequence[int],
+    refs: ReferenceSource,
+    limits: ImageLimits,
+    matcher: Matcher | None = None,
+) -> dict[int, rerank_mod.Verification | None]:
+    """``verify_candidates`` with the whole outcome per pair (matches, both models' inliers), for the
+    evaluation's analysis; None where the pair could not be verified.
+
+    The query's RootSIFT is computed once; each candidate's is recomputed from its stored image (about
+    0.1 s each, most of what rerank costs). Storing the strongest 480 keypoints at ingest (62 KB per
+    reference; all 1,500 would take 193 KB) verified as well on penn and is the measured next step; this
+    is the one place that would read them (docs/RESULTS.md, "Verification that works")."""
+    matcher = matcher or build_matcher(DEFAULT_MATCHER)
+    q = matcher.features(query_rgb)
+    out: dict[int, rerank_mod.Verification | None] = {}
+    for i in ids:
+        data = refs.image_bytes(int(i))
+        if data is None:
+            out[int(i)] = None
+            continue
+        try:
+            v = matcher.match(q, matcher.features(load_image(data, limits).rgb))
+        except (cv2.error, GeolocError) as e:
+            log.debug("verification of reference %s skipped: %s", i, e)
+            out[int(i)] = None
+            continue
+        if v.error is not None:  # both fits refused by USAC: unverified, never an error
+            log.debug("verification of reference %s skipped: %s", i, v.error)
+        out[int(i)] = None if v.error is not None else v
+    return out
+
+
+def order_by_verification(
+    ranked: Sequence[tuple[int, float]], inliers: dict[int, int | None]
+) -> list[tuple[int, float]]:
+    """(id, global score) pairs re-ordered by ``rerank.fused_score``; ties keep the retrieval order.
+
+    Unverified candidates (None, 0 inliers, or not in ``inliers``) keep their global score, so verification
+    only ever lifts a candidate and never reorders the unverified among themselves. The scores returned
+    stay the global ones: calibration and the estimate are fitted on them."""
+    by_fused = [(rerank_mod.fused_score(s, inliers.get(i) or 0), n) for n, (i, s) in enumerate(ranked)]
+    return [ranked[n] for _, n in sorted(by_fused, key=lambda p: (-p[0], p[1]))]
+
+
+def locate_features(
+    pipeline: Pipeline,
+    index: Searchable,
+    refs: ReferenceSource,
+    features: Features,
+    options: LocateOptions,
+    query_rgb: np.ndarray | None = None,
+    limits: ImageLimits | None = None,
+    cluster_radius_m: float = 25.0,
+) -> LocateAnswer:
+    """Search, verify, fuse, shape. ``query_rgb`` is needed only for verification (``options.rerank``)."""
+    mode = index.check_mode(options.mode)
+    t: dict[str, float] = {}
+    allowed = None
+    if options.region is not None:
+        t0 = time.perf_counter()
+        allowed = refs.in_region(options.region)
+        t["region"] = (time.perf_counter() - t0) * 1000
+    keep = pipeline.select(features)
+    codes = pipeline.encode_features(features, keep)
+    t.update(codes.timings_ms)
+    n = max(options.top_k, ESTIMATE_CANDIDATES)
+    t0 = time.perf_counter()
+    if allowed is not None and len(allowed) == 0:
+        scores, ids = np.zeros(0, np.float32), np.zeros(0, np.int64)
+    else:
+        scores, ids = index.search(codes.float_, codes.binary, n, mode, allowed)
+    t["search"] = (time.perf_counter() - t0) * 1000
+    t0 = time.perf_counter()
+    info = refs.info(ids)
+    t["metadata"] = (time.perf_counter() - t0) * 1000
+    ranked = [(int(i), float(s)) for i, s in zip(ids, scores, strict=True) if int(i) in info]
+    inliers: dict[int, int | None] = {}
+    verification: dict[int, rerank_mod.Verification | None] = {}
+    if options.rerank and ranked:
+        if query_rgb is None:
+            raise ValueError("verification needs the query image")
+        t0 = time.perf_counter()
+        head = [i for i, _ in ranked[:RERANK_CANDIDATES]]
+        verification = verify_candidate_pairs(query_rgb, head, refs, limits or ImageLimits(), pipeline.matcher)
+        inliers = {i: None if v is None else v.inliers for i, v in verification.items()}
+        ranked = order_by_verification(ranked, inliers)
+        t["rerank"] = (time.perf_counter() - t0) * 1000
+    t0 = time.perf_counter()
+    fused = ranked[:ESTIMATE_CANDIDATES]
+    estimate = fuse_position(
+        np.array([info[i].lat for i, _ in fused]),
+        np.array([info[i].lon for i, _ in fused]),
+        np.array([s for _, s in fused]),
+        cluster_radius_m,
+    )
+    probability = dict(
+        zip(
+            [i for i, _ in fused],
+            candidate_probabilities(
+                [info[i].lat for i, _ in fused], [info[i].lon for i, _ in fused], [s for _, s in fused], estimate
+            ),
+            strict=True,
+        )
+    )
+    t["estimate"] = (time.perf_counter() - t0) * 1000
+    region_empty = allowed is not None and len(allowed) == 0
+    reason = "no references in the requested region" if region_empty else estimate.reason
+    confident = estimate if reason is None else None
+    shown = [(i, s) for i, s in ranked if s >= options.min_score][: options.top_k]
+    candidates = [
+        Candidate(
+            reference_id=i,
+            lat=info[i].lat,
+            lon=info[i].lon,
+            score=s,
+            label=info[i].label,
+            captured_at=info[i].captured_at,
+            heading=info[i].heading,
+            inliers=inliers.get(i) if options.rerank else None,
+            p_within_25m=round(float(probability[i]), 4) if i in probability else None,
+            distance_m=float(haversine_m(confident.lat, confident.lon, info[i].lat, info[i].lon))
+            if confident
+            else None,
+        )
+        for i, s in shown
+    ]
+    return LocateAnswer(
+        candidates=candidates,
+        estimate=estimate,
+        reason=reason,
+        mode=mode,
+        config=pipeline.config.name,
+        features_extracted=codes.features_extracted,
+        features_kept=codes.features_kept,
+        timings_ms=t,
+        verification=verification,
+    )
