@@ -172,10 +172,10 @@ def ingest(
     an earlier run (same path, size and mtime) are not read again, and identical images are stored once.
     Files that cannot be used are skipped and listed in a CSV report; a completed run exits 0."""
     from app.core import GeolocService
-    from app.ingest.progress import Progress
-    from app.ingest.run import IngestOptions, IngestRun
-    from app.ingest.sources import SourceError, open_source
-    from app.worker import IngestWorker, WorkerLock
+    from app.jobs.ingest.progress import Progress
+    from app.jobs.ingest.run import IngestOptions, IngestRun
+    from app.jobs.ingest.sources import SourceError, open_source
+    from app.jobs.worker import IngestWorker, WorkerLock
 
     try:
         src = open_source(source, manifest, split)
@@ -409,7 +409,7 @@ def worker_cmd(
 
     from app.collection import SnapshotWriter
     from app.core import GeolocService
-    from app.worker import IngestWorker, WorkerLock
+    from app.jobs.worker import IngestWorker, WorkerLock
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     lock = WorkerLock(data_dir)
@@ -532,8 +532,8 @@ def refit(
     running it again continues where it stopped."""
     import logging
 
-    from app.reindex import RefitOptions
-    from app.reindex import refit as run_refit
+    from app.jobs.refit import RefitOptions
+    from app.jobs.refit import refit as run_refit
 
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     if sample < 2:

@@ -19,9 +19,9 @@ import time
 from pathlib import Path
 
 from app.core import GeolocService
-from app.ingest.progress import Progress
-from app.ingest.run import IngestOptions, IngestRun
-from app.ingest.sources import open_source
+from app.jobs.ingest.progress import Progress
+from app.jobs.ingest.run import IngestOptions, IngestRun
+from app.jobs.ingest.sources import open_source
 from app.journal import JOURNAL_NAME
 from bench.common import REPO, median_ms
 

@@ -19,8 +19,8 @@ from app.api.metrics import Metrics, MetricsMiddleware
 from app.api.routes import router
 from app.collection import SnapshotWriter
 from app.core import GeolocService
+from app.jobs.worker import IngestWorker, WorkerLock
 from app.settings import Settings
-from app.worker import IngestWorker, WorkerLock
 
 log = logging.getLogger("geoloc.api")
 #: The page (issue: drop a photo, see where it was taken). Leaflet and Swagger UI are copied into vendor/ by

@@ -266,7 +266,7 @@ def refit(
     progress: bool = True,
 ) -> RefitSummary:
     """The whole use case: fit (or continue an interrupted re-index), re-encode, switch, snapshot."""
-    from app.worker import WorkerLock
+    from app.jobs.worker import WorkerLock
 
     limits = limits or ImageLimits()
     store = ReferenceStore(data_dir)

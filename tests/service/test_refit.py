@@ -15,7 +15,7 @@ from app.core import GeolocService
 from app.encoding import EncodeItem, LocalEngine
 from app.engine.imageio import ImageLimits
 from app.evaluation.datasets import read_manifest
-from app.reindex import RefitOptions, fit_generation, reindex, switch
+from app.jobs.refit import RefitOptions, fit_generation, reindex, switch
 from app.store import NewReference, ReferenceStore
 from tests.service.conftest import CONFIG, Server, wait_job
 from tests.test_cli import geoloc

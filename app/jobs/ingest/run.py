@@ -36,8 +36,8 @@ from app.engine.errors import (
     UnreadableImage,
     UnsupportedImageFormat,
 )
-from app.ingest.progress import Progress
-from app.ingest.sources import Source, SourceItem
+from app.jobs.ingest.progress import Progress
+from app.jobs.ingest.sources import Source, SourceItem
 from app.journal import FileKey, Journal
 from app.store import NewReference
 
