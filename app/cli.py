@@ -171,37 +171,18 @@ def ingest(
     chunks as pending rows, claimed by this run, encoded and completed in batches. Resumable: files stored by
     an earlier run (same path, size and mtime) are not read again, and identical images are stored once.
     Files that cannot be used are skipped and listed in a CSV report; a completed run exits 0."""
-    from app.ingest.progress import Progress
-    from app.ingest.run import IngestOptions, IngestRun
-    from app.ingest.sources import SourceError, open_source
+    from app.jobs.ingest.run import IngestOptions
+    from app.jobs.ingest.run import ingest as run_ingest
+    from app.jobs.ingest.sources import SourceError, open_source
     from app.service import GeolocService
-    from app.worker import IngestWorker, WorkerLock
 
     try:
         src = open_source(source, manifest, split)
     except SourceError as e:
         _fail(str(e))
     service = GeolocService.open(data_dir, models_dir, config, limits=_S.image_limits())
-    lock = WorkerLock(data_dir)
-    holds_lock = lock.acquire()
-    if not holds_lock:
-        typer.echo("a server's worker runs on this data dir: this run encodes its own rows, the server follows")
-    try:
-        progress = Progress(src.count(), desc=f"ingest {src.kind}")
-        try:
-            options = IngestOptions(chunk=chunk, batch=batch, workers=workers, ray=ray, shared_fs=shared_fs)
-            summary = IngestRun(service, src, options, progress).run()
-        finally:
-            progress.close()
-        left = 0
-        if holds_lock:  # rows left pending by earlier runs (crashed, or storage retries): encode them too
-            worker = IngestWorker(service, batch, workers=workers)
-            while done := worker.run_once():
-                left += done
-            service.collection.write_snapshot()
-    finally:
-        lock.release()
-        service.store.checkpoint()  # after a bulk load its rows go into the main file, not only the -wal
+    options = IngestOptions(chunk=chunk, batch=batch, workers=workers, ray=ray, shared_fs=shared_fs)
+    summary, left = run_ingest(service, src, options, say=typer.echo)
     _print_summary(service, summary, left)
 
 
@@ -407,29 +388,18 @@ def worker_cmd(
     """Run the ingestion worker as its own process (one per data dir; a second one refuses to start). It also
     writes the index snapshots, and a last one when stopped with SIGTERM or Ctrl-C."""
     import logging
-    import signal
 
-    from app.collection import SnapshotWriter
-    from app.service import GeolocService
-    from app.worker import IngestWorker, WorkerLock
+    from app.jobs.writer import WriterBusy, run_worker
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
-    lock = WorkerLock(data_dir)
-    if not lock.acquire():
-        _fail(f"another worker already holds {lock.path}")
-    service = GeolocService.open(data_dir, models_dir, config)
-    w = IngestWorker(service, batch)
-    snapshots = SnapshotWriter(service.collection)
-    signal.signal(signal.SIGTERM, lambda *_: w.stop_event.set())
-    typer.echo(f"worker: {data_dir} ({service.pipeline.config.name}), {service.store.count('pending')} pending")
-    snapshots.start()
+
+    def ready(service) -> None:
+        typer.echo(f"worker: {data_dir} ({service.pipeline.config.name}), {service.store.count('pending')} pending")
+
     try:
-        w.run_forever()
-    except KeyboardInterrupt:
-        pass
-    finally:
-        snapshots.stop(final=True)
-        lock.release()
+        run_worker(data_dir, models_dir, config, batch, on_ready=ready)
+    except WriterBusy as e:
+        _fail(str(e))
 
 
 @app.command()
@@ -534,8 +504,8 @@ def refit(
     running it again continues where it stopped."""
     import logging
 
-    from app.reindex import RefitOptions
-    from app.reindex import refit as run_refit
+    from app.jobs.refit import RefitOptions
+    from app.jobs.refit import refit as run_refit
 
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     if sample < 2:

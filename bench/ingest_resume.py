@@ -18,9 +18,9 @@ import tempfile
 import time
 from pathlib import Path
 
-from app.ingest.progress import Progress
-from app.ingest.run import IngestOptions, IngestRun
-from app.ingest.sources import open_source
+from app.jobs.ingest.progress import Progress
+from app.jobs.ingest.run import IngestOptions, IngestRun
+from app.jobs.ingest.sources import open_source
 from app.service import GeolocService
 from app.storage.journal import JOURNAL_NAME
 from bench.common import REPO, median_ms

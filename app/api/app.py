@@ -17,10 +17,10 @@ from app.api import docs, errors, security
 from app.api.limits import BodyLimits
 from app.api.metrics import Metrics, MetricsMiddleware
 from app.api.routes import ROUTERS, ROUTES
-from app.collection import SnapshotWriter
+from app.jobs.worker import IngestWorker
+from app.jobs.writer import Writer
 from app.service import GeolocService
 from app.settings import Settings
-from app.worker import IngestWorker, WorkerLock
 
 log = logging.getLogger("geoloc.api")
 #: The page (issue: drop a photo, see where it was taken). Leaflet and Swagger UI are copied into vendor/ by
@@ -28,60 +28,29 @@ log = logging.getLogger("geoloc.api")
 WEB_DIR = Path(__file__).resolve().parents[1] / "web" / "static"
 
 
-def _start_worker(app: FastAPI, service: GeolocService) -> bool:
-    """Take the data dir's worker lock and, holding it, start the ingestion worker and the snapshot writer.
-    False when another process (a server or `geoloc worker`) holds the lock: nothing is started."""
+def _run_writer(app: FastAPI, service: GeolocService) -> None:
+    """The in-process worker: the writer role (``app.jobs.writer``) now, or, while another process (a server
+    or `geoloc worker`) holds the data dir's worker lock, a retry every GEOLOC_WORKER_RETRY_SECONDS that takes
+    the role over once that process is gone (failover: uploads accepted here are still indexed)."""
     state = app.state
     s: Settings = state.settings
-    lock = WorkerLock(s.data_dir)
-    if not lock.acquire():
-        return False
-    state.worker_lock = lock
     m = state.metrics
 
     def count(indexed: int, failed: int) -> None:
         m.ingested.labels("indexed").inc(indexed)
         m.ingested.labels("failed").inc(failed)
 
-    worker = IngestWorker(service, s.worker_batch, on_batch=count)
-    worker.start()
-    state.snapshots = SnapshotWriter(service.collection)
-    state.snapshots.start()
-    state.worker = worker  # last: /ready says in-process once everything runs
-    return True
+    def started(worker: IngestWorker) -> None:
+        state.worker = worker  # /ready says in-process once everything runs
 
-
-def _watch_worker_lock(app: FastAPI, service: GeolocService, stop: threading.Event) -> None:
-    """Failover: retry the worker lock every few seconds while another process holds it, so that uploads
-    accepted here are still indexed when that process dies (its flock goes with it). Without this they
-    stayed queued until someone restarted a worker by hand."""
-    every = app.state.settings.worker_retry_seconds
-    while not stop.wait(every):
-        try:
-            if _start_worker(app, service):
-                log.warning(
-                    "took over the worker lock of %s: this process now runs the ingestion worker",
-                    app.state.settings.data_dir,
-                )
-                return
-        except Exception:  # an unreadable lock file now may be fine at the next try
-            log.exception("taking over the worker lock failed; retrying in %.0f s", every)
-
-
-def _run_worker(app: FastAPI, service: GeolocService, stop: threading.Event) -> None:
-    """The in-process worker now, or a thread that takes it over once the lock holder is gone."""
-    if _start_worker(app, service):
-        return
-    log.warning(
-        "another worker holds %s: this process serves searches and accepts uploads, and takes the worker "
-        "over if that one stops",
-        WorkerLock(app.state.settings.data_dir).path,
-    )
-    watch = threading.Thread(
-        target=_watch_worker_lock, args=(app, service, stop), name="geoloc-worker-failover", daemon=True
-    )
-    app.state.worker_watch = watch
-    watch.start()
+    writer = Writer(s.data_dir, s.worker_batch, on_batch=count, logger=log)
+    state.writer = writer
+    if not writer.start(service, retry_seconds=s.worker_retry_seconds, on_started=started):
+        log.warning(
+            "another worker holds %s: this process serves searches and accepts uploads, and takes the worker "
+            "over if that one stops",
+            writer.lock.path,
+        )
 
 
 def _load(app: FastAPI, stop: threading.Event) -> None:
@@ -102,7 +71,7 @@ def _load(app: FastAPI, stop: threading.Event) -> None:
                 s.locate_concurrency,  # the extraction slots: app/service.py, extraction_slots
             )
             if s.worker == "inprocess":
-                _run_worker(app, service, stop)
+                _run_writer(app, service)
             state.service = service
             state.load_error = None
             log.info("ready: config %s, %d references", service.pipeline.config.name, service.collection.size)
@@ -125,14 +94,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         yield
         stop.set()
         loader.join(timeout=60)
-        if app.state.worker_watch is not None:  # joined first: it may be starting the worker right now
-            app.state.worker_watch.join(timeout=60)
-        if app.state.worker is not None:
-            app.state.worker.stop()
-        if app.state.snapshots is not None:
-            app.state.snapshots.stop(final=True)  # a clean stop leaves nothing to replay at the next start
-        if app.state.worker_lock is not None:
-            app.state.worker_lock.release()
+        if app.state.writer is not None:  # the worker, the final snapshot and checkpoint, the lock
+            app.state.writer.stop()
         if app.state.service is not None:
             app.state.service.store.close()  # checkpoints: the rows this process wrote go into the main file
 
@@ -151,10 +114,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.api_key = apikey.resolve(settings.api_key, settings.no_auth, settings.data_dir)
     app.state.metrics = Metrics()
     app.state.service = None
-    app.state.worker = None
-    app.state.snapshots = None
-    app.state.worker_lock = None
-    app.state.worker_watch = None  # the failover thread, while another process holds the worker lock
+    app.state.writer = None  # the writer role (worker=inprocess), held or waiting for the worker lock
+    app.state.worker = None  # its ingestion worker, once this process holds the role
     app.state.load_error = None
     # Outermost first: metrics see every answer; body limits and keys come before any body is read; a bug
     # still answers JSON and keeps the connection.

@@ -14,7 +14,7 @@ import pytest
 from app.encoding import EncodeItem, LocalEngine
 from app.engine.imageio import ImageLimits
 from app.evaluation.datasets import read_manifest
-from app.reindex import RefitOptions, fit_generation, reindex, switch
+from app.jobs.refit import RefitOptions, fit_generation, reindex, switch
 from app.service import GeolocService
 from app.storage.store import NewReference, ReferenceStore
 from tests.service.conftest import CONFIG, Server, wait_job

@@ -20,7 +20,7 @@ import os
 import time
 import uuid
 from collections import Counter
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -36,8 +36,9 @@ from app.engine.errors import (
     UnreadableImage,
     UnsupportedImageFormat,
 )
-from app.ingest.progress import Progress
-from app.ingest.sources import Source, SourceItem
+from app.jobs.ingest.progress import Progress
+from app.jobs.ingest.sources import Source, SourceItem
+from app.jobs.writer import Writer
 from app.service import GeolocService
 from app.storage.journal import FileKey, Journal
 from app.storage.store import NewReference
@@ -221,3 +222,27 @@ class IngestRun:
                 self.report.add(path or f"reference {r.ref_id}", f"encoding failed: {r.error}")
         self.service.store.release(self.owner, [r.ref_id for r in results])
         self.progress.update(len(results))
+
+
+def ingest(
+    service: GeolocService, source: Source, options: IngestOptions, say: Callable[[str], None] = print
+) -> tuple[Summary, int]:
+    """The whole of `geoloc ingest`: the run, and, when no server's worker holds the data dir (this run then
+    holds the writer role, ``app.jobs.writer``), the rows earlier runs left pending (crashed, or storage
+    retries) and a final snapshot. Returns the run's summary and how many of those rows it encoded."""
+    writer = Writer(service.store.data_dir, options.batch, workers=options.workers)
+    writer.attach(service)
+    if not writer.acquire():
+        say("a server's worker runs on this data dir: this run encodes its own rows, the server follows")
+    completed = False
+    try:
+        progress = Progress(source.count(), desc=f"ingest {source.kind}")
+        try:
+            summary = IngestRun(service, source, options, progress).run()
+        finally:
+            progress.close()
+        left = writer.drain(service)
+        completed = True
+    finally:
+        writer.stop(final=completed)  # the snapshot (a completed run), the checkpoint, the lock
+    return summary, left

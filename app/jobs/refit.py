@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from app.collection import pipeline_source
+from app.collection import Collection, pipeline_source
 from app.encoding import EncodeItem, batched, make_engine
 from app.encoding.items import Encoded
 from app.engine.configs import get_config
@@ -36,6 +36,7 @@ from app.engine.imageio import ImageLimits, load_image
 from app.engine.pipeline import Features, Pipeline, PipelineSource
 from app.errors import FitRefused, RefitError, StorageUnavailable
 from app.fitting import bank_source, check_bank_kind, train_bank
+from app.jobs.writer import write_snapshot_if_free
 from app.storage.generations import ReindexTarget
 from app.storage.store import ReferenceStore
 
@@ -258,8 +259,6 @@ def refit(
     progress: bool = True,
 ) -> RefitSummary:
     """The whole use case: fit (or continue an interrupted re-index), re-encode, switch, snapshot."""
-    from app.worker import WorkerLock
-
     limits = limits or ImageLimits()
     store = ReferenceStore(data_dir)
     target = None if options.fresh else resumable_target(store, models_dir, options.config)
@@ -296,13 +295,8 @@ def refit(
     while store.migrate_switched():  # the new codes into refs, a few thousand per short transaction
         pass
     summary.seconds["copy"] = time.perf_counter() - t1
-    lock = WorkerLock(data_dir)
-    if lock.acquire():  # no server or worker writes snapshots here now: write the new generation's one
-        try:
-            from app.collection import Collection
-
-            Collection.open(data_dir, models_dir, target.config).write_snapshot()
-        finally:
-            lock.release()
+    # With no server or worker holding the writer role, nothing writes snapshots here now: write the new
+    # generation's one.
+    write_snapshot_if_free(data_dir, lambda: Collection.open(data_dir, models_dir, target.config))
     store.close()
     return summary

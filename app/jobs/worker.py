@@ -4,7 +4,7 @@ Accepted uploads are committed as ``pending`` rows with their image on disk befo
 those rows are the durable queue. The worker encodes a batch and completes it in one transaction (which
 also appends the index changes to the log); completing is idempotent, so a worker killed at any moment
 loses nothing and duplicates nothing. Only one worker runs per data dir (a file lock), and the process that
-holds it is also the one that writes index snapshots.
+holds it is also the one that writes index snapshots (the writer role: ``app.jobs.writer``).
 """
 
 from __future__ import annotations
@@ -19,7 +19,6 @@ from pathlib import Path
 
 from app.service import GeolocService
 from app.storage.errors import is_storage_error
-from app.storage.orphans import Janitor
 
 log = logging.getLogger("geoloc.worker")
 
@@ -91,15 +90,8 @@ class IngestWorker:
         return len(results) - retry
 
     def run_forever(self) -> None:
-        """Encode until stopped. The writer's housekeeping (queued file removals, the hourly orphan sweep:
-        ``app.storage.orphans.Janitor``) runs beside it in its own thread for as long as this loop runs."""
-        janitor = Janitor(self.service.store).start()
-        try:
-            self._loop()
-        finally:
-            janitor.stop()
-
-    def _loop(self) -> None:
+        """Encode until stopped. The rest of the writer role (snapshots, housekeeping) runs beside it in
+        threads of its own, started and stopped by ``app.jobs.writer.Writer``."""
         backoff = self.poll_seconds
         while not self.stop_event.is_set():
             try:
