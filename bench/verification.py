@@ -46,7 +46,7 @@ def pairs_from_eval(result: dict) -> dict[str, np.ndarray]:
             raise SystemExit("this evaluation ran without --rerank: nothing to analyse")
         for rank, (ref, score, right) in enumerate(v["retrieval"]):
             out = v["pairs"].get(str(ref))
-            n, h, f = out if out is not None else (0, 0, 0)
+            n, h, f = out[:3] if out is not None else (0, 0, 0)  # a learned matcher adds its mean confidence
             crop = "_" in Path(q["image"]).stem.removeprefix("img_")  # penn crops are img_NNNNN_K.jpg
             rows.append([q["fold"], qn, rank, ref, score, right, n, h, f, str(ref) in v["pairs"], crop])
     arr = np.array(rows, float)

