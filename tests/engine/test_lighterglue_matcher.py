@@ -103,3 +103,34 @@ def test_an_image_without_keypoints_is_unverified_not_an_error(built):
     assert (v.n_matches, v.inliers, v.model, v.mean_confidence) == (0, 0, None, 0.0)
     assert matcher.match_many(blank, [photo, photo])[0].n_matches == 0
     assert isinstance(blank, KeypointFeatures) and blank.size_wh == (320, 240)
+
+
+def test_the_speed_benchmark_runs_on_real_photos(built):
+    """``python -m bench.matcher_speed`` (docs/BENCHMARKS.md's command) with a tiny budget: its table."""
+    import subprocess
+    import sys
+
+    from tests.conftest import REPO
+
+    out = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "bench.matcher_speed",
+            "--models-dir",
+            str(built),
+            "--queries",
+            "2",
+            "--k",
+            "2",
+            "--keypoints",
+            "256",
+        ],  # fmt: skip
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert "ratio xfeat-lighterglue / sift-mnn: per query" in out.stdout
+    assert "sift-mnn" in out.stdout and "LighterGlue batched" in out.stdout
