@@ -46,11 +46,13 @@ def pairs_from_eval(result: dict) -> dict[str, np.ndarray]:
             raise SystemExit("this evaluation ran without --rerank: nothing to analyse")
         for rank, (ref, score, right) in enumerate(v["retrieval"]):
             out = v["pairs"].get(str(ref))
-            n, h, f = out[:3] if out is not None else (0, 0, 0)  # a learned matcher adds its mean confidence
+            n, h, f = out[:3] if out is not None else (0, 0, 0)
+            # A learned matcher records its matches' mean confidence too (NaN: not recorded).
+            conf = out[3] if out is not None and len(out) > 3 and out[3] is not None else np.nan
             crop = "_" in Path(q["image"]).stem.removeprefix("img_")  # penn crops are img_NNNNN_K.jpg
-            rows.append([q["fold"], qn, rank, ref, score, right, n, h, f, str(ref) in v["pairs"], crop])
+            rows.append([q["fold"], qn, rank, ref, score, right, n, h, f, str(ref) in v["pairs"], crop, conf])
     arr = np.array(rows, float)
-    cols = ["fold", "query", "rank", "ref", "score", "correct", "n", "h", "f", "verified", "crop"]
+    cols = ["fold", "query", "rank", "ref", "score", "correct", "n", "h", "f", "verified", "crop", "conf"]
     P = {c: arr[:, i] for i, c in enumerate(cols)}
     P["qid"] = P["query"].astype(int)
     P["rank"] = P["rank"].astype(int)
@@ -226,6 +228,11 @@ def analyse(result: dict) -> None:
     print(
         f"    global {auc(P['score'][head], lab[head]):.3f}  raw F inliers {auc(raw_f[head], lab[head]):.3f}  "
         f"chosen inliers {auc(inl[head], lab[head]):.3f}  fused {auc(fz[head], lab[head]):.3f}"
+    )
+    has_conf = head & np.isfinite(P["conf"])
+    print(
+        f"    tentative matches {auc(P['n'][head], lab[head]):.3f}"
+        + (f"  mean match confidence {auc(P['conf'][has_conf], lab[has_conf]):.3f}" if has_conf.any() else "")
     )
     per_q = []
     for qid in np.unique(P["qid"][head]):  # within a query: does the fused score rank right above wrong?
