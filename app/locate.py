@@ -126,7 +126,7 @@ def verify_candidate_pairs(
             feats[int(i)] = matcher.features(load_image(data, limits).rgb)
         except (cv2.error, GeolocError) as e:
             log.debug("verification of reference %s skipped: %s", i, e)
-    # A matcher that batches (a learned one: one network run for all candidates) gets them at once.
+    # A matcher that takes the candidates together (a learned one may batch its network runs) gets them so.
     match_many = getattr(matcher, "match_many", None)
     outcomes: dict[int, rerank_mod.Verification] = {}
     for chunk in [list(feats)] if match_many is not None else [[i] for i in feats]:

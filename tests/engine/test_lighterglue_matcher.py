@@ -1,6 +1,6 @@
 """The ``xfeat-lighterglue`` matcher as a plug-in: its registry entry, its build command, the ``hybrid-lg``
-configuration, and verification through the one locate path (all candidates of a query in one batched
-run) on real penn photos."""
+configuration, and verification through the one locate path (pair by pair, or the candidates of a query
+batched into one run) on real penn photos."""
 
 from __future__ import annotations
 
@@ -79,7 +79,7 @@ def test_verification_through_the_locate_path_batches_and_reports_the_evidence(b
     refs = _Refs(
         {1: PENN / "crops" / "img_00008_0.jpg", 2: penn_photo("img_00050.jpg"), 3: penn_photo("img_00070.jpg")}
     )
-    matcher = LighterGlueMatcher(built, max_keypoints=512)
+    matcher = LighterGlueMatcher(built, max_keypoints=512, batch=16)
     runs = []
     real = matcher.glue.log_assignment
     monkeypatch.setattr(matcher.glue, "log_assignment", lambda a, b: runs.append(len(a)) or real(a, b))

@@ -3,9 +3,9 @@
 Why a learned matcher: counting inliers of nearest-neighbour matches cannot tell lookalike buildings
 apart (issue 20); LightGlue decides matchability from both images' keypoints in context, so wrong pairs
 get few, unconfident matches. The graph is ours (``app.engine.convert.lighterglue_onnx``); around it,
-numpy: keypoints normalised as upstream (``normalize_keypoints``), K candidate pairs of one query padded
-into one batch with masks (one ONNX run per query, not K), mutual-best filtering of the log assignment
-(``filter_matches``, upstream's), then the H-or-F MAGSAC geometry of ``app.engine.rerank``.
+numpy: keypoints normalised as upstream (``normalize_keypoints``), pairs padded into batches with masks
+(``BATCH`` pairs per run), mutual-best filtering of the log assignment (``filter_matches``, upstream's),
+then the H-or-F MAGSAC geometry of ``app.engine.rerank``.
 
 Per pair the matcher reports what a confidence rule can use (``Verification``): tentative matches,
 inliers of the chosen geometry, and the mean confidence of the matches.
@@ -37,7 +37,12 @@ MATCH_THRESHOLD = 0.1
 #: What the matcher extracts per image: XFeat at this long side (never upscaled), the best keypoints.
 #: Chosen by measurement on penn-campus-gps (docs/BENCHMARKS.md, "Learned matching").
 LONG_SIDE = 640
-MAX_KEYPOINTS = 1024
+MAX_KEYPOINTS = 512
+#: Pairs per network run. The graph takes any batch (padding + masks), but on 2 CPU cores one pair per run
+#: measured faster than the K = 10 candidates of a query in one run (460 against 644 ms per pair,
+#: ``bench.matcher_speed``): ten 512 x 512 attention maps do not stay in cache, and a run's overhead is
+#: small next to its arithmetic. A GPU deployment would batch.
+BATCH = 1
 
 
 def normalize_keypoints(xy: np.ndarray, size_wh: tuple[int, int]) -> np.ndarray:
@@ -112,7 +117,7 @@ class LighterGlue(OnnxModel):
         query: KeypointFeatures,
         candidates: Sequence[KeypointFeatures],
         threshold: float = MATCH_THRESHOLD,
-        batch: int = 16,
+        batch: int = BATCH,
     ) -> list[PairMatches]:
         """The query against each candidate, ``batch`` pairs per run (the query repeated)."""
         out: list[PairMatches] = []
@@ -137,7 +142,7 @@ class LighterGlueMatcher:
         long_side: int = LONG_SIDE,
         max_keypoints: int = MAX_KEYPOINTS,
         threshold: float = MATCH_THRESHOLD,
-        batch: int = 16,
+        batch: int = BATCH,
     ):
         from app.engine.models.xfeat import MODEL_FILENAME as XFEAT_FILENAME
         from app.engine.models.xfeat import XFeat
@@ -161,7 +166,7 @@ class LighterGlueMatcher:
         return KeypointFeatures(out.keypoints, out.descriptors, (w, h))
 
     def match_many(self, query: KeypointFeatures, candidates: Sequence[KeypointFeatures]) -> list:
-        """One ``Verification`` per candidate: LighterGlue matches (all candidates in one batched run),
+        """One ``Verification`` per candidate: LighterGlue matches (``batch`` pairs per network run),
         then the geometry; ``mean_confidence`` is the matches' mean probability (0 without matches)."""
         from app.engine.rerank import fit_geometry
 
