@@ -13,7 +13,9 @@ both matchers back to back, in alternating order, and the figures that matter ar
 - ``match``: matching plus geometry per pair on precomputed features; for LighterGlue pair by pair (one
   network run each) and batched (the K pairs in one run, padded, with masks).
 
-    python -m bench.matcher_speed [--queries 8] [--k 10] [--keypoints 512] [--threads 2]
+    python -m bench.matcher_speed [--queries 8] [--k 10] [--keypoints 512] [--threads 2] [--write-docs]
+
+``--write-docs`` writes the table into the "matcher" section of docs/BENCHMARKS.md.
 """
 
 from __future__ import annotations
@@ -27,7 +29,7 @@ from app.engine.imageio import ImageLimits, load_image
 from app.engine.models.lighterglue import LighterGlueMatcher
 from app.engine.rerank import SiftMnnMatcher
 from app.locate import verify_candidate_pairs
-from bench.common import REPO, machine, median_ms
+from bench.common import REPO, machine, median_ms, write_section
 
 
 class _Files:
@@ -52,7 +54,10 @@ def main() -> None:
     ap.add_argument("--k", type=int, default=10, help="candidates verified per query")
     ap.add_argument("--keypoints", type=int, default=0, help="LighterGlue keypoints (0: the matcher's default)")
     ap.add_argument("--threads", type=int, default=2, help="onnxruntime threads (GEOLOC_ORT_THREADS)")
+    ap.add_argument("--write-docs", action="store_true", help="write the matcher section of docs/BENCHMARKS.md")
     args = ap.parse_args()
+    started = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
+    load_before = os.getloadavg()[0]
     os.environ["GEOLOC_ORT_THREADS"] = str(args.threads)
 
     photos = sorted(args.photos.glob("*.jpg"))
@@ -95,29 +100,36 @@ def main() -> None:
                 t[name]["match"].append(ms / len(feats))
 
     lg = matchers["xfeat-lighterglue"]
-    print(
-        f"{machine()}; {os.sched_getaffinity(0).__len__()} usable CPUs, onnxruntime threads {args.threads}; "
-        f"{len(queries)} queries x K={args.k} penn photos; LighterGlue on {lg.max_keypoints} XFeat keypoints "
-        f"at {lg.long_side} px, sift-mnn on RootSIFT at 800 px; medians"
-    )
-    print(f"{'':22s} {'per query':>10s} {'features/img':>13s} {'match/pair':>11s}")
-    for name in matchers:
-        r = t[name]
-        print(
-            f"{name:22s} {median_ms(r['query']):8.0f} ms {median_ms(r['features']):10.0f} ms "
-            f"{median_ms(r['match']):8.0f} ms"
-        )
     s, g = t["sift-mnn"], t["xfeat-lighterglue"]
     ratios = [a / b for a, b in zip(g["query"], s["query"], strict=True)]
-    print(
-        f"ratio xfeat-lighterglue / sift-mnn: per query {median_ms(ratios):.2f} (median of per-query ratios), "
-        f"features {median_ms(g['features']) / median_ms(s['features']):.2f}, "
-        f"match per pair {median_ms(g['match']) / median_ms(s['match']):.2f}"
-    )
-    print(
-        f"LighterGlue batched (K pairs in one run) against pair by pair: {median_ms(g['match batched']):.0f} "
-        f"against {median_ms(g['match']):.0f} ms per pair"
-    )
+    lines = [
+        f"`.venv/bin/python -m bench.matcher_speed --queries {args.queries} --k {args.k}"
+        f"{f' --keypoints {args.keypoints}' if args.keypoints else ''} --threads {args.threads}` ({started}, "
+        f"{machine()}; load average {load_before:.1f} before, {os.getloadavg()[0]:.1f} after): "
+        f"{len(queries)} penn query photos, each verified against the {args.k} photos after it, by both matchers "
+        f"back to back in alternating order. LighterGlue on {lg.max_keypoints} XFeat keypoints at {lg.long_side} "
+        "px, one pair per network run; sift-mnn on RootSIFT at 800 px. Medians, ms.",
+        "",
+        "| matcher | per query (K candidates) | features per image (decode included) | match + geometry per pair |",
+        "|---|---|---|---|",
+    ]
+    for name in matchers:
+        r = t[name]
+        lines.append(
+            f"| {name} | {median_ms(r['query']):.0f} | {median_ms(r['features']):.0f} | {median_ms(r['match']):.0f} |"
+        )
+    lines += [
+        "",
+        f"Ratios xfeat-lighterglue / sift-mnn: per query {median_ms(ratios):.2f} (median of per-query ratios), "
+        f"features {median_ms(g['features']) / median_ms(s['features']):.2f}, match per pair "
+        f"{median_ms(g['match']) / median_ms(s['match']):.2f}. LighterGlue with the K pairs of a query batched "
+        f"into one run (padded, masks): {median_ms(g['match batched']):.0f} ms per pair against "
+        f"{median_ms(g['match']):.0f} pair by pair.",
+    ]
+    text = "\n".join(lines)
+    print(text)
+    if args.write_docs:
+        write_section("matcher", "## Learned matching: verification cost per pair and per query\n\n" + text)
 
 
 if __name__ == "__main__":

@@ -132,5 +132,5 @@ def test_the_speed_benchmark_runs_on_real_photos(built):
         timeout=600,
     )
     assert out.returncode == 0, out.stderr[-2000:]
-    assert "ratio xfeat-lighterglue / sift-mnn: per query" in out.stdout
-    assert "sift-mnn" in out.stdout and "LighterGlue batched" in out.stdout
+    assert "Ratios xfeat-lighterglue / sift-mnn: per query" in out.stdout
+    assert "| sift-mnn |" in out.stdout and "batched" in out.stdout
