@@ -39,9 +39,9 @@ MATCH_THRESHOLD = 0.1
 LONG_SIDE = 640
 MAX_KEYPOINTS = 512
 #: Pairs per network run. The graph takes any batch (padding + masks), but on 2 CPU cores one pair per run
-#: measured faster than the K = 10 candidates of a query in one run (460 against 644 ms per pair,
-#: ``bench.matcher_speed``): ten 512 x 512 attention maps do not stay in cache, and a run's overhead is
-#: small next to its arithmetic. A GPU deployment would batch.
+#: measured faster than the K = 10 candidates of a query in one run (321 against 711 ms per pair,
+#: ``bench.matcher_speed``, docs/BENCHMARKS.md): ten 512 x 512 attention maps do not stay in cache, and
+#: a run's overhead is small next to its arithmetic. A GPU deployment would batch.
 BATCH = 1
 
 
