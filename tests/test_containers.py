@@ -66,7 +66,7 @@ def test_compose_needs_no_python_on_the_host():
     assert "models/pipelines" not in text
     compose = yaml.safe_load(text)
     api = compose["services"]["api"]
-    assert api["environment"]["GEOLOC_INITIAL_PHOTOS"] == "/photos"
+    assert api["environment"]["GEOLOC_INITIAL_PHOTOS"] == "${GEOLOC_INITIAL_PHOTOS:-/photos}"
     assert "${GEOLOC_PHOTOS:-../shared/data/penn-campus-gps/photos}:/photos:ro" in api["volumes"]
     assert api["healthcheck"]["start_period"].endswith("m")  # minutes, not the seconds of a plain load
 
