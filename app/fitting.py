@@ -1,5 +1,6 @@
-"""The fitting rules, once, for ``geoloc fit``, ``geoloc refit`` and the evaluation: where the SVM bank
-learns by default, which requests are refused, and how a bank is trained against the references.
+"""The fitting rules, once, for ``geoloc fit``, ``geoloc refit``, the first start of an empty data dir and the
+evaluation: where the SVM bank learns by default, which requests are refused, and how a pipeline and its
+bank are fitted against the references.
 
 Why one module: the three faces used to decide these each in their own words, and a rule changed in one
 (say, "a configuration without local features has no bank") silently stayed old in the others, so what
@@ -8,9 +9,11 @@ the evaluation measured was not what `fit` built.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 from app.engine.configs import PipelineConfig
 from app.engine.index.references import ReferenceIndex
-from app.engine.pipeline import Pipeline
+from app.engine.pipeline import Features, Pipeline
 from app.engine.svm_bank import KINDS, BankParams, SvmBank
 from app.engine.training.svm_training import BANK_SOURCES, Geotagged, fit_bank_from, index_of
 from app.errors import FitRefused
@@ -63,3 +66,22 @@ def train_bank(
         ids = sorted(refs)
         index = index_of(pipe, ids, (refs[i].features for i in ids))
     return fit_bank_from(source, pipe, index, refs, train, BankParams(kind=kind, seed=seed), pos_radius_m=pos_radius_m)
+
+
+def fit_pipeline(
+    pipe: Pipeline,
+    features: Sequence[Features],
+    refs: dict[int, Geotagged],
+    train: Sequence[Geotagged],
+    source: str,
+    kind: str = "contrastive",
+    seed: int = 0,
+) -> Pipeline:
+    """Fit ``pipe`` (codebook, PCA-whitening, binariser) on ``features`` (every photo it learns from), then,
+    unless ``source`` is ``none``, its SVM bank from ``refs`` (the references, by id) and ``train`` (geotagged
+    photos that are not references): what `geoloc fit` and the first start of an empty data dir both run."""
+    check_bank_kind(kind)
+    pipe.fit(list(features), seed=seed)
+    if source != "none":
+        pipe.bank = train_bank(pipe, refs, list(train), source, kind, seed)
+    return pipe

@@ -26,6 +26,11 @@ class Settings(BaseSettings):
     models_dir: Path = Field(REPO_ROOT / "models", description="the built ONNX model and fitted pipelines")
     shared_dir: Path = Field(REPO_ROOT.parent / "shared", description="read-only data and weights")
     config: str = Field("hybrid", description="named pipeline configuration")
+    initial_photos: Path | None = Field(
+        None,
+        description="a folder (or CSV) of geotagged photos: a data dir with no references and no pipeline is "
+        "fitted on them and they are ingested, at the server's first start (app/jobs/first_start.py)",
+    )
     api_key: str | None = Field(
         None, description="the key writes need in X-API-Key; unset: DATA_DIR/api_key, made at the first start"
     )

@@ -1,4 +1,5 @@
-"""`make test-quick` keeps the engine and API tests and leaves out the crash, fuzz and browser tests."""
+"""`make test-quick` keeps the engine and API tests and leaves out the crash, fuzz, browser and container
+tests; `make test` leaves out the container test only (`make test-container` runs it)."""
 
 import re
 import subprocess
@@ -15,10 +16,24 @@ def _collected(marker_expr: str | None) -> set[str]:
     return {line.split("::")[0] for line in out.splitlines() if "::" in line}
 
 
-def test_quick_selection_leaves_out_crash_fuzz_and_browser_only():
-    quick_expr = re.search(r"^QUICK := (.+)$", (REPO / "Makefile").read_text(), re.M).group(1)
-    everything, quick = _collected(None), _collected(quick_expr)
-    left_out = {"tests/service/test_crash.py", "tests/service/test_fuzz.py", "tests/service/test_browser.py"}
+def _make_var(name: str) -> str:
+    return re.search(rf"^{name} := (.+)$", (REPO / "Makefile").read_text(), re.M).group(1)
+
+
+def test_make_test_leaves_out_the_container_test_only():
+    everything, full = _collected(None), _collected(_make_var("NOT_IN_TEST"))
+    assert everything - full == {"tests/test_container_build.py"}
+    assert '-m "$(NOT_IN_TEST)"' in (REPO / "Makefile").read_text()
+
+
+def test_quick_selection_leaves_out_crash_fuzz_browser_and_container_only():
+    everything, quick = _collected(None), _collected(_make_var("QUICK"))
+    left_out = {
+        "tests/service/test_crash.py",
+        "tests/service/test_fuzz.py",
+        "tests/service/test_browser.py",
+        "tests/test_container_build.py",
+    }
     assert left_out <= everything
     assert everything - quick == left_out
     assert {"tests/engine/test_vlad.py", "tests/service/test_e2e.py", "tests/service/test_errors.py"} <= quick

@@ -20,7 +20,7 @@ from app.api.routes import ROUTERS, ROUTES
 from app.jobs.worker import IngestWorker
 from app.jobs.writer import Writer
 from app.service import GeolocService
-from app.settings import Settings
+from app.settings import Settings, usable_cpus
 
 log = logging.getLogger("geoloc.api")
 #: The page (issue: drop a photo, see where it was taken). Leaflet and Swagger UI are copied into vendor/ by
@@ -53,6 +53,23 @@ def _run_writer(app: FastAPI, service: GeolocService) -> None:
         )
 
 
+def _first_start(app: FastAPI) -> None:
+    """An empty data dir is fitted on GEOLOC_INITIAL_PHOTOS and they are ingested (``app.jobs.first_start``),
+    before it is opened; each progress line goes to the log and is what /ready says meanwhile."""
+    from app.jobs.first_start import run_first_start
+
+    state = app.state
+    s: Settings = state.settings
+
+    def say(line: str) -> None:
+        if line != state.load_error:
+            log.info("%s", line)
+        state.load_error = line
+
+    workers = min(4, usable_cpus())  # extraction threads; each holds one decoded photo
+    run_first_start(s.data_dir, s.models_dir, s.config, s.initial_photos, say, s.image_limits(), workers=workers)
+
+
 def _load(app: FastAPI, stop: threading.Event) -> None:
     """Load until it works: a missing model or an unreadable data dir may be fixed while we wait, so
     loading retries with backoff and /ready says why meanwhile (never a permanent 503)."""
@@ -61,6 +78,8 @@ def _load(app: FastAPI, stop: threading.Event) -> None:
     delay = 1.0
     while not stop.is_set():
         try:
+            if s.initial_photos is not None:
+                _first_start(app)
             service = GeolocService.open(
                 s.data_dir,
                 s.models_dir,

@@ -150,7 +150,8 @@ def fit_generation(
         except FitRefused as e:
             raise RefitError(str(e)) from None
         seconds["bank"] = time.perf_counter() - t1
-    target = _save(store.data_dir, pipe, generation + 1, {"refit_sample": len(kept), "svm_bank_source": source})
+    extra = {"refit_sample": len(kept), "svm_bank_source": source}
+    target = save_generation(store.data_dir, pipe, generation + 1, extra)
     summary = RefitSummary(target.generation, target.pipeline, name, fitted_on=len(kept), bank=source)
     summary.seconds.update(seconds)
     return target, summary
@@ -168,8 +169,9 @@ def _train_photos(pipe: Pipeline, manifest: Path | None, limits: ImageLimits, wo
     return [Geotagged(f, r.lat, r.lon, f"train:{r.group}") for r, f in zip(rows, feats, strict=True) if f is not None]
 
 
-def _save(data_dir: Path, pipe: Pipeline, generation: int, extra: dict) -> Target:
-    """Write to a temporary folder, then rename: a folder named like a generation is always complete."""
+def save_generation(data_dir: Path, pipe: Pipeline, generation: int, extra: dict) -> Target:
+    """Write ``pipelines/<config>-g<generation>`` in the data dir to a temporary folder, then rename: a folder
+    named like a generation is always complete (a re-fit's, or the first start's generation 0)."""
     rel = f"pipelines/{pipe.config.name}-g{generation}"
     final = Path(data_dir) / rel
     tmp = final.with_name(f".{final.name}.{os.getpid()}.tmp")

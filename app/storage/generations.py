@@ -88,6 +88,27 @@ class Generations(Database):
             )
         return int(rows.get("generation") or 0), rows.get("pipeline"), rows.get("config")
 
+    def record_first_pipeline(self, target: ReindexTarget) -> bool:
+        """Make ``target`` (a pipeline fitted in the data dir at its first start, generation 0) the one this
+        data dir uses, in one transaction, only while none is recorded and no reference is stored: a data dir
+        already bound to a pipeline is never re-bound. Returns whether it was recorded."""
+        with self.transaction() as db:
+            if db.execute("SELECT 1 FROM meta WHERE key='pipeline'").fetchone():
+                return False
+            if db.execute("SELECT 1 FROM refs LIMIT 1").fetchone():
+                return False
+            meta = {
+                "generation": str(int(target.generation)),
+                "pipeline": str(target.pipeline),
+                "fingerprint": target.fingerprint,
+                "config": target.config,
+            }
+            db.executemany(
+                "INSERT INTO meta(key, value) VALUES(?, ?) ON CONFLICT(key) DO UPDATE SET value=excluded.value",
+                list(meta.items()),
+            )
+        return True
+
     def generation_codes(self) -> tuple[int, int, np.ndarray, list[bytes | None], list[bytes | None]]:
         """``all_codes`` plus the generation they belong to, read in one consistent snapshot."""
         with self.read_snapshot() as db:

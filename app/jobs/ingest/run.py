@@ -225,18 +225,23 @@ class IngestRun:
 
 
 def ingest(
-    service: GeolocService, source: Source, options: IngestOptions, say: Callable[[str], None] = print
+    service: GeolocService,
+    source: Source,
+    options: IngestOptions,
+    say: Callable[[str], None] = print,
+    progress: Progress | None = None,
 ) -> tuple[Summary, int]:
     """The whole of `geoloc ingest`: the run, and, when no server's worker holds the data dir (this run then
     holds the writer role, ``app.jobs.writer``), the rows earlier runs left pending (crashed, or storage
-    retries) and a final snapshot. Returns the run's summary and how many of those rows it encoded."""
+    retries) and a final snapshot. Returns the run's summary and how many of those rows it encoded.
+    ``progress``: where the run counts its photos (default: a bar, or a log line per thousand)."""
     writer = Writer(service.store.data_dir, options.batch, workers=options.workers)
     writer.attach(service)
     if not writer.acquire():
         say("a server's worker runs on this data dir: this run encodes its own rows, the server follows")
     completed = False
     try:
-        progress = Progress(source.count(), desc=f"ingest {source.kind}")
+        progress = progress or Progress(source.count(), desc=f"ingest {source.kind}")
         try:
             summary = IngestRun(service, source, options, progress).run()
         finally:

@@ -1,0 +1,253 @@
+"""The first start of an empty data dir (``GEOLOC_INITIAL_PHOTOS``): fit the pipeline on the user's photos,
+then ingest them, while the server already answers /health, and /ready says which step it is at.
+
+Why: a user with Docker alone has no ``make fit`` and no fitted pipeline; the image holds the models, and
+the data volume starts empty. So the server's loader (``app.api.app``) calls ``run_first_start`` before it
+opens the data dir: the fit is ``app.fitting.fit_pipeline`` (what `geoloc fit` runs), saved in the data dir
+as generation 0 (``pipelines/<config>-g0``, the layout a later `geoloc refit` continues from), and the photos
+go in through the ingest use case (``app.jobs.ingest.run.ingest``, what `geoloc ingest` runs). Nothing here
+is a second fit or ingest path.
+
+Restarts: the pipeline folder is written atomically and recorded only while the data dir has no pipeline
+and no reference; an interrupted ingest is continued by the next start (the ingest journal skips the
+photos already stored); meta ``first_start`` = ``done`` ends it for good, so a data dir is never refitted
+or re-ingested from the folder behind the user's back.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from app.engine.configs import get_config
+from app.engine.errors import GeolocError
+from app.engine.imageio import ImageLimits, load_image
+from app.engine.pipeline import Features, Pipeline
+from app.errors import FitRefused
+from app.jobs.ingest.progress import Progress
+from app.jobs.ingest.sources import Source, SourceItem, open_source
+from app.storage.database import DB_NAME
+from app.storage.store import ReferenceStore
+
+log = logging.getLogger("geoloc.first_start")
+
+#: Meta key: absent (never started), ``started`` (fitting, or fitted and ingesting) or ``done``.
+STATE_KEY = "first_start"
+STEPS = 3  # extract features for the fit, fit, ingest
+#: Photos the fit learns from, at most (a seeded sample of a larger folder; `geoloc refit` uses the same).
+FIT_SAMPLE = 2000
+
+
+class FirstStartError(GeolocError):
+    """The first start cannot go on (no usable photos, say); /ready shows the message and the loader
+    retries, so adding photos to the folder is enough to fix it."""
+
+
+@dataclass(frozen=True)
+class FitPhoto:
+    """One photo the fit learned from: its features, where it was taken, and its capture (the SVM bank's
+    "never learn from yourself" rule: photos at the same spot and time are one capture)."""
+
+    features: Features
+    lat: float
+    lon: float
+    group: str
+
+
+def needed(data_dir: Path) -> bool:
+    """Whether the data dir still needs its first start: nothing stored yet, or a first start not finished."""
+    if not (Path(data_dir) / DB_NAME).exists():
+        return True
+    store = ReferenceStore(data_dir)
+    try:
+        state = store.get_meta(STATE_KEY)
+        if state == "done":
+            return False
+        if state is not None:
+            return True
+        return store.get_meta("pipeline") is None and store.count(None) == 0
+    finally:
+        store.close()
+
+
+def run_first_start(
+    data_dir: Path,
+    models_dir: Path,
+    config: str,
+    photos: Path,
+    say: Callable[[str], None],
+    limits: ImageLimits | None = None,
+    workers: int = 1,
+    seed: int = 0,
+) -> bool:
+    """Fit and ingest when the data dir needs it (``needed``); ``say`` gets each progress line (the loader
+    shows the latest on /ready and logs it). Returns whether anything was done."""
+    if not needed(data_dir):
+        return False
+    limits = limits or ImageLimits()
+    t0 = time.perf_counter()
+    try:
+        source = open_source(Path(photos))
+    except ValueError as e:  # SourceError: missing folder, unreadable CSV
+        raise FirstStartError(f"GEOLOC_INITIAL_PHOTOS: {e}") from None
+    store = ReferenceStore(data_dir)
+    try:
+        if store.get_meta(STATE_KEY) is None:
+            store.set_meta(STATE_KEY, "started")  # from here on, a restart continues this first start
+        if store.get_meta("pipeline") is None:
+            _fit(store, models_dir, config, source, say, limits, workers, seed)
+    finally:
+        store.close()
+    added = _ingest(data_dir, models_dir, config, source, say, limits, workers)
+    store = ReferenceStore(data_dir)
+    try:
+        store.set_meta(STATE_KEY, "done")
+    finally:
+        store.close()
+    say(f"first start done in {time.perf_counter() - t0:.0f} s: {added} references from {photos}")
+    return True
+
+
+# -- steps 1 and 2: the fit ---------------------------------------------------------------------------------
+def _sample(source: Source, seed: int) -> list[SourceItem]:
+    items = [it for it in source.items() if it.problem is None]
+    if len(items) > FIT_SAMPLE:
+        keep = np.sort(np.random.default_rng(seed).choice(len(items), FIT_SAMPLE, replace=False))
+        items = [items[i] for i in keep]
+    return items
+
+
+def _extract(
+    pipe: Pipeline, items: list[SourceItem], limits: ImageLimits, workers: int, step: Callable[[int], None]
+) -> list[FitPhoto]:
+    """Features and positions (the row's, else the photo's EXIF GPS) of every usable photo; the others are
+    left out here and reported by the ingest step, which reads them again."""
+    from app.jobs.refit import capture_group
+
+    def one(item: SourceItem) -> FitPhoto | None:
+        try:
+            img = load_image(item.path.read_bytes(), limits)
+        except (OSError, GeolocError) as e:
+            log.warning("%s: not used for the fit (%s)", item.path, e)
+            return None
+        position = (item.lat, item.lon) if item.lat is not None and item.lon is not None else img.gps
+        if position is None:
+            log.warning("%s: not used for the fit (no GPS position)", item.path)
+            return None
+        lat, lon = position
+        features = pipe.extract(img.rgb)
+        return FitPhoto(features, lat, lon, capture_group(lat, lon, item.captured_at or img.captured_at))
+
+    out: list[FitPhoto] = []
+    with ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
+        for n, photo in enumerate(pool.map(one, items), start=1):
+            if photo is not None:
+                out.append(photo)
+            step(n)
+    return out
+
+
+def _fit(
+    store: ReferenceStore,
+    models_dir: Path,
+    config: str,
+    source: Source,
+    say: Callable[[str], None],
+    limits: ImageLimits,
+    workers: int,
+    seed: int,
+) -> None:
+    from app.engine.training.svm_training import Geotagged
+    from app.fitting import bank_source, fit_pipeline
+    from app.jobs.refit import save_generation
+
+    cfg = get_config(config)
+    items = _sample(source, seed)
+    if not items:
+        raise FirstStartError(f"no photos in {source.path}: put geotagged photos (EXIF GPS) there")
+    log.info("first start: fitting the %s pipeline on %d photos from %s", cfg.name, len(items), source.path)
+    every = max(1, len(items) // 10)
+
+    def step(n: int) -> None:
+        if n % every == 0 or n == len(items):
+            say(f"first start: fitting the pipeline: step 1 of {STEPS}, extracting features ({n}/{len(items)} photos)")
+
+    step(0)
+    pipe = Pipeline(cfg, models_dir=Path(models_dir))
+    pipe.load_models()
+    photos = _extract(pipe, items, limits, workers, step)
+    if len(photos) < 2:
+        raise FirstStartError(
+            f"{len(photos)} of the {len(items)} photos in {source.path} have a readable image and a GPS position: "
+            "the fit needs at least 2"
+        )
+    say(f"first start: fitting the pipeline: step 2 of {STEPS}, codebook, PCA and SVM bank on {len(photos)} photos")
+    refs = {i: Geotagged(p.features, p.lat, p.lon, p.group) for i, p in enumerate(photos)}
+    source_name = bank_source(cfg, None)
+    try:
+        fit_pipeline(pipe, [p.features for p in photos], refs, [], source_name, seed=seed)
+    except FitRefused as e:  # a folder too small or too uniform for a bank: serve without one, and say so
+        log.warning("first start: no SVM bank (%s); the pipeline is fitted without one", e)
+        pipe.bank = None
+        source_name = "none"
+    target = save_generation(
+        store.data_dir, pipe, 0, {"first_start": str(source.path), "fit_photos": len(photos), "svm_bank": source_name}
+    )
+    if not store.record_first_pipeline(target):
+        raise FirstStartError(f"{store.data_dir} got a pipeline or references while the first start was fitting")
+    log.info("first start: saved %s (SVM bank: %s)", store.data_dir / target.pipeline, source_name)
+
+
+# -- step 3: the ingest ------------------------------------------------------------------------------------
+class _Reported(Progress):
+    """The ingest's progress (a line every tenth of the photos in the log) that also tells the loader."""
+
+    def __init__(self, total: int, say: Callable[[str], None], what: str):
+        self._say, self._what = say, what
+        super().__init__(total, desc="first start ingest", every=max(1, total // 10))
+
+    def update(self, n: int) -> None:
+        super().update(n)
+        if n > 0:
+            self._say(f"first start: {self._what} ({self.done}/{self.total} photos)")
+
+
+def _ingest(
+    data_dir: Path,
+    models_dir: Path,
+    config: str,
+    source: Source,
+    say: Callable[[str], None],
+    limits: ImageLimits,
+    workers: int,
+) -> int:
+    from app.jobs.ingest.run import IngestOptions, ingest
+    from app.service import GeolocService
+
+    total = source.count()
+    log.info("first start: ingesting the %d photos from %s", total, source.path)
+    what = f"ingesting the photos: step 3 of {STEPS}"
+    say(f"first start: {what} (0/{total} photos)")
+    service = GeolocService.open(data_dir, models_dir, config, limits=limits)
+    try:
+        summary, _ = ingest(
+            service, source, IngestOptions(workers=workers), say=log.info, progress=_Reported(total, say, what)
+        )
+    finally:
+        service.store.close()
+    skipped = sum(summary.skipped.values())
+    log.info(
+        "first start: %d references added, %d already present, %d failed, %d skipped%s",
+        summary.added,
+        summary.present,
+        summary.failed,
+        skipped,
+        f" (report: {summary.report})" if summary.report else "",
+    )
+    return summary.added + summary.present

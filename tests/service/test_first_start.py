@@ -1,0 +1,138 @@
+"""The first start of an empty data dir (GEOLOC_INITIAL_PHOTOS), as `docker compose up` runs it, without a
+container: a real uvicorn server on an empty data dir and a models dir with no fitted pipeline answers
+/health at once and /ready 503 with the step it is at, fits on the photos, ingests them, becomes ready and
+locates; a restart neither refits nor re-ingests."""
+
+from __future__ import annotations
+
+import shutil
+import time
+from pathlib import Path
+
+import httpx
+import pytest
+
+from app.engine.geo import haversine_m
+from app.engine.imageio import load_image
+from tests.conftest import PENN
+from tools.server_process import ServerProcess
+
+CONFIG = "hybrid"  # the default, what `docker compose up` fits
+
+PHOTOS = [f"img_{n:05d}.jpg" for n in range(8)]
+
+
+@pytest.fixture()
+def photo_folder(tmp_path):
+    folder = tmp_path / "photos" / "nested"  # a folder is read recursively
+    folder.mkdir(parents=True)
+    for name in PHOTOS:
+        shutil.copy(PENN / "photos" / name, folder / name)
+    (folder / "notes.txt").write_text("not a photo")
+    return tmp_path / "photos"
+
+
+@pytest.fixture()
+def bare_models(tmp_path, models_dir):
+    """A models dir with the built models and no fitted pipeline (what the image holds)."""
+    d = tmp_path / "models"
+    d.mkdir()
+    for f in models_dir.glob("*.onnx"):
+        shutil.copy(f, d / f.name)
+    return d
+
+
+def _server(data: Path, models: Path, env: dict) -> ServerProcess:
+    return ServerProcess(data, models, CONFIG, extra_env={"GEOLOC_ORT_THREADS": "1", **env})
+
+
+def _wait_ready(server: ServerProcess, timeout: float) -> tuple[dict, list[str]]:
+    """Poll /health and /ready until ready; returns /ready's answer and every distinct 503 message."""
+    seen: list[str] = []
+    deadline = time.time() + timeout
+    while time.time() < deadline:
+        assert server.proc.poll() is None, server.read_log()
+        try:
+            health = server.client.get("/health")
+            ready = server.client.get("/ready")
+        except httpx.TransportError:
+            time.sleep(0.2)
+            continue
+        assert health.status_code == 200, health.text  # alive during the whole first start
+        if ready.status_code == 200:
+            return ready.json(), seen
+        assert ready.status_code == 503, ready.text
+        body = ready.json()
+        assert body["error"] == "not_ready"
+        if not seen or seen[-1] != body["message"]:
+            seen.append(body["message"])
+        time.sleep(0.3)
+    raise TimeoutError(f"not ready after {timeout} s; /ready said {seen[-3:]}\n{server.read_log()}")
+
+
+@pytest.mark.slow
+def test_first_start_fits_ingests_and_serves(tmp_path, photo_folder, bare_models):
+    data = tmp_path / "data"
+    env = {"GEOLOC_INITIAL_PHOTOS": str(photo_folder)}
+    server = _server(data, bare_models, env)
+    try:
+        ready, said = _wait_ready(server, timeout=900)
+        assert ready["config"] == CONFIG and ready["generation"] == 0
+        assert ready["index_size"] == len(PHOTOS)
+        # /ready said why it was not ready, step by step, in order
+        steps = [m for m in said if m.startswith("first start:")]
+        assert steps, said
+        assert any(m.startswith("first start: fitting the pipeline: step 2 of 3") for m in steps), said
+        numbers = [int(m.split("step ")[1][0]) for m in steps if "step " in m]
+        assert numbers == sorted(numbers), said
+        log = Path(server.log.name).read_text()
+        for line in ("step 1 of 3", "step 2 of 3", "step 3 of 3", "first start done"):
+            assert line in log, log  # the progress is in the log too
+        assert (data / "pipelines" / f"{CONFIG}-g0" / "pipeline.json").is_file()
+
+        server.wait_ready()  # takes the key the server made in the data dir
+        query = PENN / "photos" / PHOTOS[3]
+        r = server.client.post("/locate", files={"image": query.read_bytes()}, data={"top_k": "3"})
+        assert r.status_code == 200, r.text
+        best = r.json()["candidates"][0]
+        lat, lon = load_image(query.read_bytes()).gps
+        assert haversine_m(lat, lon, best["lat"], best["lon"]) < 1.0  # the same photo is in the collection
+    finally:
+        server.stop()
+
+    again = _server(data, bare_models, env)  # a restart: no refit, no re-ingest
+    try:
+        ready = again.wait_ready(timeout=300)
+        assert ready["index_size"] == len(PHOTOS)
+        assert "first start" not in Path(again.log.name).read_text()
+    finally:
+        again.stop()
+
+
+def test_first_start_says_what_is_missing(tmp_path, bare_models):
+    """An empty photo folder: the fit cannot start, /ready says why, and nothing is recorded in the data dir
+    (adding photos and restarting is enough)."""
+    from app.jobs.first_start import FirstStartError, needed, run_first_start
+
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    data = tmp_path / "data"
+    with pytest.raises(FirstStartError, match="no photos in"):
+        run_first_start(data, bare_models, CONFIG, photos, say=lambda line: None)
+    assert needed(data)
+    with pytest.raises(FirstStartError, match="does not exist"):
+        run_first_start(data, bare_models, CONFIG, tmp_path / "missing", say=lambda line: None)
+
+
+def test_a_data_dir_in_use_is_never_first_started(tmp_path):
+    """A data dir bound to a pipeline (or holding references) is left alone, whatever the folder holds; one
+    never opened, or opened by nothing that recorded a pipeline, gets its first start."""
+    from app.jobs.first_start import needed
+    from app.storage.store import ReferenceStore
+
+    assert needed(tmp_path / "new")
+    store = ReferenceStore(tmp_path / "opened")
+    assert needed(tmp_path / "opened")
+    store.set_meta("pipeline", f"models:{CONFIG}")
+    store.close()
+    assert not needed(tmp_path / "opened")
