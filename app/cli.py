@@ -621,12 +621,11 @@ def _parse_overrides(items: list[str]) -> dict:
 
 def _failure(exc: BaseException) -> tuple[int, str]:
     """The exit code and the one line for a failure no command handled (``EXIT_CODES``)."""
-    from app.errors import code_of
-    from app.storage.errors import is_storage_error
-
     from app.apikey import ApiKeyError
+    from app.errors import code_of
     from app.evaluation.datasets import ManifestError
     from app.jobs.ingest.sources import SourceError
+    from app.storage.errors import is_storage_error
 
     if isinstance(exc, GeolocError):
         return _CODE_EXITS.get(code_of(exc), 2), str(exc)
