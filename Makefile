@@ -18,6 +18,10 @@ NPM_STAMP := web/node_modules/.geoloc-installed
 FOLDS ?= 5
 # A query-split photo: neither it nor its crops are in the demo collection (its top candidate is right).
 DEMO_QUERY ?= $(SHARED)/data/penn-campus-gps/photos/img_00001.jpg
+# The honest hard case: a query-split photo whose best candidate is the wrong place (no confident estimate).
+HARD_QUERY ?= $(SHARED)/data/penn-campus-gps/photos/img_00008.jpg
+# A photo from elsewhere: San Francisco, a place the demo collection does not hold.
+ELSEWHERE_QUERY ?= $(SHARED)/data/sf-streetview-toy/queries/q1.jpg
 
 .PHONY: setup browser model manifests fit demo run serve test test-quick test-container lint eval results bench load fuzz crash-full clean-index
 
@@ -94,9 +98,15 @@ PORT ?= 8000
 
 # Set up, ingest the demo collection, show a located demo query, then serve on $(HOST):$(PORT).
 run: demo
-	@echo "--- demo query: $(DEMO_QUERY): a photo of the Penn campus that is not in the demo collection"
-	@echo "    (neither it nor its crops). The service answers from the pixels alone:"
+	@echo "--- demo query 1, an easy case: $(DEMO_QUERY): a photo of the Penn campus that is not in the demo"
+	@echo "    collection (neither it nor its crops). The service answers from the pixels alone:"
 	@$(GEOLOC) locate $(DEMO_QUERY) --top-k 3 --compare-exif
+	@echo "--- demo query 2, a hard case: $(HARD_QUERY): another campus photo not in the collection:"
+	@$(GEOLOC) locate $(HARD_QUERY) --top-k 5 --compare-exif --brief
+	@echo "--- demo query 3, a photo from elsewhere: $(ELSEWHERE_QUERY) (San Francisco, no reference there):"
+	@$(GEOLOC) locate $(ELSEWHERE_QUERY) --top-k 5 --brief
+	@echo "--- the geoloc command is in .venv: run 'source .venv/bin/activate' in each new shell (in this folder),"
+	@echo "    then the README's geoloc lines work as written (or write .venv/bin/geoloc)"
 	@if KEY=$$($(GEOLOC) api-key); then \
 	  echo "--- API key: $$KEY (writes need it in X-API-Key; it stays in the data dir's api_key file)"; \
 	  echo "    curl -H 'X-API-Key: $$KEY' -F image=@$(DEMO_QUERY) -F top_k=3 http://$(HOST):$(PORT)/locate"; \

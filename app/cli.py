@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import json
 import sys
 from pathlib import Path
@@ -10,6 +11,11 @@ from typing import Annotated
 import typer
 
 from app.engine.errors import GeolocError
+
+try:  # typer's own click (typer 0.29 vendors it); older typers use click itself
+    from typer._click import exceptions as usage
+except ImportError:  # pragma: no cover
+    from click import exceptions as usage
 from app.runtime import tune_malloc
 from app.settings import Settings
 
@@ -24,9 +30,35 @@ ConfigOpt = Annotated[str, typer.Option("--config", "-c", help="named pipeline c
 ManifestOpt = Annotated[Path, typer.Option("--manifest", "-m", help="CSV: image,lat,lon,split[,group]")]
 
 
+#: The exit codes of every command (the README's "Exit codes" table is checked against this one).
+EXIT_CODES: dict[int, str] = {
+    0: "done",
+    1: "done, and found problems (`geoloc check`), or nothing to print (`geoloc api-key` under GEOLOC_NO_AUTH)",
+    2: "the command line or its input was refused: an unknown option, a missing or unreadable file, an image or "
+    "a value the service refuses too (the API's 4xx errors)",
+    3: "not ready: the model or the fitted pipeline is missing or does not fit (`make fit`)",
+    4: "the data dir cannot be used now: full disk, read-only, permissions, or another worker holds it",
+    70: "a bug: the one line says which exception; `--debug` prints its traceback",
+    130: "interrupted (Ctrl-C)",
+}
+#: The API's codes that mean something else than "your input was refused".
+_CODE_EXITS = {"not_ready": 3, "storage_unavailable": 4, "internal_error": 70}
+#: OSError numbers that are the storage's fault, not the input's.
+_STORAGE_ERRNOS = {errno.ENOSPC, errno.EROFS, errno.EIO, errno.EDQUOT, errno.EFBIG}
+
+
 def _fail(msg: str, code: int = 2) -> None:
     typer.secho(f"error: {msg}", fg=typer.colors.RED, err=True)
     raise typer.Exit(code)
+
+
+@app.callback()
+def _root(
+    debug: Annotated[
+        bool, typer.Option("--debug", help="on a failure, print the traceback too (anywhere on the line)")
+    ] = False,
+) -> None:
+    """Visual geolocation: build the model, fit, ingest, locate, evaluate, serve."""
 
 
 @models_app.command("build")
@@ -244,27 +276,61 @@ def locate(
     compare_exif: Annotated[
         bool, typer.Option("--compare-exif", help="say how far the answer is from the photo's own EXIF GPS")
     ] = False,
+    brief: Annotated[bool, typer.Option("--brief", help="the answer in words, one paragraph, instead of JSON")] = False,
     data_dir: DataDir = _S.data_dir,
     models_dir: ModelsDir = _S.models_dir,
     config: ConfigOpt = _S.config,
 ) -> None:
-    """Print ranked candidates and the fused estimate as JSON (the same answer as POST /locate)."""
+    """Print ranked candidates and the fused estimate as JSON (the same answer as POST /locate), or with
+    --brief what it means in words."""
     from app.api.schemas import LocateOut
     from app.domain import LocateOptions
     from app.service import GeolocService
 
-    service = GeolocService.open(data_dir, models_dir, config)
+    data = image.read_bytes()  # a missing photo is said before the model loads
     options = LocateOptions(
         top_k=top_k, mode=mode, rerank=rerank, region=_region_option(lat, lon, radius_m, bbox), min_score=min_score
     )
-    data = image.read_bytes()
+    service = GeolocService.open(data_dir, models_dir, config)
     answer = service.locate(data, options)
     out = LocateOut.of(answer).model_dump()
     if compare_exif:
         out["exif_check"] = _exif_check(service.decode(data).gps, answer)
-    typer.echo(json.dumps(out, indent=1))
+    if brief:
+        typer.echo(_in_words(out))
+    else:
+        typer.echo(json.dumps(out, indent=1))
     if compare_exif:
-        typer.echo(out["exif_check"]["sentence"], err=True)
+        typer.echo(out["exif_check"]["sentence"], err=not brief)
+
+
+def _in_words(out: dict) -> str:
+    """What a /locate answer (its JSON, ``out``) means, as the page says it: likely, possible or no match."""
+    from app.engine.geo import haversine_m
+
+    cands, e = out["candidates"], out["estimate"]
+    if not cands:
+        return f"No match: no reference could be compared with this photo ({out['reason']})."
+    best = cands[0]
+    name = f"reference {best['reference_id']}" + (f" ({best['label']})" if best["label"] else "")
+    if e is not None:
+        inside = sum(c["distance_m"] is not None and c["distance_m"] <= e["radius_m"] for c in cands)
+        return (
+            f"Likely: taken within {e['radius_m']:.0f} m of {e['lat']:.5f},{e['lon']:.5f} (confidence "
+            f"{e['confidence']:.2f}; {inside} of the {len(cands)} candidates lie within that radius). The best "
+            f"match is {name}, score {best['score']:.3f}."
+        )
+    spread = max(haversine_m(a["lat"], a["lon"], b["lat"], b["lon"]) for a in cands for b in cands)
+    chance = (
+        f", with a {best['p_within_25m']:.0%} chance of lying within 25 m of where the photo was taken"
+        if best["p_within_25m"] is not None
+        else ""
+    )
+    return (
+        f"Possible only ({out['reason']}): the best match is {name} at {best['lat']:.5f},{best['lon']:.5f}, "
+        f"score {best['score']:.3f}{chance}; the {len(cands)} candidates shown are spread over {spread:.0f} m. "
+        "Compare their photos with yours before trusting any of them."
+    )
 
 
 def _exif_check(gps, answer) -> dict:
@@ -285,7 +351,13 @@ def _exif_check(gps, answer) -> dict:
         parts.append(f"The estimate is {est_m:.0f} m from there, {inside} its stated radius of {e.radius_m:.0f} m.")
     else:
         parts.append(f"There is no confident estimate ({answer.reason}): trust the ranked candidates.")
-    return {"lat": gps[0], "lon": gps[1], "best_candidate_m": best_m, "estimate_m": est_m, "sentence": " ".join(parts)}
+    return {
+        "lat": gps[0],
+        "lon": gps[1],
+        "best_candidate_m": None if best_m is None else round(best_m, 1),
+        "estimate_m": None if est_m is None else round(est_m, 1),
+        "sentence": " ".join(parts),
+    }
 
 
 @app.command("eval")
@@ -424,7 +496,7 @@ def worker_cmd(
     try:
         run_worker(data_dir, models_dir, config, batch, on_ready=ready)
     except WriterBusy as e:
-        _fail(str(e))
+        _fail(str(e), code=4)
 
 
 @app.command()
@@ -572,13 +644,56 @@ def _parse_overrides(items: list[str]) -> dict:
     return out
 
 
-def main() -> None:
+def _failure(exc: BaseException) -> tuple[int, str]:
+    """The exit code and the one line for a failure no command handled (``EXIT_CODES``)."""
+    from app.apikey import ApiKeyError
+    from app.errors import code_of
+    from app.evaluation.datasets import ManifestError
+    from app.jobs.ingest.sources import SourceError
+    from app.storage.errors import is_storage_error
+
+    if isinstance(exc, GeolocError):
+        return _CODE_EXITS.get(code_of(exc), 2), str(exc)
+    if isinstance(exc, ManifestError | SourceError | ApiKeyError):  # the input named on the line
+        return 2, str(exc)
+    if is_storage_error(exc) and not isinstance(exc, OSError):
+        return 4, f"the data dir cannot be used now: {exc}"
+    if isinstance(exc, OSError):
+        where = f"{exc.filename}: " if exc.filename else ""
+        return (4 if exc.errno in _STORAGE_ERRNOS else 2), f"{where}{exc.strerror or exc}"
+    return 70, f"{type(exc).__name__}: {exc} (a bug; run again with --debug for the traceback)"
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Every failure ends in one line on stderr and an exit code of ``EXIT_CODES``; ``--debug`` (anywhere on
+    the line) adds the traceback. Click's own usage errors, its multi-line boxes included, are one line too."""
     tune_malloc()
+    args = list(sys.argv[1:] if argv is None else argv)
+    debug = "--debug" in args
+    args = [a for a in args if a != "--debug"]
     try:
-        app()
-    except GeolocError as e:
-        typer.secho(f"error: {e}", fg=typer.colors.RED, err=True)
-        sys.exit(2)
+        code = app(args=args, prog_name="geoloc", standalone_mode=False)
+    except usage.NoArgsIsHelpError as e:
+        typer.echo(e.ctx.get_help() if e.ctx else str(e))
+        code = 2
+    except usage.UsageError as e:
+        where = e.ctx.command_path if e.ctx else "geoloc"
+        typer.secho(f"error: {e.format_message()} (see {where} --help)", fg=typer.colors.RED, err=True)
+        code = 2
+    except usage.ClickException as e:  # a file option click could not open, ...
+        typer.secho(f"error: {e.format_message()}", fg=typer.colors.RED, err=True)
+        code = 2
+    except (typer.Abort, KeyboardInterrupt):
+        typer.secho("interrupted", err=True)
+        code = 130
+    except Exception as e:
+        if debug:
+            import traceback
+
+            traceback.print_exc()
+        code, line = _failure(e)
+        typer.secho(f"error: {line}", fg=typer.colors.RED, err=True)
+    sys.exit(code if isinstance(code, int) else 0)
 
 
 if __name__ == "__main__":

@@ -2,7 +2,7 @@
 
 A reference's editable fields (lat, lon, heading, captured_at, label) are declared once, here, as
 ``ReferenceFields``: their names, types and bounds. The API's models (app/api/schemas.py) subclass it,
-``ReferenceEdit`` (a PATCH, the update path) narrows the position to its range, and ``Upload`` takes its
+``ReferenceEdit`` is a PATCH (the update path), and ``Upload`` takes its
 field names from it. The stored row is ``app.storage.store.Reference``."""
 
 from __future__ import annotations
@@ -15,10 +15,11 @@ import numpy as np
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field
 
 from app.engine import rerank as rerank_mod
+from app.engine.errors import InvalidPosition
 from app.engine.estimate import Estimate
 from app.engine.geo import haversine_m, valid_position
 from app.errors import InvalidRequest
-from app.text import CAPTURED_AT_MAX, LABEL_MAX, readable
+from app.text import CAPTURED_AT_MAX, LABEL_MAX, iso_captured_at, readable
 
 
 # -- locate: the request and the answer ------------------------------------------------------------------
@@ -36,18 +37,18 @@ class Region:
             if any(v is not None for v in (self.lat, self.lon, self.radius_m)):
                 raise InvalidRequest("give either bbox or lat+lon+radius_m, not both")
             min_lon, min_lat, max_lon, max_lat = self.bbox
-            if (
-                not all(math.isfinite(v) for v in self.bbox)
-                or not (valid_position(min_lat, min_lon) and valid_position(max_lat, max_lon))
-                or min_lon > max_lon
-                or min_lat > max_lat
+            # One fault, one code: a latitude or longitude out of range is invalid_position wherever it comes.
+            if not all(math.isfinite(v) for v in self.bbox) or not (
+                valid_position(min_lat, min_lon) and valid_position(max_lat, max_lon)
             ):
-                raise InvalidRequest("bbox is out of range or inverted (min must not exceed max)")
+                raise InvalidPosition("bbox is out of range (lat -90..90, lon -180..180)")
+            if min_lon > max_lon or min_lat > max_lat:
+                raise InvalidRequest("bbox is inverted (min must not exceed max)")
             return
         if not all(v is not None for v in (self.lat, self.lon, self.radius_m)):
             raise InvalidRequest("a circular region needs lat, lon and radius_m together")
         if not valid_position(self.lat, self.lon):
-            raise InvalidRequest(f"region centre {self.lat},{self.lon} is out of range")
+            raise InvalidPosition(f"region centre {self.lat},{self.lon} is out of range (lat -90..90, lon -180..180)")
         if not (math.isfinite(self.radius_m) and self.radius_m > 0):
             raise InvalidRequest("radius_m must be a positive number of metres")
 
@@ -123,11 +124,18 @@ class LocateAnswer:
 
 
 # -- a reference's editable fields: declared once ----------------------------------------------------------
-Latitude = Annotated[float, Field(ge=-90, le=90)]
-Longitude = Annotated[float, Field(ge=-180, le=180)]
 Heading = Annotated[float, Field(ge=0, lt=360)]
 Label = Annotated[str, Field(max_length=LABEL_MAX), AfterValidator(readable)]
-CapturedAt = Annotated[str, Field(max_length=CAPTURED_AT_MAX), AfterValidator(readable)]
+#: ISO 8601, stored in its extended form (``app.text.iso_captured_at``: EXIF's form is converted).
+CapturedAt = Annotated[
+    str,
+    Field(
+        max_length=CAPTURED_AT_MAX,
+        description="ISO 8601 date or date-time, e.g. 2024-09-23T16:08:20; a zone (+02:00, Z) is optional",
+    ),
+    AfterValidator(readable),
+    AfterValidator(iso_captured_at),
+]
 
 
 class ReferenceFields(BaseModel):
@@ -135,12 +143,13 @@ class ReferenceFields(BaseModel):
     POST /references, each item of its ``metadata`` and (with ranges on the position) PATCH.
 
     Strict: a boolean is not a number and an object is not a string (lax mode stores ``true`` as 1.0).
-    The range of an upload's lat/lon is checked by the core (``invalid_position``, as for EXIF positions)."""
+    The range of lat/lon is checked by the core, for an upload and an edit alike (``invalid_position``, as for
+    EXIF positions and a region's centre): one fault, one code, on every route."""
 
     model_config = ConfigDict(extra="forbid", strict=True)
 
-    lat: float | None = None
-    lon: float | None = None
+    lat: float | None = Field(None, description="degrees in [-90, 90] (else 422 invalid_position)")
+    lon: float | None = Field(None, description="degrees in [-180, 180] (else 422 invalid_position)")
     heading: Heading | None = None
     captured_at: CapturedAt | None = None
     label: Label | None = None
@@ -152,10 +161,8 @@ REFERENCE_FIELDS: tuple[str, ...] = tuple(ReferenceFields.model_fields)
 
 class ReferenceEdit(ReferenceFields):
     """An edit of a reference's metadata: every field optional; only those given change (a None heading,
-    label or capture time clears it; a position can be changed, never cleared)."""
-
-    lat: Latitude | None = None
-    lon: Longitude | None = None
+    label or capture time clears it; a position can be changed, never cleared, and its range is checked by
+    ``GeolocService.update``, like an upload's)."""
 
     @property
     def given(self) -> dict[str, Any]:

@@ -7,7 +7,9 @@ escape sequence garbles a terminal or a log line, and U+202E makes ``photo<RLO>g
 
 from __future__ import annotations
 
+import re
 import unicodedata
+from datetime import date, datetime
 
 LABEL_MAX = 200
 CAPTURED_AT_MAX = 64
@@ -30,3 +32,44 @@ def readable(text: str) -> str:
     if bad is not None:
         raise ValueError(f"contains the control character {bad}")
     return text
+
+
+# -- capture times: ISO 8601 ---------------------------------------------------------------------------------
+#: ISO 8601 extended form: a date, or a date and time (a space for the T is read too), with an optional zone.
+_ISO = re.compile(r"\d{4}-\d{2}-\d{2}(?:[T ]\d{2}:\d{2}(?::\d{2}(?:\.\d{1,6})?)?(?:Z|[+-]\d{2}:\d{2})?)?")
+#: EXIF's DateTimeOriginal ("2024:09:23 16:08:20"), with OffsetTimeOriginal appended when the photo has one.
+_EXIF = re.compile(r"(\d{4}):(\d{2}):(\d{2}) (\d{2}:\d{2}:\d{2})((?:[+-]\d{2}:\d{2})?)")
+
+
+def iso_captured_at(text: str) -> str:
+    """A capture time as ISO 8601 in its extended form: ``2024-09-23`` or ``2024-09-23T16:08:20``, with a
+    zone (``+02:00``; ``Z`` is written ``+00:00``) only when one was given; without one it is the camera's
+    local time, as EXIF records it. EXIF's own form is converted, so every answer carries one format.
+    ValueError for anything else ("yesterday", a 13th month): a capture time a client cannot parse back is
+    worse than none."""
+    exif = _EXIF.fullmatch(text)
+    if exif:
+        text = f"{exif[1]}-{exif[2]}-{exif[3]}T{exif[4]}{exif[5]}"
+    if not _ISO.fullmatch(text):
+        raise ValueError(
+            f"must be an ISO 8601 date or date-time such as 2024-09-23T16:08:20 (a zone, Z or +02:00, is "
+            f"optional), not {text[:40]!r}"
+        )
+    try:
+        if len(text) == 10:
+            return date.fromisoformat(text).isoformat()
+        when = datetime.fromisoformat(text)
+    except ValueError:
+        raise ValueError(f"{text!r} is not a real date and time") from None
+    return when.isoformat(timespec="microseconds" if when.microsecond else "seconds")
+
+
+def iso_or_as_stored(text: str | None) -> str | None:
+    """A stored capture time for an answer: ISO 8601 when it can be read as one (rows stored before the
+    conversion hold EXIF's form), else as stored."""
+    if text is None:
+        return None
+    try:
+        return iso_captured_at(text)
+    except ValueError:
+        return text

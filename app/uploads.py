@@ -13,7 +13,7 @@ from app.engine.geo import valid_position
 from app.engine.imageio import ImageLimits, LoadedImage, load_image
 from app.errors import InvalidRequest
 from app.storage.store import NewReference, Reference
-from app.text import CAPTURED_AT_MAX, LABEL_MAX, unsafe_character
+from app.text import CAPTURED_AT_MAX, LABEL_MAX, iso_captured_at, iso_or_as_stored, unsafe_character
 
 
 def _position(u: Upload, img: LoadedImage, n: int) -> tuple[float, float]:
@@ -58,9 +58,26 @@ def _text(value, name: str, limit: int, n: int) -> str | None:
     return value
 
 
-def _exif_text(value: str | None, limit: int) -> str | None:
-    """A text the photo's EXIF gave: kept when it would pass as a field, else left out (the photo is fine)."""
-    return value if value and len(value) <= limit and unsafe_character(value) is None else None
+def _captured_at(value, n: int) -> str | None:
+    """A given capture time as ISO 8601 (``app.text.iso_captured_at``), or InvalidRequest naming the image."""
+    text = _text(value, "captured_at", CAPTURED_AT_MAX, n)
+    if not text:
+        return None
+    try:
+        return iso_captured_at(text)
+    except ValueError as e:
+        raise InvalidRequest(f"image {n}: captured_at {e}") from None
+
+
+def _exif_captured_at(value: str | None) -> str | None:
+    """The photo's EXIF capture time as ISO 8601; left out when EXIF holds no usable one (the photo is fine:
+    cameras write "    :  :     :  :  " for an unset clock)."""
+    if not value or len(value) > CAPTURED_AT_MAX or unsafe_character(value) is not None:
+        return None
+    try:
+        return iso_captured_at(value)
+    except ValueError:
+        return None
 
 
 def prepare_upload(
@@ -70,7 +87,7 @@ def prepare_upload(
     ``exif_heading``: with no heading given, take the photo's EXIF GPSImgDirection (bulk ingestion of a
     folder of photos, where EXIF is the only metadata there is)."""
     label = _text(u.label, "label", LABEL_MAX, n) or None
-    captured_at = _text(u.captured_at, "captured_at", CAPTURED_AT_MAX, n) or None
+    captured_at = _captured_at(u.captured_at, n)
     if label is None:
         label = _text(label_from(u.filename), "file name", LABEL_MAX, n)
     img = load_image(u.data, limits)
@@ -86,7 +103,7 @@ def prepare_upload(
         lat=lat,
         lon=lon,
         heading=hd,
-        captured_at=captured_at or _exif_text(img.captured_at, CAPTURED_AT_MAX),
+        captured_at=captured_at or _exif_captured_at(img.captured_at),
         label=label,
         source=source,
     )
@@ -99,6 +116,9 @@ def _differences(new: NewReference, old: Reference, asked: Upload | None) -> lis
         out.append(f"position {old.lat:.6f},{old.lon:.6f} (not {new.lat:.6f},{new.lon:.6f})")
     for name in ("heading", "label", "captured_at"):
         value = getattr(asked, name) if asked is not None else getattr(new, name)
-        if value is not None and value != getattr(old, name):
-            out.append(f"{name} {getattr(old, name)!r} (not {value!r})")
+        stored = getattr(old, name)
+        if name == "captured_at" and isinstance(value, str):  # compared as ISO 8601, as answers show them
+            value, stored = iso_or_as_stored(value), iso_or_as_stored(stored)
+        if value is not None and value != stored:
+            out.append(f"{name} {stored!r} (not {value!r})")
     return out

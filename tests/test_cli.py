@@ -55,11 +55,15 @@ def test_build_fit_ingest_locate(workdir, mini_manifest):
     )
     assert res["mode"] == "binary"
     bad = geoloc("locate", str(photo), "--mode", "float-ish", "--data-dir", data, "--models-dir", models, check=False)
-    assert bad.returncode == 2 and "supports two-stage" in bad.stderr
+    assert bad.returncode == 2 and "serves two-stage" in bad.stderr
     bad = geoloc(
         "locate", str(SQUEEZENET_IR / "squeezenet1.1.labels"), "--data-dir", data, "--models-dir", models, check=False
     )
     assert bad.returncode == 2 and "not a JPEG" in bad.stderr
+    # --brief: the answer in words (a db photo: its own reference and crops agree on the spot).
+    brief = geoloc("locate", str(photo), "--brief", "--compare-exif", "--data-dir", data, "--models-dir", models)
+    assert brief.stdout.startswith("Likely: taken within ") and "img_00000.jpg" in brief.stdout, brief.stdout
+    assert "EXIF GPS" in brief.stdout and not brief.stdout.lstrip().startswith("{")
 
 
 def test_eval_writes_the_report(workdir, mini_manifest):
@@ -199,3 +203,31 @@ def test_eval_names_a_manifest_that_leaves_nothing_to_fit_on(workdir, penn_index
         check=False,
     )
     assert p.returncode == 2 and "has no query" in p.stderr and "Traceback" not in p.stderr
+
+
+def test_every_failure_is_one_line_and_a_documented_exit_code(tmp_path):
+    """Issue 22: `geoloc locate missing.jpg` printed a 42-line traceback. Every failure: one line on stderr,
+    an exit code of the README's table (app.cli.EXIT_CODES); --debug adds the traceback."""
+    from app.cli import EXIT_CODES
+
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    for code, meaning in EXIT_CODES.items():
+        assert f"| {code} | {meaning} |" in readme, code
+    photo = str(PENN / "photos" / "img_00000.jpg")
+    empty = ("--data-dir", str(tmp_path / "data"), "--models-dir", str(tmp_path / "models"))
+    cases = [
+        (("locate", str(tmp_path / "missing.jpg"), *empty), 2, "missing.jpg: No such file or directory"),
+        (("locate", photo, "--bogus"), 2, "No such option: --bogus"),
+        (("locate",), 2, "Missing argument"),
+        (("frobnicate",), 2, "No such command"),
+        (("locate", photo, *empty), 3, "no fitted pipeline"),
+        (("eval", "--manifest", str(tmp_path / "none.csv"), "--models-dir", str(tmp_path)), 2, "none.csv"),
+    ]
+    for args, code, words in cases:
+        p = geoloc(*args, check=False)
+        lines = p.stderr.strip().splitlines()
+        assert p.returncode == code and len(lines) == 1 and words in lines[0], (args, p.returncode, p.stderr)
+        assert lines[0].startswith("error: ") and "Traceback" not in p.stderr + p.stdout
+    debug = geoloc("locate", str(tmp_path / "missing.jpg"), "--debug", *empty, check=False)
+    assert debug.returncode == 2 and "Traceback" in debug.stderr and "FileNotFoundError" in debug.stderr
+    assert debug.stderr.strip().splitlines()[-1].startswith("error: ")

@@ -17,6 +17,7 @@ from fastapi.responses import FileResponse, HTMLResponse
 from app.api import security
 
 VENDOR = "/static/vendor/swagger-ui"
+DOCS_CSS = "/static/docs.css"
 
 
 def install(app: FastAPI, web_dir: Path) -> None:
@@ -33,8 +34,10 @@ def install(app: FastAPI, web_dir: Path) -> None:
             # No call to swagger.io's online validator: nothing leaves the machine.
             swagger_ui_parameters={"validatorUrl": None},
         )
-        page.headers.update(security.DOCS_HEADERS)  # never framed; no script policy (see app/api/security.py)
-        return page
+        # Our few rules after Swagger UI's: the description's wide error table scrolls inside itself at phone
+        # width instead of widening the whole page (static/docs.css).
+        body = bytes(page.body).replace(b"</head>", f'<link rel="stylesheet" href="{DOCS_CSS}">\n</head>'.encode(), 1)
+        return HTMLResponse(body, headers=security.DOCS_HEADERS)  # never framed; no script policy (security.py)
 
     @app.get("/favicon.ico", include_in_schema=False)
     def favicon() -> FileResponse:

@@ -34,7 +34,9 @@ class ErrorCode:
 
 #: Every code the API answers with. Add to it, never rename or re-purpose an entry.
 ERRORS: dict[str, ErrorCode] = {
-    "malformed_request": ErrorCode(400, "the body could not be parsed (a broken multipart form)"),
+    "malformed_request": ErrorCode(
+        400, "the body could not be parsed (a broken or truncated multipart form, a JSON body that is not JSON)"
+    ),
     "unreadable_image": ErrorCode(400, "the bytes are not an image we can decode (empty, truncated, not an image)"),
     "unauthorized": ErrorCode(401, "the call needs a valid X-API-Key header"),
     "not_found": ErrorCode(404, "no such reference, job or path"),
@@ -48,7 +50,9 @@ ERRORS: dict[str, ErrorCode] = {
     "invalid_request": ErrorCode(422, "a parameter or field is missing, malformed or out of range"),
     "image_too_small": ErrorCode(422, "too few pixels to describe a place"),
     "no_gps_in_image": ErrorCode(422, "no position was given and the photo has no EXIF GPS position"),
-    "invalid_position": ErrorCode(422, "latitude/longitude out of range or not finite"),
+    "invalid_position": ErrorCode(
+        422, "latitude/longitude out of range or not finite (an upload's, an edit's or a search region's)"
+    ),
     "unsupported_mode": ErrorCode(422, "the search mode is not available in the served configuration"),
     "internal_error": ErrorCode(500, "a bug: the server log has the traceback"),
     "not_ready": ErrorCode(503, "the model, fitted pipeline or index is not loaded (yet): see /ready"),
@@ -140,6 +144,14 @@ def install(app: FastAPI) -> None:
 
     @app.exception_handler(RequestValidationError)
     async def _validation(_: Request, exc: RequestValidationError):
+        # A body that is not JSON at all is a broken body, like a broken form (malformed_request, 400); a
+        # JSON body with a wrong field is a refused request (invalid_request, 422).
+        broken = [
+            err for err in exc.errors() if err.get("type") == "json_invalid" and err.get("loc", ())[:1] == ("body",)
+        ]
+        if broken:
+            why = (broken[0].get("ctx") or {}).get("error") or broken[0].get("msg")
+            return _json("malformed_request", f"the body is not valid JSON: {why}")
         parts = []
         for err in exc.errors():
             loc = ".".join(str(x) for x in err.get("loc", []) if x not in ("body", "query", "path", "form"))

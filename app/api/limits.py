@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
+from starlette.exceptions import HTTPException
 from starlette.requests import HTTPConnection
 from starlette.routing import BaseRoute, Match
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
@@ -75,15 +76,19 @@ class BodyLimits:
         received = 0
         refused = False
         started = False
+        ending = MultipartEnd.of(conn)
 
         async def counted() -> Message:
             nonlocal received, refused
             message = await receive()
             if message["type"] == "http.request":
-                received += len(message.get("body", b""))
+                body = message.get("body", b"")
+                received += len(body)
                 if received > limit and not started:
                     refused = True
                     raise _TooLarge
+                if ending is not None:
+                    ending.feed(body, last=not message.get("more_body", False))
             return message
 
         async def guarded(message: Message) -> None:
@@ -100,6 +105,43 @@ class BodyLimits:
                 raise
         if refused:
             await _refuse(limit, path, scope, receive, send)
+
+
+class MultipartEnd:
+    """Watches a multipart body for its closing delimiter (``--BOUNDARY--``). A body cut short is parsed by
+    python-multipart as far as it goes, without a word: the part in flight is dropped, and the route then
+    said "image: Field required" (422 ``invalid_request``) about an image the client did send. A body that
+    ends without its closing delimiter is refused instead as what it is, a broken form: 400
+    ``malformed_request``."""
+
+    def __init__(self, boundary: bytes):
+        self.closing = b"--" + boundary + b"--"
+        self.tail = b""
+        self.seen = False
+
+    @classmethod
+    def of(cls, conn: HTTPConnection) -> MultipartEnd | None:
+        """The watcher for a multipart/form-data request with a boundary; None for any other body (one
+        without a boundary is refused by the parser itself)."""
+        kind, _, params = conn.headers.get("content-type", "").partition(";")
+        if kind.strip().lower() != "multipart/form-data":
+            return None
+        for param in params.split(";"):
+            name, _, value = param.strip().partition("=")
+            if name.lower() == "boundary" and value.strip('"'):
+                return cls(value.strip('"').encode("latin-1"))
+        return None
+
+    def feed(self, chunk: bytes, last: bool) -> None:
+        if not self.seen:
+            window = self.tail + chunk
+            self.seen = self.closing in window
+            self.tail = window[-(len(self.closing) - 1) :]
+        if last and not self.seen:
+            raise HTTPException(
+                400,
+                "the multipart body ends before its closing boundary: the upload was cut short (send it again)",
+            )
 
 
 def _route(routes: Sequence[BaseRoute], scope: Scope) -> BaseRoute | None:

@@ -5,17 +5,30 @@ from __future__ import annotations
 from pydantic import BaseModel, Field, field_validator
 
 from app.domain import LocateAnswer, ReferenceEdit
+from app.text import iso_or_as_stored
+
+#: How answers round: metres to 0.1 m, scores, probabilities and shares to 4 digits, an estimate's
+#: position to 7 decimals (1 cm). More digits would be noise (``distance_m: 1.2e-09``), fewer would hide a
+#: difference between two candidates.
+METRES_DIGITS, SCORE_DIGITS, DEGREES_DIGITS = 1, 4, 7
+CAPTURED_AT_DOC = "ISO 8601 (2024-09-23T16:08:20), with a zone (+02:00) only when one is known"
+
+
+def _round(v: float | None, digits: int) -> float | None:
+    return None if v is None else round(v, digits)
 
 
 class CandidateOut(BaseModel):
-    # One ``app.domain.Candidate``, read by attribute; its score to 6 decimals.
+    # One ``app.domain.Candidate``, read by attribute, rounded (``METRES_DIGITS``...).
     reference_id: int
     lat: float
     lon: float
-    score: float = Field(description="similarity in [0, 1], whatever the search mode")
-    distance_m: float | None = Field(None, description="distance from the fused estimate")
+    score: float = Field(description="similarity in [0, 1], whatever the search mode (4 digits)")
+    distance_m: float | None = Field(
+        None, description="metres from the fused estimate, to 0.1 m (only when there is a confident estimate)"
+    )
     label: str | None = None
-    captured_at: str | None = None
+    captured_at: str | None = Field(None, description=CAPTURED_AT_DOC)
     heading: float | None = None
     inliers: int | None = Field(None, description="geometric verification inliers, when rerank=true")
     p_within_25m: float | None = Field(
@@ -24,17 +37,42 @@ class CandidateOut(BaseModel):
         "(cross-validated on penn-campus-gps; given for the first 10 candidates)",
     )
 
-    @field_validator("score")
+    @field_validator("score", "p_within_25m")
     @classmethod
-    def _six_decimals(cls, v: float) -> float:
-        return round(v, 6)
+    def _score_digits(cls, v: float | None) -> float | None:
+        return _round(v, SCORE_DIGITS)
+
+    @field_validator("distance_m")
+    @classmethod
+    def _metres(cls, v: float | None) -> float | None:
+        return _round(v, METRES_DIGITS)
+
+    @field_validator("captured_at")
+    @classmethod
+    def _iso(cls, v: str | None) -> str | None:
+        return iso_or_as_stored(v)
 
 
 class EstimateOut(BaseModel):
     lat: float
     lon: float
-    radius_m: float
-    confidence: float = Field(ge=0, le=1)
+    radius_m: float = Field(description="the truth lies within it for most confident answers, to 0.1 m")
+    confidence: float = Field(ge=0, le=1, description="the fused group's share of the candidates' weight")
+
+    @field_validator("lat", "lon")
+    @classmethod
+    def _degrees(cls, v: float) -> float:
+        return round(v, DEGREES_DIGITS)
+
+    @field_validator("radius_m")
+    @classmethod
+    def _metres(cls, v: float) -> float:
+        return round(v, METRES_DIGITS)
+
+    @field_validator("confidence")
+    @classmethod
+    def _share(cls, v: float) -> float:
+        return round(v, SCORE_DIGITS)
 
 
 class FeaturesOut(BaseModel):
@@ -80,13 +118,18 @@ class ReferenceOut(BaseModel):
     lat: float
     lon: float
     heading: float | None
-    captured_at: str | None
+    captured_at: str | None = Field(description=CAPTURED_AT_DOC)
     label: str | None
     source: str | None
     created_at: str
     status: str = Field(description="pending (accepted, being encoded), indexed, or failed")
     error: str | None = None
     sha256: str
+
+    @field_validator("captured_at")
+    @classmethod
+    def _iso(cls, v: str | None) -> str | None:
+        return iso_or_as_stored(v)  # rows stored before the conversion hold EXIF's form
 
 
 class ReferenceList(BaseModel):

@@ -37,6 +37,7 @@ except ImportError:  # pragma: no cover - depends on the environment
 GPS_IFD = 0x8825
 EXIF_IFD = 0x8769
 DATETIME_ORIGINAL = 0x9003
+OFFSET_TIME_ORIGINAL = 0x9011  # its zone, "+02:00" (EXIF 2.31)
 GPS_IMG_DIRECTION = 17
 
 
@@ -216,16 +217,21 @@ def _dms_to_deg(dms, ref) -> float:
 
 
 def read_exif_gps(img: Image.Image) -> tuple[tuple[float, float] | None, str | None]:
-    """(lat, lon) from the EXIF GPS block, or None; and DateTimeOriginal if present."""
+    """(lat, lon) from the EXIF GPS block, or None; and DateTimeOriginal if present, as EXIF writes it
+    ("2024:09:23 16:08:20"), followed by OffsetTimeOriginal ("+02:00") when the photo has one."""
     try:
         exif = img.getexif()
     except Exception:  # a broken EXIF block must not make the photo unreadable
         return None, None
     captured_at = None
     try:
-        raw = exif.get_ifd(EXIF_IFD).get(DATETIME_ORIGINAL)
+        ifd = exif.get_ifd(EXIF_IFD)
+        raw = ifd.get(DATETIME_ORIGINAL)
         if raw:
             captured_at = str(raw).strip("\x00 ")
+            zone = str(ifd.get(OFFSET_TIME_ORIGINAL) or "").strip("\x00 ")
+            if len(zone) == 6 and zone[0] in "+-":
+                captured_at += zone
     except Exception:
         captured_at = None
     try:

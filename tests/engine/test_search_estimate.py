@@ -38,7 +38,7 @@ def test_modes_follow_the_configuration():
     assert get_config("hybrid-bin").modes[0] == "two-stage"
     idx = ReferenceIndex(get_config("orb-mbvlad-bin"), None, 64)
     assert idx.check_mode(None) == "binary"
-    with pytest.raises(UnsupportedMode, match="supports binary"):
+    with pytest.raises(UnsupportedMode, match="serves binary; the named configurations that serve float are "):
         idx.check_mode("float")
 
 

@@ -80,7 +80,7 @@ def test_keys_ids_modes_and_formats(server):
     assert c.get("/references", params={"offset": 10**30}).status_code == 422  # found by the fuzzer: was a 500
     assert c.delete("/references/999999", headers={"X-API-Key": KEY}).status_code == 404
     r = c.post("/locate", files=[("image", ("q.jpg", CROP))], data={"mode": "sideways"})
-    assert r.status_code == 422 and "supports" in r.json()["message"]
+    assert r.json()["error"] == "unsupported_mode" and "serves two-stage" in r.json()["message"], r.text
     assert c.post("/locate", files=[("image", ("q.jpg", CROP))], data={"top_k": 1000}).status_code == 422
     assert c.post("/locate", files=[("image", ("q.jpg", CROP))], data={"bbox": "1,2,3"}).status_code == 422
     gif = io.BytesIO()

@@ -615,3 +615,85 @@ def test_the_page_policy_contains_a_slip(browser, xss_server, tile_png):
     page.wait_for_timeout(1000)  # the broken image fails, its handler is refused (or runs)
     assert not seen, seen
     assert any(v.startswith("script-src") for v in page.evaluate("window.__csp")), page.evaluate("window.__csp")
+
+
+# -- first use, round 2 (issue 22): the region control, the Add flow, /docs at phone width ----------------
+def test_a_region_on_the_locate_view(browser, server, tile_png):
+    """The API's region (lat, lon, radius_m) from the Locate view: a circle far from every reference gives
+    the region's "no match"; a partial one is refused on the page; the photo's own spot finds it again."""
+    page = open_page(browser, server, "phone", tile_png)
+    page.set_input_files("#locate-file", str(server.query))
+    page.click("#region-box summary")
+    page.fill("#region-lat", "39.9")
+    page.click("#locate-btn")
+    page.wait_for_selector("#locate-error:not([hidden])")
+    assert "latitude, a longitude and a radius" in page.inner_text("#locate-error")
+    page.fill("#region-lon", "-75.3")  # about 10 km from the campus
+    page.fill("#region-radius", "300")
+    page.click("#locate-btn")
+    page.wait_for_selector("#answer:not([hidden])", timeout=60_000)
+    assert page.inner_text("#level") == "No match" and "region" in page.inner_text("#headline")
+    no_horizontal_scroll(page)
+    screenshot(page, "locate-region-phone.png")
+    first = server.rows[0]
+    page.fill("#region-lat", str(first.lat))
+    page.fill("#region-lon", str(first.lon))
+    page.click("#locate-btn")
+    page.wait_for_selector("#candidates li", timeout=60_000)
+    assert page.inner_text("#level") in ("Likely", "Possible")
+    assert not page.errors, page.errors
+
+
+def test_add_shows_the_new_reference_and_clears_the_form(browser, server, tile_png, mini_manifest):
+    """More references than a page holds (20): the one added from the page used to land on page 2 while the
+    file stayed chosen. Now the form is emptied, the reference is shown above the list, and the list moves
+    to the page that holds it, marked there."""
+    rows = read_manifest(mini_manifest)
+    new, *others = [r for r in rows if r.split == "query"]
+    extra = [r for r in rows if r.split == "train"] + others  # 17 photos and crops not stored yet
+    files = [("image", (r.image.name, r.image.read_bytes(), "image/jpeg")) for r in extra]
+    meta = [{"lat": r.lat, "lon": r.lon} for r in extra]
+    res = server.client.post(
+        "/references", files=files, data={"metadata": json.dumps(meta)}, headers={"X-API-Key": "web-key"}
+    )
+    wait_job(server.client, res.json()["job_id"])
+    total = server.client.get("/references").json()["total"]
+    assert total > 20, total
+
+    page = open_page(browser, server, "phone", tile_png)
+    page.fill("#api-key", "web-key")
+    page.click("#tab-refs")
+    page.wait_for_selector("#refs li")
+    page.set_input_files("#add-file", str(new.image))
+    page.fill("#add-lat", str(new.lat))
+    page.fill("#add-lon", str(new.lon))
+    page.fill("#add-label", "Added from the page")
+    page.click("#add-form button[type=submit]")
+    page.wait_for_selector("#refs-added:not([hidden])", timeout=90_000)
+    added = page.locator("#refs-added li")
+    assert "Added from the page" in added.inner_text() and "Just added" in page.inner_text("#refs-added-title")
+    new_id = added.get_attribute("data-id")
+    page.wait_for_selector(f'#refs li.added[data-id="{new_id}"]')  # listed, on the page it falls on
+    assert f"of {total + 1}" in page.inner_text("#refs-count") and f"{total + 1} of" in page.inner_text("#refs-count")
+    form = page.evaluate(
+        "() => [document.getElementById('add-file').files.length, ...['add-lat', 'add-lon', 'add-label']"
+        ".map((id) => document.getElementById(id).value)]"
+    )
+    assert form == [0, "", "", ""], form
+    assert "indexed" in page.inner_text("#refs-status").lower() or "indexed" in added.inner_text()
+    no_horizontal_scroll(page)
+    page.screenshot(path=str(SHOTS / "references-added-phone.png"), full_page=True)
+    assert not page.errors, page.errors
+
+
+def test_api_docs_fit_a_phone(browser, server):
+    """The API description's error table used to widen /docs past 375 px: it now scrolls inside itself."""
+    page = browser.new_page(viewport=VIEWPORTS["phone"])
+    page.route("**/*", lambda r: r.continue_() if urlparse(r.request.url).hostname == "127.0.0.1" else r.abort())
+    page.goto(server.url + "/docs")
+    page.locator('.opblock-summary-path[data-path="/locate"]').wait_for(state="visible", timeout=30_000)
+    assert page.locator(".info table").count() >= 1
+    assert page.evaluate("getComputedStyle(document.querySelector('.info table')).overflowX") == "auto"
+    no_horizontal_scroll(page)
+    SHOTS.mkdir(parents=True, exist_ok=True)
+    page.screenshot(path=str(SHOTS / "docs-phone.png"), full_page=True)

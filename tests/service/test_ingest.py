@@ -76,7 +76,8 @@ def test_a_folder_of_photos_is_ingested_at_their_exif_positions(photo_folder, tm
     for name in GPS_PHOTOS:
         lat, lon, heading, captured_at, source, status = got[name]
         assert (lat, lon) == pytest.approx(truth[name], abs=2e-5), name  # EXIF GPS, as index.csv has it
-        assert source == "folder" and status == "indexed" and captured_at.startswith("2024:09:23")
+        # EXIF's DateTimeOriginal ("2024:09:23 ..."), stored as ISO 8601
+        assert source == "folder" and status == "indexed" and captured_at.startswith("2024-09-23T")
     assert got["img_00033.jpg"][2] == pytest.approx(39.2569847, abs=1e-6)  # EXIF GPSImgDirection
     assert got["img_00000.jpg"][2] is None
 

@@ -53,7 +53,10 @@ def test_duplicates_say_so_and_patch_edits(tmp_path, fitted_models, mini_manifes
         assert r["heading"] is None and r["label"] == "College Hall"
         # Errors: unknown id, bad values, unknown fields, nothing to change.
         assert c.patch("/references/999999", json={"label": "x"}, headers=H).json()["error"] == "not_found"
-        for bad in ({"lat": 123}, {"heading": 400}, {"lon": "east"}, {"colour": "red"}, {}, {"lat": None}):
+        for bad in ({"heading": 400}, {"lon": "east"}, {"colour": "red"}, {}, {"lat": None}):
             r = c.patch(f"/references/{ref}", json=bad, headers=H)
             assert r.status_code == 422 and r.json()["error"] == "invalid_request", (bad, r.text)
+        # A position out of range is invalid_position, as in an upload (one fault, one code).
+        r = c.patch(f"/references/{ref}", json={"lat": 123}, headers=H)
+        assert r.status_code == 422 and r.json()["error"] == "invalid_position", r.text
         assert c.get(f"/references/{ref}").json()["lat"] == new["lat"]

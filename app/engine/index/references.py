@@ -9,13 +9,31 @@ from __future__ import annotations
 
 import numpy as np
 
-from app.engine.configs import PipelineConfig
+from app.engine.configs import CONFIGS, PipelineConfig
 from app.engine.errors import GeolocError
 from app.engine.index.vectors import VectorIndex
 
 
 class UnsupportedMode(GeolocError):
     pass
+
+
+#: Every search mode some configuration can serve.
+SEARCH_MODES = ("float", "binary", "two-stage")
+
+
+def unsupported_mode_message(mode: str, config: PipelineConfig) -> str:
+    """Why ``mode`` cannot be served, and what would serve it: the named configurations that can (a user who
+    asks for binary search on the float-only default needs to know which configuration to start instead)."""
+    served = ", ".join(config.modes)
+    if mode not in SEARCH_MODES:
+        return f"mode {mode!r} is not a search mode (float, binary or two-stage); {config.name!r} serves {served}"
+    others = [name for name, c in CONFIGS.items() if mode in c.modes]
+    return (
+        f"mode {mode!r} is not available for configuration {config.name!r}, which serves {served}; the named "
+        f"configurations that serve {mode} are {', '.join(others)} (fit one with `make fit CONFIG=NAME`, then "
+        "serve it with GEOLOC_CONFIG=NAME or --config NAME)"
+    )
 
 
 class ReferenceIndex:
@@ -58,9 +76,7 @@ class ReferenceIndex:
         if mode is None:
             return modes[0]
         if mode not in modes:
-            raise UnsupportedMode(
-                f"mode {mode!r} is not available for configuration {self.config.name!r}; it supports {', '.join(modes)}"
-            )
+            raise UnsupportedMode(unsupported_mode_message(mode, self.config))
         return mode
 
     def search(

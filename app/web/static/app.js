@@ -196,9 +196,19 @@ async function locate() {
   clearAnswer();
   status("locate", "Locating…");
   $("locate-btn").disabled = true;
+  let region;
+  try {
+    region = regionFields();
+  } catch (err) {
+    status("locate", "");
+    showError("locate", err.message);
+    $("locate-btn").disabled = false;
+    return;
+  }
   const form = new FormData();
   form.append("image", file);
   form.append("top_k", $("top-k").value || "10");
+  for (const [name, value] of Object.entries(region)) form.append(name, value);
   try {
     const res = await api("/locate", { method: "POST", body: form, headers: keyHeaders() });
     renderLocate(res);
@@ -210,6 +220,26 @@ async function locate() {
     $("locate-btn").disabled = false;
   }
 }
+
+// -- locate: the region (the API's lat, lon and radius_m) -----------------------------------------------
+// All three or none; the service checks the ranges and says what is wrong.
+const REGION = [["region-lat", "lat"], ["region-lon", "lon"], ["region-radius", "radius_m"]];
+function regionFields() {
+  const given = REGION.map(([id, name]) => [name, $(id).value.trim()]).filter(([, v]) => v);
+  if (given.length && given.length < REGION.length) {
+    throw new Error("A region needs a latitude, a longitude and a radius in metres (or none of them).");
+  }
+  if (given.length) $("region-box").open = true;
+  return Object.fromEntries(given);
+}
+$("region-from-map").addEventListener("click", () => {
+  if (!locateMap) { showError("locate", "The map did not load: type the latitude and longitude."); return; }
+  const c = locateMap.map.getCenter();
+  $("region-lat").value = c.lat.toFixed(6);
+  $("region-lon").value = c.lng.toFixed(6);
+  if (!$("region-radius").value.trim()) $("region-radius").value = "500";
+});
+$("region-clear").addEventListener("click", () => REGION.forEach(([id]) => { $(id).value = ""; }));
 
 // -- locate: the answer in words --------------------------------------------------------------------
 // The level comes from the answer itself: the service gives an estimate only when it is confident
@@ -401,6 +431,7 @@ async function loadRefs() {
 function refItem(r) {
   const li = document.createElement("li");
   li.className = "ref";
+  li.dataset.id = String(r.id);
   const name = refName(r.id, r.label);
   const img = document.createElement("img");
   img.src = `/references/${r.id}/image`;
@@ -442,6 +473,7 @@ async function deleteRef(id) {
     await api(`/references/${id}`, { method: "DELETE", headers: keyHeaders() });
     showError("refs", "");
     status("refs", `Reference ${id} deleted.`);
+    if ($("refs-added-item").querySelector(`li[data-id="${id}"]`)) $("refs-added").hidden = true;
     loadRefs();
   } catch (e) {
     showError("refs", e.message);
@@ -451,14 +483,40 @@ async function deleteRef(id) {
 $("prev").addEventListener("click", () => { refsOffset = Math.max(0, refsOffset - PAGE); loadRefs(); });
 $("next").addEventListener("click", () => { refsOffset += PAGE; loadRefs(); });
 
+let pick = null; // the position clicked for the next reference
 if (refsMap) {
-  let pick = null;
   refsMap.map.on("click", (e) => {
     $("add-lat").value = e.latlng.lat.toFixed(7);
     $("add-lon").value = e.latlng.lng.toFixed(7);
     if (pick) pick.remove();
     pick = L.marker(e.latlng, { title: "New reference position" }).addTo(refsMap.map);
   });
+}
+
+// After "Add": the form is emptied (the next reference starts from nothing), the reference is shown above
+// the list whatever page it falls on, and the list moves to the page that holds a new one (the last: ids
+// grow) with it marked there.
+function clearAddForm() {
+  $("add-form").reset();
+  if (pick) { pick.remove(); pick = null; }
+}
+
+async function showAdded(id, duplicate) {
+  const ref = await api(`/references/${id}`, { headers: keyHeaders() });
+  $("refs-added-title").textContent = duplicate ? `Already stored as reference ${id}:` : `Just added (reference ${id}):`;
+  const item = refItem(ref);
+  item.classList.add("added");
+  $("refs-added-item").replaceChildren(item);
+  $("refs-added").hidden = false;
+  if (!duplicate) {
+    const first = await api("/references?offset=0&limit=1", { headers: keyHeaders() });
+    refsOffset = Math.max(0, Math.floor((first.total - 1) / PAGE) * PAGE);
+  }
+  await loadRefs();
+  const listed = document.querySelector(`#refs li[data-id="${id}"]`);
+  if (listed) listed.classList.add("added");
+  if (refsMap) refsMap.map.setView([ref.lat, ref.lon], Math.max(refsMap.map.getZoom(), 17));
+  $("refs-added").scrollIntoView({ block: "nearest" });
 }
 
 $("add-form").addEventListener("submit", async (e) => {
@@ -475,10 +533,11 @@ $("add-form").addEventListener("submit", async (e) => {
     const res = await api("/references", { method: "POST", body: form, headers: keyHeaders() });
     status("refs", res.duplicates[0] ? `Already stored as reference ${res.reference_ids[0]}.`
                                      : `Accepted as reference ${res.reference_ids[0]}; encoding…`);
+    clearAddForm();
     await waitJob(res.job_id);
     // A duplicate uploaded with other metadata keeps the stored one: the service says so in `notes`.
     if (res.notes && res.notes.length) status("refs", `${$("refs-status").textContent} ${res.notes.join(" ")}`);
-    loadRefs();
+    await showAdded(res.reference_ids[0], res.duplicates[0]);
   } catch (err) {
     showError("refs", err.message);
   }
