@@ -213,6 +213,17 @@ for _config in [
         cnn_global_weight=1.0,
         **_LITE2,
     ),
+    PipelineConfig(
+        name="hybrid-lite2-mid",
+        description="RootSIFT MBVLAD joined with the EfficientNet-Lite2 stride-16 map GeM (image-level hybrid), "
+        "PCA-whitened floats",
+        local="sift",
+        codebook="minibatch",
+        k=64,
+        pca_dim=256,
+        cnn_global_weight=1.0,
+        **{**_LITE2, "global_model": "efficientnet-lite2-mid"},
+    ),
 ]:
     CONFIGS[_config.name] = _config
 

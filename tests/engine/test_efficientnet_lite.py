@@ -142,11 +142,36 @@ def test_a_tampered_wheel_is_refused(lite2_wheel, tmp_path):
 def test_the_registry_names_lite2_its_files_and_dims(lite2, models_dir):
     for name, output, dim in [("efficientnet-lite2", HEAD_OUTPUT, 1280), ("efficientnet-lite2-mid", MID_OUTPUT, 720)]:
         entry = registry.global_model_entry(name)
-        assert entry.files == ("efficientnet_lite2.onnx",) and entry.dim == dim
+        assert entry.files == (model_filename(2, output),) and entry.dim == dim
         model = registry.build_global_model(name, models_dir)
         assert model.output == output and model.dim == dim
         dense = model.dense(np.full((300, 400, 3), 128, np.uint8), 224)  # 224 x 299 in
         assert dense.shape == ((7, 10, dim) if output == HEAD_OUTPUT else (14, 19, dim))
-    assert registry.build_entry("efficientnet-lite2").files == ("efficientnet_lite2.onnx",)
-    for config in ("lite2-gem", "lite2-mid-gem", "hybrid-lite2"):
+    built = ("efficientnet_lite2.onnx", "efficientnet_lite2_mid.onnx")
+    assert registry.build_entry("efficientnet-lite2").files == built
+    for config in ("lite2-gem", "hybrid-lite2"):
         assert registry.files_for(get_config(config)) == ["efficientnet_lite2.onnx"]
+    for config in ("lite2-mid-gem", "hybrid-lite2-mid"):
+        assert registry.files_for(get_config(config)) == ["efficientnet_lite2_mid.onnx"]
+
+
+def test_the_mid_only_graph_gives_the_whole_graphs_mid_map(lite2, models_dir):
+    """The smaller file that stops at ``mid`` computes exactly what the whole network's ``mid`` output is."""
+    rgb = np.random.default_rng(1).integers(0, 256, (120, 160, 3)).astype(np.uint8)
+    mid_model = registry.build_global_model("efficientnet-lite2-mid", models_dir)
+    (whole,) = lite2.run(rgb, [MID_OUTPUT])
+    np.testing.assert_allclose(mid_model.run(rgb, [MID_OUTPUT])[0], whole, atol=1e-5)
+    sizes = [(models_dir / model_filename(2, output)).stat().st_size for output in (MID_OUTPUT, HEAD_OUTPUT)]
+    assert sizes[0] < sizes[1] / 3
+
+
+def test_geoloc_models_build_only_lite2(lite2_wheel, tmp_path):
+    """The README's `geoloc models build --only efficientnet-lite2` (the wheel from the build cache)."""
+    import subprocess
+    import sys
+
+    cmd = ["models", "build", "--only", "efficientnet-lite2", "--models-dir", str(tmp_path)]
+    out = subprocess.run([sys.executable, "-m", "app.cli", *cmd], capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0, out.stderr
+    assert "efficientnet_lite2.onnx" in out.stdout and (tmp_path / "efficientnet_lite2.onnx").exists()
+    assert not (tmp_path / "squeezenet1_1.onnx").exists()  # --only builds that one alone

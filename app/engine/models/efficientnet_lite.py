@@ -29,8 +29,9 @@ DIMS: dict[int, dict[str, int]] = {
 }
 
 
-def model_filename(variant: int) -> str:
-    return f"efficientnet_lite{variant}.onnx"
+def model_filename(variant: int, output: str = HEAD_OUTPUT) -> str:
+    """The whole network's file, or for ``mid`` the smaller graph that stops there (the converter writes both)."""
+    return f"efficientnet_lite{variant}.onnx" if output != MID_OUTPUT else f"efficientnet_lite{variant}_mid.onnx"
 
 
 class EfficientNetLite(OnnxModel):

