@@ -8,6 +8,8 @@ image once and refits per fold, and a service encodes a query in one call (``enc
 from __future__ import annotations
 
 import json
+import os
+import threading
 import time
 from collections.abc import Iterable
 from concurrent.futures import ThreadPoolExecutor
@@ -73,7 +75,17 @@ class _Timer:
 #: onnxruntime release the GIL and neither keeps two cores busy alone, so the two branches overlap (a 1600 px
 #: photo's extraction took 0.75x the time on this 2-core machine; bench/locate_normalised.py). Shared by
 #: every pipeline in the process, bounded, so concurrent requests queue here instead of adding threads.
-_BRANCHES = ThreadPoolExecutor(max_workers=4, thread_name_prefix="geoloc-cnn")
+#: Made per process: a forked child would inherit an executor whose threads it does not have.
+_BRANCHES: tuple[int, ThreadPoolExecutor] | None = None
+_BRANCHES_LOCK = threading.Lock()
+
+
+def _branches() -> ThreadPoolExecutor:
+    global _BRANCHES
+    with _BRANCHES_LOCK:
+        if _BRANCHES is None or _BRANCHES[0] != os.getpid():
+            _BRANCHES = (os.getpid(), ThreadPoolExecutor(max_workers=4, thread_name_prefix="geoloc-cnn"))
+        return _BRANCHES[1]
 
 
 def _unit(x: np.ndarray) -> np.ndarray:
@@ -159,7 +171,7 @@ class Pipeline:
         local = xy = gem = orb_raw = None
         cnn = None
         if self.global_model is not None and self._local is not None:  # both branches at once
-            cnn = _BRANCHES.submit(self._dense, rgb)
+            cnn = _branches().submit(self._dense, rgb)
         if self._local is not None:
             with _Timer(t, "local_features"):
                 lf = self._local(rgb)
