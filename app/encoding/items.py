@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from app.engine.errors import GeolocError
-from app.engine.imageio import ImageLimits, load_image
+from app.engine.imageio import ImageLimits
 from app.engine.pipeline import Pipeline
 
 log = logging.getLogger("geoloc.encoding")
@@ -57,7 +57,7 @@ def read_item(item: EncodeItem) -> EncodeItem | Encoded:
 def encode_data(pipeline: Pipeline, limits: ImageLimits, ref_id: int, data: bytes) -> Encoded:
     """Image bytes to codes; a bad image is a permanent failure of that row, never an exception."""
     try:
-        codes = pipeline.encode_image(load_image(data, limits).rgb)
+        codes = pipeline.encode_image(pipeline.decode(data, limits).rgb)
     except GeolocError as e:
         return Encoded(ref_id, None, None, str(e), fingerprint=pipeline.fingerprint)
     return Encoded(ref_id, codes.float_, codes.binary, fingerprint=pipeline.fingerprint)

@@ -184,6 +184,56 @@ CONFIGS: dict[str, PipelineConfig] = {
         ),
     ]
 }
+
+# EfficientNet-Lite2 (ImageNet, from the pinned wheel; app/engine/models/efficientnet_lite.py) as the global
+# model: its head map (1280, stride 32) or its richest stride-16 map (720) GeM-pooled, alone or joined with
+# the RootSIFT MBVLAD (image-level hybrid: the 1280/720-d maps are too wide to sample at every keypoint).
+# Figures: docs/RESULTS.md, "EfficientNet-Lite2".
+_LITE2 = dict(global_model="efficientnet-lite2", cnn_short_side=448)
+for _config in [
+    PipelineConfig(
+        name="lite2-gem",
+        description="EfficientNet-Lite2 head map (1280 channels) GeM-pooled global descriptor, PCA-whitened floats",
+        local=None,
+        codebook=None,
+        cnn_global_weight=1.0,
+        whiten_power=0.25,
+        **_LITE2,
+    ),
+    PipelineConfig(
+        name="lite2-mid-gem",
+        description="EfficientNet-Lite2 stride-16 map (720 channels) GeM-pooled global descriptor, PCA-whitened floats",
+        local=None,
+        codebook=None,
+        cnn_global_weight=1.0,
+        whiten_power=0.25,
+        **{**_LITE2, "global_model": "efficientnet-lite2-mid"},
+    ),
+    PipelineConfig(
+        name="hybrid-lite2",
+        description="RootSIFT MBVLAD joined with the EfficientNet-Lite2 head GeM (image-level hybrid), "
+        "PCA-whitened floats",
+        local="sift",
+        codebook="minibatch",
+        k=64,
+        pca_dim=256,
+        cnn_global_weight=1.0,
+        **_LITE2,
+    ),
+    PipelineConfig(
+        name="hybrid-lite2-mid",
+        description="RootSIFT MBVLAD joined with the EfficientNet-Lite2 stride-16 map GeM (image-level hybrid), "
+        "PCA-whitened floats",
+        local="sift",
+        codebook="minibatch",
+        k=64,
+        pca_dim=256,
+        cnn_global_weight=1.0,
+        **{**_LITE2, "global_model": "efficientnet-lite2-mid"},
+    ),
+]:
+    CONFIGS[_config.name] = _config
+
 DEFAULT_CONFIG = "hybrid"
 
 

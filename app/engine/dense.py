@@ -35,12 +35,19 @@ def sample_at(fire9: np.ndarray, xy_norm: np.ndarray) -> np.ndarray:
         return np.zeros((0, c), np.float32)
     gx = np.clip(xy_norm[:, 0] * fw - 0.5, 0, fw - 1)
     gy = np.clip(xy_norm[:, 1] * fh - 0.5, 0, fh - 1)
-    x0 = np.floor(gx).astype(int)
-    y0 = np.floor(gy).astype(int)
+    x0 = np.floor(gx).astype(np.intp)
+    y0 = np.floor(gy).astype(np.intp)
     x1 = np.minimum(x0 + 1, fw - 1)
     y1 = np.minimum(y0 + 1, fh - 1)
-    ax = (gx - x0)[:, None]
-    ay = (gy - y0)[:, None]
-    top = fire9[y0, x0] * (1 - ax) + fire9[y0, x1] * ax
-    bottom = fire9[y1, x0] * (1 - ax) + fire9[y1, x1] * ax
-    return (top * (1 - ay) + bottom * ay).astype(np.float32)
+    # float32 weights and rows gathered from the flat map: the float64 promotion and the 2-D fancy indexing
+    # were most of this stage's time (its result differs from the float64 way by float32 rounding only).
+    ax = (gx - x0).astype(np.float32)[:, None]
+    ay = (gy - y0).astype(np.float32)[:, None]
+    flat = fire9.reshape(fh * fw, c)
+    if flat.dtype != np.float32:
+        flat = flat.astype(np.float32)
+    out = flat[y0 * fw + x0] * ((1 - ax) * (1 - ay))
+    out += flat[y0 * fw + x1] * (ax * (1 - ay))
+    out += flat[y1 * fw + x0] * ((1 - ax) * ay)
+    out += flat[y1 * fw + x1] * (ax * ay)
+    return out

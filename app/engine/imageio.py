@@ -114,8 +114,22 @@ def sniff_format(data: bytes) -> str | None:
     return None
 
 
-def load_image(data: bytes, limits: ImageLimits | None = None, decode_long_side: int | None = None) -> LoadedImage:
-    """Decode ``data`` into an upright RGB array, downscaled at decode time towards ``decode_long_side``."""
+def decode_target(width: int, height: int, long_side: int, short_side: int = 0) -> int:
+    """The long side a decode must keep so that the image's long side is at least ``long_side`` and its
+    short side at least ``short_side`` (orientation does not matter: both are about the stored sides)."""
+    long_, short = max(width, height), min(width, height)
+    return max(long_side, math.ceil(short_side * long_ / max(short, 1)))
+
+
+def load_image(
+    data: bytes,
+    limits: ImageLimits | None = None,
+    decode_long_side: int | None = None,
+    decode_short_side: int = 0,
+) -> LoadedImage:
+    """Decode ``data`` into an upright RGB array, downscaled at decode time towards ``decode_long_side``
+    (and, when given, keeping the short side at least ``decode_short_side``: a pipeline's CNN branch
+    resizes by the short side, its local branch by the long side; ``Pipeline.decode``)."""
     limits = limits or ImageLimits()
     if len(data) == 0:
         raise UnreadableImage("the upload is empty (0 bytes)")
@@ -146,7 +160,7 @@ def load_image(data: bytes, limits: ImageLimits | None = None, decode_long_side:
         raise UnsupportedImageFormat("animated images are not supported; send a single photo")
     gps, captured_at = read_exif_gps(img)
     heading = read_exif_heading(img)
-    target = decode_long_side or limits.decode_long_side
+    target = decode_target(w, h, decode_long_side or limits.decode_long_side, decode_short_side)
     full_decode = False
     try:
         if img.format in ("JPEG", "MPO") and max(w, h) > 2 * target:

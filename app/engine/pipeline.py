@@ -8,8 +8,11 @@ image once and refits per fold, and a service encodes a query in one call (``enc
 from __future__ import annotations
 
 import json
+import os
+import threading
 import time
 from collections.abc import Iterable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -21,6 +24,7 @@ from app.engine.configs import PipelineConfig, get_config
 from app.engine.dense import gem_pool, sample_at
 from app.engine.errors import IncompatibleArtifact, ModelNotReady
 from app.engine.extractors import build_extractor
+from app.engine.imageio import ImageLimits, LoadedImage, load_image
 from app.engine.models.base import GlobalModel, Matcher
 from app.engine.models.registry import build_global_model, build_matcher, global_model_entry
 from app.engine.pca import PcaWhitening, l2_normalize
@@ -65,6 +69,23 @@ class _Timer:
 
     def __exit__(self, *exc):
         self.sink[self.name] = self.sink.get(self.name, 0.0) + (time.perf_counter() - self.t) * 1000
+
+
+#: Runs the global model of a hybrid while the caller's thread extracts local features: OpenCV's SIFT and
+#: onnxruntime release the GIL and neither keeps two cores busy alone, so the two branches overlap (a 1600 px
+#: photo's extraction took 0.75x the time on this 2-core machine; bench/locate_normalised.py). Shared by
+#: every pipeline in the process, bounded, so concurrent requests queue here instead of adding threads.
+#: Made per process: a forked child would inherit an executor whose threads it does not have.
+_BRANCHES: tuple[int, ThreadPoolExecutor] | None = None
+_BRANCHES_LOCK = threading.Lock()
+
+
+def _branches() -> ThreadPoolExecutor:
+    global _BRANCHES
+    with _BRANCHES_LOCK:
+        if _BRANCHES is None or _BRANCHES[0] != os.getpid():
+            _BRANCHES = (os.getpid(), ThreadPoolExecutor(max_workers=4, thread_name_prefix="geoloc-cnn"))
+        return _BRANCHES[1]
 
 
 def _unit(x: np.ndarray) -> np.ndarray:
@@ -126,18 +147,37 @@ class Pipeline:
             self._matcher = build_matcher(self.config.matcher, self.models_dir)
         return self._matcher
 
+    # -- stage 0: decode ------------------------------------------------------------------------------
+    @property
+    def decode_sides(self) -> tuple[int, int]:
+        """(long side, short side) the branches need from a decoded image: the local extractor's long side
+        and the global model's short side. A JPEG is decoded at the smallest DCT scale that keeps both
+        (a 1600 px photo at 800 px, a 12 MP one at 1008), so decoding at full size is never wasted."""
+        c = self.config
+        long_side = c.local_long_side if c.local else 0
+        short_side = c.cnn_short_side if c.uses_global_model else 0
+        return long_side, short_side
+
+    def decode(self, data: bytes, limits: ImageLimits | None = None) -> LoadedImage:
+        """Decode an image for this pipeline (``load_image`` with ``limits``, at the scale ``decode_sides``
+        needs): the one decode of queries, references, fitting and evaluation, so all see the same pixels."""
+        long_side, short_side = self.decode_sides
+        return load_image(data, limits, decode_long_side=max(long_side, 1), decode_short_side=short_side)
+
     # -- stage 1: features ----------------------------------------------------------------------------
     def extract(self, rgb: np.ndarray) -> Features:
         c = self.config
         t: dict[str, float] = {}
         local = xy = gem = orb_raw = None
+        cnn = None
+        if self.global_model is not None and self._local is not None:  # both branches at once
+            cnn = _branches().submit(self._dense, rgb)
         if self._local is not None:
             with _Timer(t, "local_features"):
                 lf = self._local(rgb)
             local, xy, orb_raw = lf.descriptors, lf.xy, lf.raw
         if self.global_model is not None:
-            with _Timer(t, "cnn"):
-                dense = self.global_model.dense(rgb, c.cnn_short_side)
+            dense, t["cnn"] = cnn.result() if cnn is not None else self._dense(rgb)
             if c.cnn_global_weight > 0 or local is None:
                 gem = gem_pool(dense, c.gem_p)
             if c.cnn_local_weight > 0 and local is not None:
@@ -145,6 +185,12 @@ class Pipeline:
                     sampled = sample_at(dense, xy)
                     local = np.hstack([_unit(local), c.cnn_local_weight * _unit(sampled)]).astype(np.float32)
         return Features(local=local, xy=xy, global_=gem, timings_ms=t, orb_raw=orb_raw, config=c.name)
+
+    def _dense(self, rgb: np.ndarray) -> tuple[np.ndarray, float]:
+        """The global model's map and its own time in ms (it may overlap the local features')."""
+        t0 = time.perf_counter()
+        dense = self.global_model.dense(rgb, self.config.cnn_short_side)
+        return dense, (time.perf_counter() - t0) * 1000
 
     # -- stage 1b: feature selection (SVM bank) -------------------------------------------------------
     def select(self, f: Features) -> np.ndarray | None:

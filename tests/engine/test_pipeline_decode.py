@@ -1,0 +1,68 @@
+"""Decoding at the scale a pipeline needs (``Pipeline.decode``): JPEG draft (DCT-domain) reduction with EXIF
+orientation still applied, checked on the penn photos whose pixels are stored rotated (Orientation 6)."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+from PIL import Image, ImageOps
+
+from app.engine.configs import get_config
+from app.engine.imageio import decode_target, load_image
+from app.engine.pipeline import Pipeline
+from tests.conftest import PENN, penn_photo
+
+
+def _upright_full(path) -> np.ndarray:
+    """The plain way: decode at full size, apply EXIF orientation."""
+    with Image.open(path) as img:
+        return np.asarray(ImageOps.exif_transpose(img).convert("RGB"))
+
+
+def test_each_configuration_asks_for_what_its_branches_read():
+    assert Pipeline(get_config("sift-mbvlad")).decode_sides == (640, 0)
+
+    class _Model:  # decode_sides needs no model: only the configuration's sizes
+        dim = 512
+
+    assert Pipeline(get_config("hybrid"), global_model=_Model()).decode_sides == (640, 448)
+    assert Pipeline(get_config("squeezenet-gem"), global_model=_Model()).decode_sides == (0, 448)
+    assert decode_target(1600, 1200, 640, 448) == 640
+    assert decode_target(1600, 900, 640, 448) == 797  # a wide photo: the short side decides
+
+
+@pytest.mark.parametrize(
+    ("path", "stored", "decoded"),
+    [
+        (penn_photo("img_00000.jpg"), (1600, 1200), (800, 600)),  # 1/2 DCT scale
+        (PENN / "photos-full" / "img_00050.jpg", (4032, 3024), (1008, 756)),  # 12 MP at 1/4
+    ],
+)
+def test_draft_decoding_keeps_the_orientation(path, stored, decoded):
+    pipe = Pipeline(get_config("sift-mbvlad"))
+    data = path.read_bytes()
+    with Image.open(path) as img:
+        assert img.size == stored and img.getexif().get(0x0112) == 6  # pixels stored rotated
+    img = pipe.decode(data)
+    # Upright (portrait): the stored landscape pixels were turned, after the reduced decode.
+    assert img.rgb.shape == (decoded[0], decoded[1], 3)
+    assert img.original_size == stored and img.gps is not None
+    full = _upright_full(path)
+    assert full.shape[0] > full.shape[1]
+    small = cv2.resize(full, (decoded[1], decoded[0]), interpolation=cv2.INTER_AREA)
+    diff = np.abs(img.rgb.astype(np.int16) - small.astype(np.int16)).mean()
+    assert diff < 4.0, diff  # the same picture (DCT scaling vs area resize differ by a few levels)
+    # A decode that forgot the orientation would be far off: the picture turned the other way.
+    wrong = cv2.resize(np.rot90(full, 2), (decoded[1], decoded[0]), interpolation=cv2.INTER_AREA)
+    assert np.abs(img.rgb.astype(np.int16) - wrong.astype(np.int16)).mean() > 4 * diff
+
+
+def test_small_images_and_the_default_decode_are_unchanged():
+    """A crop below twice the target decodes as it is; ``load_image`` without a pipeline keeps its 1600 px
+    target (the issue-18 hardening tests check that path byte for byte)."""
+    pipe = Pipeline(get_config("sift-mbvlad"))
+    crop = sorted((PENN / "crops").glob("*.jpg"))[0]
+    assert np.array_equal(pipe.decode(crop.read_bytes()).rgb, load_image(crop.read_bytes()).rgb)
+    photo = penn_photo("img_00000.jpg").read_bytes()
+    assert load_image(photo).rgb.shape == (1600, 1200, 3)
