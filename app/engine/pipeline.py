@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from app.engine.artifacts import atomic_write_bytes, library_versions
+from app.engine.calibration import Calibration
 from app.engine.codes import Binariser
 from app.engine.configs import PipelineConfig, get_config
 from app.engine.dense import gem_pool, sample_at
@@ -82,6 +83,7 @@ class Pipeline:
         manifest: dict | None = None,
         bank: SvmBank | None = None,
         models_dir: Path | None = None,
+        calibration: Calibration | None = None,
     ):
         """``models_dir`` holds the built models (the global model, learned local extractors); a
         ``global_model`` given here (loaded once, shared by tests or an evaluation) wins over the one the
@@ -101,6 +103,9 @@ class Pipeline:
         self.binariser = binariser
         self.manifest = manifest or {}
         self.bank = bank  # SVM bank: which local features to aggregate (None = all)
+        #: The confidence rule and ``p_within_25m``, fitted on the collection (``app.fitting.calibrate_collection``);
+        #: the conservative rule until then.
+        self.calibration: Calibration = calibration or Calibration.conservative("this pipeline is not calibrated")
         self.bank_select = "positive"  # or "negative" (the thesis ablation)
         self.source: PipelineSource | None = None  # set when loaded from disk (see PipelineSource)
         self._local = (
@@ -239,6 +244,7 @@ class Pipeline:
             self.binariser.save(directory)
         if self.bank is not None:
             self.bank.save(directory)
+        self.calibration.save(directory)
         manifest = {
             "format_version": PIPELINE_FORMAT,
             "config": self.config.model_dump(),
@@ -277,6 +283,7 @@ class Pipeline:
             manifest=manifest,
             bank=SvmBank.load(directory) if SvmBank.exists(directory) else None,
             models_dir=models_dir,
+            calibration=Calibration.load(directory),
         )
 
     @property
