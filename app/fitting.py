@@ -142,7 +142,7 @@ def calibrate_collection(
     ``app.locate.locate_features``, the path /locate serves, against the others with its own capture left
     out (present) and with every reference within ``absent_radius_m`` removed (absent). ``rerank``: verify
     as /locate does with rerank=true (needs ``paths``), so the rule learns the verified evidence."""
-    from app.locate import ESTIMATE_CANDIDATES, Excluding, locate_features
+    from app.locate import ESTIMATE_CANDIDATES, MIN_LOCAL_FEATURES, Excluding, locate_features
 
     ids = sorted(refs)
     rng = np.random.default_rng(seed)
@@ -158,8 +158,11 @@ def calibrate_collection(
         rgb = load_image(data).rgb if data is not None else None
         options = LocateOptions(top_k=ESTIMATE_CANDIDATES, rerank=rgb is not None)
         own = by_group[r.group]
+        codes = None
         for absent, excluded in ((False, own), (True, own + near_ids(refs, r.lat, r.lon, absent_radius_m))):
-            answer = locate_features(pipe, Excluding(index, excluded), source, r.features, options, rgb)
+            if codes is None and (pipe.config.local is None or r.features.n_local >= MIN_LOCAL_FEATURES):
+                codes = pipe.encode_features(r.features, pipe.select(r.features))  # once for both searches
+            answer = locate_features(pipe, Excluding(index, excluded), source, r.features, options, rgb, codes=codes)
             s = calibration_sample(answer, r.lat, r.lon, absent)
             if s is not None:
                 samples.append(s)

@@ -31,7 +31,7 @@ from app.engine.geo import haversine_m
 from app.engine.imageio import ImageLimits, load_image
 from app.engine.models.base import Matcher
 from app.engine.models.registry import build_matcher
-from app.engine.pipeline import Features, Pipeline
+from app.engine.pipeline import Codes, Features, Pipeline
 from app.storage.store import ReferenceStore
 
 log = logging.getLogger("geoloc.locate")
@@ -177,8 +177,11 @@ def locate_features(
     query_rgb: np.ndarray | None = None,
     limits: ImageLimits | None = None,
     cluster_radius_m: float = 25.0,
+    codes: Codes | None = None,
 ) -> LocateAnswer:
-    """Search, verify, fuse, shape. ``query_rgb`` is needed only for verification (``options.rerank``)."""
+    """Search, verify, fuse, shape. ``query_rgb`` is needed only for verification (``options.rerank``).
+    ``codes``: the features already encoded by ``pipeline`` (calibration and the evaluation locate one photo
+    twice, its place present and absent: the second search reuses the first's codes)."""
     mode = index.check_mode(options.mode)
     t: dict[str, float] = {}
     allowed = None
@@ -188,8 +191,8 @@ def locate_features(
         t["region"] = (time.perf_counter() - t0) * 1000
     if pipeline.config.local is not None and features.n_local < MIN_LOCAL_FEATURES:
         return _featureless(pipeline, features, mode, t)
-    keep = pipeline.select(features)
-    codes = pipeline.encode_features(features, keep)
+    if codes is None:
+        codes = pipeline.encode_features(features, pipeline.select(features))
     t.update(codes.timings_ms)
     n = max(options.top_k, ESTIMATE_CANDIDATES)
     t0 = time.perf_counter()

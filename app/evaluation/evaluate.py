@@ -32,7 +32,7 @@ from app.engine.training.svm_training import Geotagged, index_of
 from app.errors import ManifestCannotBeEvaluated
 from app.evaluation.datasets import Row, read_manifest
 from app.fitting import ABSENT_RADIUS_M, EVAL_BANK_SOURCES, calibrate_collection, near_ids, train_bank
-from app.locate import ESTIMATE_CANDIDATES, Excluding, locate_features
+from app.locate import ESTIMATE_CANDIDATES, MIN_LOCAL_FEATURES, Excluding, locate_features
 
 RECALL_AT = (1, 5, 10, 20)
 
@@ -291,12 +291,18 @@ def evaluate(
             region = Region(rows[i].lat, rows[i].lon, region_radius_m) if region_radius_m else None
             options = LocateOptions(top_k=top_n, mode=mode, rerank=rerank, region=region)
             rgb = load_image(rows[i].image.read_bytes()).rgb if rerank else None
-            res = locate_features(pipe, index, refs, extracted[i].features, options, rgb, cluster_radius_m=radius_m)
+            f_i = extracted[i].features
+            codes = (
+                pipe.encode_features(f_i, pipe.select(f_i))
+                if pipe.config.local is None or f_i.n_local >= MIN_LOCAL_FEATURES
+                else None
+            )  # once for every search of this query (with and without rerank, its place present and absent)
+            res = locate_features(pipe, index, refs, f_i, options, rgb, cluster_radius_m=radius_m, codes=codes)
             hits.append(_hits(rows, i, lat, lon, res.candidates, top_n, radius_m))
             verified = None
             if rerank:
                 plain = LocateOptions(top_k=top_n, mode=mode, rerank=False, region=region)
-                res0 = locate_features(pipe, index, refs, extracted[i].features, plain, cluster_radius_m=radius_m)
+                res0 = locate_features(pipe, index, refs, f_i, plain, cluster_radius_m=radius_m, codes=codes)
                 hits_plain.append(_hits(rows, i, lat, lon, res0.candidates, top_n, radius_m))
                 rerank_ms.append(res.timings_ms.get("rerank", 0.0))
                 # What bench/verification.py analyses: the retrieval order, and each verified pair's outcome.
@@ -319,7 +325,7 @@ def evaluate(
                 gone = near_ids(geotagged, rows[i].lat, rows[i].lon, absent_radius_m)
                 plain = LocateOptions(top_k=top_n, mode=mode, region=region)
                 res_absent = locate_features(
-                    pipe, Excluding(index, gone), refs, extracted[i].features, plain, cluster_radius_m=radius_m
+                    pipe, Excluding(index, gone), refs, f_i, plain, cluster_radius_m=radius_m, codes=codes
                 )
                 fold_absent.append(_answer_record(res_absent, rows[i], radius_m))
             e = res.estimate

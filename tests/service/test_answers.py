@@ -53,7 +53,7 @@ def _locate(server, path=None, data=None):
 
 
 def _refit(server, common, generation):
-    out = geoloc("refit", *common)
+    out = geoloc("refit", "--calibration-sample", "600", *common)
     assert f"generation {generation}" in out.stdout, out.stdout
     _wait(server, generation)
     return out.stdout

@@ -406,7 +406,7 @@ def test_not_found_in_this_collection(browser, server, tile_png, viewport):
     assert f"{len(server.rows)} references lie between" in explain and "outlined on the map" in explain
     assert page.locator("#map path.extent").count() == 1  # the collection's extent, drawn
     assert page.locator("#map path.leaflet-interactive").count() == 0  # and no estimate circle
-    assert "no_match" in page.inner_text("#tech")
+    assert "no_match" in page.text_content("#tech")  # in the closed technical details
     screenshot(page, f"locate-not-found-{viewport}.png")
     if viewport == "phone":
         no_horizontal_scroll(page)
