@@ -77,7 +77,8 @@ def test_a_refit_calibrates_on_the_collection_and_a_removed_place_is_not_confide
         before = _locate(s, QUERY)
         assert all(c["p_within_25m"] is None for c in before["candidates"])
         extent = before["index"]["extent"]
-        assert extent["min_lat"] == min(r.lat for r in rows) and extent["max_lon"] == max(r.lon for r in rows)
+        assert extent["min_lat"] == pytest.approx(min(r.lat for r in rows), abs=1e-6)
+        assert extent["max_lon"] == pytest.approx(max(r.lon for r in rows), abs=1e-6)
 
         stdout = _refit(s, common, 1)
         assert f"calibration: fitted on {len(rows)} references" in stdout, stdout
