@@ -149,11 +149,11 @@ lint: setup
 	$(BIN)/ruff check app tests bench tools
 
 # One evaluation per named configuration, with the query role rotated over FOLDS folds.
-eval: $(MODEL) $(XFEAT_MODEL) $(MANIFEST)
+eval: model $(MANIFEST)
 	$(BIN)/python bench/results.py --manifest $(MANIFEST) --folds $(FOLDS) --out out/eval --no-write
 
 # Regenerate docs/RESULTS.md (every configuration plus the parameter sweeps behind the defaults).
-results: $(MODEL) $(XFEAT_MODEL) $(MANIFEST)
+results: model $(MANIFEST)
 	$(BIN)/python bench/results.py --manifest $(MANIFEST) --folds $(FOLDS) --out out/eval
 
 # Regenerate docs/BENCHMARKS.md: server stage latencies vs the floor, ingestion, load, baseline, search scaling.

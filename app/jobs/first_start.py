@@ -16,7 +16,9 @@ or re-ingested from the folder behind the user's back.
 
 from __future__ import annotations
 
+import fcntl
 import logging
+import os
 import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
@@ -27,11 +29,13 @@ import numpy as np
 
 from app.engine.configs import get_config
 from app.engine.errors import GeolocError
-from app.engine.imageio import ImageLimits, load_image
+from app.engine.imageio import ImageLimits
 from app.engine.pipeline import Features, Pipeline
-from app.errors import FitRefused
+from app.engine.training.svm_training import NothingToTrainOn
+from app.errors import FitRefused, ServiceError
 from app.jobs.ingest.progress import Progress
 from app.jobs.ingest.sources import Source, SourceItem, open_source
+from app.permissions import private_dir
 from app.storage.database import DB_NAME
 from app.storage.store import ReferenceStore
 
@@ -44,9 +48,11 @@ STEPS = 3  # extract features for the fit, fit, ingest
 FIT_SAMPLE = 2000
 
 
-class FirstStartError(GeolocError):
+class FirstStartError(ServiceError):
     """The first start cannot go on (no usable photos, say); /ready shows the message and the loader
     retries, so adding photos to the folder is enough to fix it."""
+
+    code = "not_ready"
 
 
 @dataclass(frozen=True)
@@ -87,9 +93,50 @@ def run_first_start(
     seed: int = 0,
 ) -> bool:
     """Fit and ingest when the data dir needs it (``needed``); ``say`` gets each progress line (the loader
-    shows the latest on /ready and logs it). Returns whether anything was done."""
+    shows the latest on /ready and logs it). Returns whether anything was done.
+
+    Two servers started on one empty volume (a scaled api) would both fit and the second would replace the
+    first one's saved generation under codes already made with it: the first start holds a lock of its own
+    (not the worker's, which its ingest step takes), and a process that waited for it looks again."""
     if not needed(data_dir):
         return False
+    private_dir(Path(data_dir), parents=True)
+    with _FirstStartLock(Path(data_dir) / "first_start.lock", say):
+        if not needed(data_dir):  # another process did it while this one waited
+            return False
+        return _run_first_start(data_dir, models_dir, config, photos, say, limits, workers, seed)
+
+
+class _FirstStartLock:
+    """An exclusive flock on a file in the data dir, held for the whole first start."""
+
+    def __init__(self, path: Path, say: Callable[[str], None]):
+        self.path, self._say, self._fd = path, say, -1
+
+    def __enter__(self) -> _FirstStartLock:
+        self._fd = os.open(self.path, os.O_CREAT | os.O_RDWR, 0o600)
+        try:
+            fcntl.flock(self._fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            self._say("first start: another process is fitting this data dir; waiting for it")
+            fcntl.flock(self._fd, fcntl.LOCK_EX)
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        fcntl.flock(self._fd, fcntl.LOCK_UN)
+        os.close(self._fd)
+
+
+def _run_first_start(
+    data_dir: Path,
+    models_dir: Path,
+    config: str,
+    photos: Path,
+    say: Callable[[str], None],
+    limits: ImageLimits | None,
+    workers: int,
+    seed: int,
+) -> bool:
     limits = limits or ImageLimits()
     t0 = time.perf_counter()
     try:
@@ -132,7 +179,7 @@ def _extract(
 
     def one(item: SourceItem) -> FitPhoto | None:
         try:
-            img = load_image(item.path.read_bytes(), limits)
+            img = pipe.decode(item.path.read_bytes(), limits)  # the pixels ingest and /locate will see
         except (OSError, GeolocError) as e:
             log.warning("%s: not used for the fit (%s)", item.path, e)
             return None
@@ -192,7 +239,7 @@ def _fit(
     source_name = bank_source(cfg, None)
     try:
         fit_pipeline(pipe, [p.features for p in photos], refs, [], source_name, seed=seed)
-    except FitRefused as e:  # a folder too small or too uniform for a bank: serve without one, and say so
+    except (FitRefused, NothingToTrainOn) as e:  # too small or too uniform for a bank: serve without one, say so
         log.warning("first start: no SVM bank (%s); the pipeline is fitted without one", e)
         pipe.bank = None
         source_name = "none"
