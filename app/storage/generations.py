@@ -97,16 +97,7 @@ class Generations(Database):
                 return False
             if db.execute("SELECT 1 FROM refs LIMIT 1").fetchone():
                 return False
-            meta = {
-                "generation": str(int(target.generation)),
-                "pipeline": str(target.pipeline),
-                "fingerprint": target.fingerprint,
-                "config": target.config,
-            }
-            db.executemany(
-                "INSERT INTO meta(key, value) VALUES(?, ?) ON CONFLICT(key) DO UPDATE SET value=excluded.value",
-                list(meta.items()),
-            )
+            _bind_pipeline(db, target)
         return True
 
     def generation_codes(self) -> tuple[int, int, np.ndarray, list[bytes | None], list[bytes | None]]:
@@ -209,16 +200,7 @@ class Generations(Database):
             db.execute("DROP TABLE switched_codes")
             db.execute("ALTER TABLE next_codes RENAME TO switched_codes")
             db.execute(NEXT_CODES.strip().rstrip(";"))
-            meta = {
-                "generation": str(int(target.generation)),
-                "pipeline": str(target.pipeline),
-                "fingerprint": target.fingerprint,
-                "config": target.config,
-            }
-            db.executemany(
-                "INSERT INTO meta(key, value) VALUES(?, ?) ON CONFLICT(key) DO UPDATE SET value=excluded.value",
-                list(meta.items()),
-            )
+            _bind_pipeline(db, target)
             db.execute("DELETE FROM meta WHERE key='reindex_target'")
         return int(target.generation)
 
@@ -237,3 +219,18 @@ class Generations(Database):
             )
             db.execute("DELETE FROM switched_codes WHERE ref_id <= ?", (rows[-1][0],))
         return len(rows)
+
+
+def _bind_pipeline(db, target: ReindexTarget) -> None:
+    """Record ``target`` as the data dir's pipeline (inside the caller's transaction): the four meta keys a
+    loader reads to know which fitted pipeline the stored codes were made with."""
+    meta = {
+        "generation": str(int(target.generation)),
+        "pipeline": str(target.pipeline),
+        "fingerprint": target.fingerprint,
+        "config": target.config,
+    }
+    db.executemany(
+        "INSERT INTO meta(key, value) VALUES(?, ?) ON CONFLICT(key) DO UPDATE SET value=excluded.value",
+        list(meta.items()),
+    )
