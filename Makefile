@@ -24,7 +24,7 @@ HARD_QUERY ?= $(SHARED)/data/penn-campus-gps/photos/img_00008.jpg
 # A photo from elsewhere: San Francisco, a place the demo collection does not hold.
 ELSEWHERE_QUERY ?= $(SHARED)/data/sf-streetview-toy/queries/q1.jpg
 
-.PHONY: setup browser model manifests fit demo run serve test test-quick test-container lint eval results bench load fuzz crash-full clean-index
+.PHONY: setup browser postgres model manifests fit demo run serve test test-quick test-container lint eval results bench load fuzz crash-full clean-index
 
 setup: $(VENV)/.installed $(LEAFLET) $(SWAGGER)
 
@@ -38,10 +38,11 @@ $(VENV)/.installed: pyproject.toml
 
 # Leaflet (the page's map) and Swagger UI (/docs) from the npm registry, served by the app itself (never from
 # a CDN). --ignore-scripts: neither needs one, and swagger-ui-dist's dependency @scarf/scarf would phone home.
-# Ray (the optional engine for distributed encoding) for the tests; `make run` does not need it.
+# Ray (the optional engine for distributed encoding) and psycopg (the store on PostgreSQL) for the tests;
+# `make run` needs neither.
 RAY_STAMP := $(VENV)/.ray-installed
 $(RAY_STAMP): $(VENV)/.installed
-	@$(STEP) install-ray -- $(BIN)/python -m pip install -q -e '.[dev,ray]'
+	@$(STEP) install-ray -- $(BIN)/python -m pip install -q -e '.[dev,ray,postgres]'
 	@touch $@
 
 $(NPM_STAMP): web/package.json web/package-lock.json
@@ -64,6 +65,13 @@ browser:
 	@test -x /usr/bin/chromium || { echo "installing chromium (Debian package) for the browser test"; \
 	  (apt-get update -q && DEBIAN_FRONTEND=noninteractive apt-get install -y -q chromium) > /tmp/geoloc-apt.log 2>&1 \
 	  || { echo "could not install chromium: see /tmp/geoloc-apt.log"; exit 1; }; }
+
+# The PostgreSQL tests start a server of their own from Debian's package (tests/postgres_server.py): install
+# it when it is missing.
+postgres:
+	@ls /usr/lib/postgresql/*/bin/initdb >/dev/null 2>&1 || { echo "installing postgresql (Debian package) for the PostgreSQL tests"; \
+	  (apt-get update -q && DEBIAN_FRONTEND=noninteractive apt-get install -y -q postgresql) > /tmp/geoloc-apt.log 2>&1 \
+	  || { echo "could not install postgresql: see /tmp/geoloc-apt.log"; exit 1; }; }
 
 model: $(MODEL) $(XFEAT_MODEL) $(LIGHTERGLUE_MODEL) $(LITE2_MODEL)
 $(MODEL): | setup
@@ -127,13 +135,13 @@ serve: fit
 # Everything but the container test (make test-container): 13 min here with the Debian base already made
 # (the image build is most of it), about 10 min more to make the base.
 NOT_IN_TEST := not container
-test: setup browser $(XFEAT_MODEL) $(RAY_STAMP)
+test: setup browser postgres $(XFEAT_MODEL) $(RAY_STAMP)
 	$(BIN)/python -m pytest -q -m "$(NOT_IN_TEST)"
 
 # The edit-test loop: engine, store, CLI and API tests (real servers included) without the crash, fuzz,
 # browser and container tests (pytest markers); tests/test_quick_selection.py checks that selection.
 QUICK := not crash and not fuzz and not browser and not container
-test-quick: setup $(RAY_STAMP)
+test-quick: setup postgres $(RAY_STAMP)
 	$(BIN)/python -m pytest -q -m "$(QUICK)"
 
 # The Docker image built for real with buildah from a Debian base made by mmdebstrap (no Docker engine or

@@ -112,3 +112,35 @@ def lite2(models_dir, lite2_wheel):
     model = EfficientNetLite(models_dir / model_filename(2), variant=2)
     model.load()
     return model
+
+
+@pytest.fixture(scope="session")
+def postgres_server():
+    """A PostgreSQL server of the session's own (``tests/postgres_server.py``), stopped at its end. Skips,
+    saying why, only where none can run: no ``postgresql`` package (``make test`` installs it) or no
+    psycopg (the ``postgres`` extra, which ``make test`` installs)."""
+    from tests.postgres_server import NoPostgres, PostgresServer
+
+    try:
+        import psycopg  # noqa: F401
+    except ImportError:
+        pytest.skip("psycopg is not installed: pip install -e '.[postgres]' (make test does)")
+    try:
+        server = PostgresServer().start()
+    except NoPostgres as e:
+        pytest.skip(f"no PostgreSQL server can run here: {e}")
+    yield server
+    server.stop()
+
+
+@pytest.fixture(params=["sqlite", "postgres"])
+def backend(request, monkeypatch) -> str:
+    """Runs a test on both engines of the store: with ``postgres``, ``GEOLOC_DATABASE_URL`` names a fresh
+    database on the session's server (so every ``ReferenceStore`` the test opens, and every server process
+    it starts, uses it); with ``sqlite``, the variable is unset (the default)."""
+    if request.param == "postgres":
+        server = request.getfixturevalue("postgres_server")
+        monkeypatch.setenv("GEOLOC_DATABASE_URL", server.create_database())
+    else:
+        monkeypatch.delenv("GEOLOC_DATABASE_URL", raising=False)
+    return request.param

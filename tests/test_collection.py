@@ -10,6 +10,9 @@ from app.storage.snapshots import MANIFEST
 from app.storage.store import NewReference, ReferenceStore
 from tests.test_store import fitted  # noqa: F401  (the module's fitted pipeline and codes)
 
+#: Every test here runs on SQLite and on PostgreSQL (the ``backend`` fixture).
+pytestmark = pytest.mark.usefixtures("backend")
+
 
 def _fill(store, rows, codes, n, start=0):
     items = [

@@ -13,7 +13,11 @@ from app.engine.imageio import load_image
 from app.engine.pipeline import Pipeline
 from app.errors import StorageUnavailable
 from app.evaluation.datasets import read_manifest
+from app.storage.errors import is_storage_error
 from app.storage.store import NewReference, ReferenceStore
+
+#: Every test here runs on SQLite and on PostgreSQL (the ``backend`` fixture).
+pytestmark = pytest.mark.usefixtures("backend")
 
 
 @pytest.fixture(scope="module")
@@ -23,6 +27,15 @@ def fitted(mini_manifest, squeezenet):
     feats = [pipe.extract(load_image(r.image.read_bytes()).rgb) for r in rows]
     pipe.fit(feats)
     return pipe, rows, [pipe.encode_features(f) for f in feats]
+
+
+def _database_errors() -> tuple[type[Exception], ...]:
+    """Both engines' driver errors (psycopg where installed)."""
+    try:
+        import psycopg
+    except ImportError:
+        return (sqlite3.Error,)
+    return (sqlite3.Error, psycopg.Error)
 
 
 def _new(row, code=None) -> NewReference:
@@ -127,8 +140,9 @@ def test_a_read_only_database_is_a_storage_error(tmp_path, fitted):
     with pytest.raises(StorageUnavailable):
         ro.delete(1)
     assert ro.count(None) == 1
-    with pytest.raises(sqlite3.OperationalError):  # a bug (not storage) is not disguised as one
+    with pytest.raises(_database_errors()) as bug:  # a bug (not storage) is not disguised as one
         ro.db.execute("SELECT nope FROM refs")
+    assert not is_storage_error(bug.value)
 
 
 def test_a_collection_refuses_codes_from_another_pipeline(tmp_path, fitted):

@@ -1,8 +1,12 @@
 """Claims: pending rows a bulk run encodes itself are hidden from the worker's queue until their lease ends."""
 
 import numpy as np
+import pytest
 
 from app.storage.store import NewReference, ReferenceStore
+
+#: Every test here runs on SQLite and on PostgreSQL (the ``backend`` fixture).
+pytestmark = pytest.mark.usefixtures("backend")
 
 
 def _pending(store: ReferenceStore, n: int) -> list[int]:

@@ -16,6 +16,9 @@ from app.storage.orphans import retry_removals, sweep
 from app.storage.store import NewReference, ReferenceStore
 from tests.conftest import PENN
 
+#: Every test here runs on SQLite and on PostgreSQL (the ``backend`` fixture).
+pytestmark = pytest.mark.usefixtures("backend")
+
 CROPS = sorted((PENN / "crops").glob("img_0000*_0.jpg"))
 HOUR = 3600
 

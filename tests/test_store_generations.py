@@ -11,6 +11,9 @@ from app.errors import StaleReindex
 from app.storage.generations import ReindexTarget
 from app.storage.store import NewReference, ReferenceStore
 
+#: Every test here runs on SQLite and on PostgreSQL (the ``backend`` fixture).
+pytestmark = pytest.mark.usefixtures("backend")
+
 TARGET = ReindexTarget(generation=1, pipeline="pipelines/x-g1", config="x", fingerprint="x:new")
 
 

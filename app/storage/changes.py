@@ -36,6 +36,7 @@ class ChangeLog(Database):
     def _log_change(self, db: sqlite3.Connection, ref_id: int, op: str) -> None:
         """Inside a write transaction: append one change of the index."""
         db.execute("INSERT INTO changes(ref_id, op) VALUES(?, ?)", (ref_id, op))
+        self._notify(db)
 
     @property
     def version(self) -> int:

@@ -10,6 +10,7 @@ one commit) and callers keep one object.
 from __future__ import annotations
 
 import json
+import os
 import sqlite3
 import threading
 from collections.abc import Iterator
@@ -28,14 +29,33 @@ CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
 """
 
 
+#: The setting that puts the store on PostgreSQL (``postgresql://user@host:port/db``); unset: SQLite in the
+#: data dir, as always.
+DATABASE_URL_ENV = "GEOLOC_DATABASE_URL"
+#: With PostgreSQL, where the image files live: a path every host of a deployment mounts (see README,
+#: "Several hosts"); unset, or on SQLite: ``<data dir>/images``.
+IMAGES_DIR_ENV = "GEOLOC_IMAGES_DIR"
+
+
+def database_url() -> str | None:
+    """The PostgreSQL URL when the store is on PostgreSQL, else None (SQLite)."""
+    from app.storage.postgres import is_postgres_url
+
+    url = os.environ.get(DATABASE_URL_ENV, "").strip()
+    if url and not is_postgres_url(url):
+        raise ValueError(f"{DATABASE_URL_ENV} must be a postgresql:// URL (or unset for SQLite), not {url!r}")
+    return url or None
+
+
 def ids_json(ids) -> str:
     """Id lists of any length bind as one JSON parameter (``json_each``): SQLite caps bound variables."""
     return json.dumps([int(i) for i in ids])
 
 
 class Database:
-    """One SQLite connection to ``data_dir``'s database; ``SCHEMAS`` (each part's tables) are created on a
-    writable open."""
+    """One connection to the store's database: SQLite in ``data_dir`` or, with ``GEOLOC_DATABASE_URL``,
+    PostgreSQL (``app.storage.postgres``: the same SQL, translated); ``SCHEMAS`` (each part's tables) are
+    created on a writable open. ``engine`` says which, for the few things that differ beyond spelling."""
 
     SCHEMAS: tuple[str, ...] = (META_SCHEMA,)
 
@@ -43,7 +63,14 @@ class Database:
         self.data_dir = Path(data_dir)
         self.read_only = read_only
         self._lock = threading.RLock()
+        self.database_url = database_url()
+        self.engine = "postgres" if self.database_url else "sqlite"
+        shared = os.environ.get(IMAGES_DIR_ENV, "").strip() if self.database_url else ""
+        self._images_dir = Path(shared) if shared else self.data_dir / IMAGES
         with storage_guard("opening the data dir"):
+            if self.database_url:
+                self._open_postgres(read_only)
+                return
             if read_only:
                 uri = f"file:{self.data_dir / DB_NAME}?mode=ro"
                 self.db = sqlite3.connect(uri, uri=True, check_same_thread=False, isolation_level=None)
@@ -62,12 +89,30 @@ class Database:
                 for schema in self.SCHEMAS:
                     self.db.executescript(schema)
 
+    def _open_postgres(self, read_only: bool) -> None:
+        """The rows on PostgreSQL; the data dir still holds this host's snapshots and locks, and the images
+        folder (a shared path across hosts: ``GEOLOC_IMAGES_DIR``)."""
+        from app.storage.postgres import PostgresConnection
+
+        if not read_only:
+            private_dir(self.data_dir, parents=True)
+            private_dir(self.images_dir, parents=True)
+        self.db = PostgresConnection(self.database_url, read_only)
+        if not read_only:
+            self.db.executescript("\n".join(self.SCHEMAS))
+
     def close(self) -> None:
         self.db.close()
 
     @property
     def images_dir(self) -> Path:
-        return self.data_dir / IMAGES
+        return self._images_dir
+
+    def _notify(self, db) -> None:
+        """Inside a write transaction that changes the index: on PostgreSQL, wake every replica at commit
+        (``ChangeListener``); SQLite's processes share a host and catch up at their next search."""
+        if self.engine == "postgres":
+            db.notify()
 
     def image_path_for(self, sha: str, ext: str) -> Path:
         return self.images_dir / f"{sha}.{ext}"

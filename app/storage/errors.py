@@ -4,7 +4,9 @@ they surface as ``StorageUnavailable`` so callers answer "try again later" witho
 from __future__ import annotations
 
 import errno
+import os
 import sqlite3
+import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
 
@@ -13,6 +15,16 @@ from app.errors import StorageUnavailable
 #: The raw exception types of the storage's database library: what an API maps to "storage unavailable"
 #: when one escapes ``storage_guard`` (callers outside storage never import sqlite3 themselves).
 STORAGE_EXCEPTIONS: tuple[type[Exception], ...] = (sqlite3.Error,)
+if os.environ.get("GEOLOC_DATABASE_URL", "").strip():  # the optional driver, imported only when used (150 ms)
+    import psycopg
+
+    STORAGE_EXCEPTIONS += (psycopg.Error,)
+
+
+def _psycopg():
+    """The PostgreSQL driver when this process has loaded it (no psycopg error can occur otherwise)."""
+    return sys.modules.get("psycopg")
+
 
 _STORAGE_ERRNOS = {errno.EACCES, errno.EPERM, errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EFBIG, errno.EIO}
 
@@ -25,9 +37,27 @@ def is_storage_error(exc: BaseException) -> bool:
         return any(
             s in text for s in ("readonly", "read-only", "disk", "full", "unable to open", "i/o", "locked", "busy")
         )
+    pg = _psycopg()
+    if pg is not None and isinstance(exc, pg.Error):
+        return _postgres_unavailable(exc)
     if isinstance(exc, OSError):
         return exc.errno in _STORAGE_ERRNOS or isinstance(exc, NotADirectoryError | IsADirectoryError)
     return False
+
+
+def _postgres_unavailable(exc: BaseException) -> bool:
+    """The server is down or unreachable, the connection was lost, the disk is full, the database is read
+    only (a standby) or refuses us: the storage's state, not a bug in a statement."""
+    from psycopg import InterfaceError, OperationalError, errors
+
+    return isinstance(
+        exc,
+        OperationalError
+        | InterfaceError
+        | errors.ReadOnlySqlTransaction
+        | errors.InsufficientPrivilege
+        | errors.DiskFull,
+    )
 
 
 @contextmanager
@@ -39,3 +69,8 @@ def storage_guard(what: str) -> Iterator[None]:
         if isinstance(e, sqlite3.IntegrityError) or not (is_storage_error(e) or isinstance(e, sqlite3.DatabaseError)):
             raise
         raise StorageUnavailable(f"{what}: the data dir cannot be written right now ({e})") from e
+    except Exception as e:
+        pg = _psycopg()
+        if pg is None or not isinstance(e, pg.Error) or not _postgres_unavailable(e):
+            raise
+        raise StorageUnavailable(f"{what}: the database cannot be written right now ({e})") from e

@@ -158,7 +158,8 @@ class Generations(Database):
             if row is None or row[0] != value:
                 raise StaleReindex("another re-index took over this data dir (or it was switched already)")
             db.executemany(
-                "INSERT OR REPLACE INTO next_codes(ref_id, float_code, binary_code, error) VALUES(?,?,?,?)",
+                "INSERT INTO next_codes(ref_id, float_code, binary_code, error) VALUES(?,?,?,?) ON CONFLICT(ref_id) "
+                "DO UPDATE SET float_code=excluded.float_code, binary_code=excluded.binary_code, error=excluded.error",
                 [(i, blob(f, np.float32), blob(b, np.uint8), e) for i, f, b, e in results],
             )
         return len(results)
@@ -202,6 +203,7 @@ class Generations(Database):
             db.execute(NEXT_CODES.strip().rstrip(";"))
             _bind_pipeline(db, target)
             db.execute("DELETE FROM meta WHERE key='reindex_target'")
+            self._notify(db)
         return int(target.generation)
 
     def migrate_switched(self, batch: int = 5000) -> int:

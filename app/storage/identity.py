@@ -32,7 +32,9 @@ class Identity(Database):
         if self.get_meta("database_id") is not None:
             return
         with self.transaction() as db:
-            db.execute("INSERT OR IGNORE INTO meta(key, value) VALUES('database_id', ?)", (uuid.uuid4().hex,))
+            db.execute(
+                "INSERT INTO meta(key, value) VALUES('database_id', ?) ON CONFLICT(key) DO NOTHING", (uuid.uuid4().hex,)
+            )
         if self.db.execute("SELECT COUNT(*) FROM refs").fetchone()[0]:
             log.info("%s had no database id (made by an older version): it has one now", self.data_dir)
         self.checkpoint("PASSIVE")
@@ -49,8 +51,8 @@ class Identity(Database):
         a copy of the data dir without it (a common backup mistake) held nothing. PASSIVE never waits (it
         stops at the oldest reader's snapshot); TRUNCATE, at a clean stop, waits up to ``timeout_s`` for
         readers, then empties the WAL. Runs on a connection of its own, so it never waits for this process's
-        transactions nor holds the store's lock."""
-        if self.read_only:
+        transactions nor holds the store's lock. PostgreSQL has no such step (its WAL is the server's)."""
+        if self.read_only or self.engine == "postgres":
             return None
         try:
             con = sqlite3.connect(self.data_dir / DB_NAME, timeout=timeout_s, isolation_level=None)
@@ -70,6 +72,12 @@ class Identity(Database):
 
     def ref_high_water(self) -> int:
         """The largest reference id ever handed out (AUTOINCREMENT's counter, or a larger row id)."""
+        if self.engine == "postgres":
+            row = self.db.execute(
+                "SELECT GREATEST(COALESCE(pg_sequence_last_value(pg_get_serial_sequence('refs', 'id')), 0), "
+                "COALESCE((SELECT MAX(id) FROM refs), 0))"
+            ).fetchone()
+            return int(row[0])
         row = self.db.execute(
             "SELECT MAX(COALESCE((SELECT seq FROM sqlite_sequence WHERE name='refs'), 0), "
             "COALESCE((SELECT MAX(id) FROM refs), 0))"
@@ -107,6 +115,15 @@ class Identity(Database):
         marks = {"refs": int(ref_high_water or 0), "changes": int(version or 0)}
         with self.transaction() as db:
             for table, mark in marks.items():
+                if self.engine == "postgres":  # sequences: an identity column's counter only ever rises
+                    if mark:
+                        column = "id" if table == "refs" else "version"
+                        db.execute(
+                            "SELECT setval(s, GREATEST(?, COALESCE(pg_sequence_last_value(s), 0))) "
+                            "FROM pg_get_serial_sequence(?, ?) AS s",
+                            (mark, table, column),
+                        )
+                    continue
                 cur = db.execute("UPDATE sqlite_sequence SET seq = MAX(seq, ?) WHERE name = ?", (mark, table))
                 if not cur.rowcount and mark:
                     db.execute("INSERT INTO sqlite_sequence(name, seq) VALUES(?, ?)", (table, mark))

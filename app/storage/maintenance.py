@@ -26,6 +26,8 @@ class StoredRow:
 class Maintenance(Database):
     def holds_tables(self) -> bool:
         """False for a main file whose content is still in a ``-wal`` file that is not there."""
+        if self.engine == "postgres":
+            return self.db.execute("SELECT to_regclass('refs') IS NOT NULL").fetchone()[0]
         return self.db.execute("SELECT 1 FROM sqlite_master WHERE type='table' AND name='refs'").fetchone() is not None
 
     def stored_rows(self) -> list[StoredRow]:

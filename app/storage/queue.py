@@ -136,10 +136,11 @@ class Queue(ChangeLog):
     ) -> None:
         """Inside an add's write transaction: the job of ``items`` ((reference id, created), in order)."""
         db.execute("INSERT INTO jobs(id, created_at) VALUES(?, ?)", (job_id, created_at))
-        db.executemany(
-            "INSERT INTO job_items(job_id, position, ref_id, duplicate) VALUES(?,?,?,?)",
-            [(job_id, n, ref_id, int(not created)) for n, (ref_id, created) in enumerate(items)],
-        )
+        rows = [(job_id, n, ref_id, int(not created)) for n, (ref_id, created) in enumerate(items)]
+        if self.engine == "postgres":
+            db.copy_rows("job_items", ("job_id", "position", "ref_id", "duplicate"), rows)
+        else:
+            db.executemany("INSERT INTO job_items(job_id, position, ref_id, duplicate) VALUES(?,?,?,?)", rows)
 
     def job(self, job_id: str) -> Job | None:
         row = self.db.execute("SELECT created_at FROM jobs WHERE id=?", (job_id,)).fetchone()
