@@ -49,7 +49,7 @@ def _run_writer(app: FastAPI, service: GeolocService) -> None:
         log.warning(
             "another worker holds %s: this process serves searches and accepts uploads, and takes the worker "
             "over if that one stops",
-            writer.lock.path,
+            writer.lock.where,
         )
 
 
@@ -91,6 +91,10 @@ def _load(app: FastAPI, stop: threading.Event) -> None:
             )
             if s.worker == "inprocess":
                 _run_writer(app, service)
+            if service.store.engine == "postgres":  # a replica: catch up as other hosts commit changes
+                from app.storage.postgres import ChangeListener
+
+                state.listener = ChangeListener(service.store.database_url, service.collection.catch_up).start()
             state.service = service
             state.load_error = None
             log.info("ready: config %s, %d references", service.pipeline.config.name, service.collection.size)
@@ -113,6 +117,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         yield
         stop.set()
         loader.join(timeout=60)
+        if app.state.listener is not None:
+            app.state.listener.stop()
         if app.state.writer is not None:  # the worker, the final snapshot and checkpoint, the lock
             app.state.writer.stop()
         if app.state.service is not None:
@@ -133,6 +139,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.api_key = apikey.resolve(settings.api_key, settings.no_auth, settings.data_dir)
     app.state.metrics = Metrics()
     app.state.service = None
+    app.state.listener = None  # on PostgreSQL: the change listener (app.storage.postgres.ChangeListener)
     app.state.writer = None  # the writer role (worker=inprocess), held or waiting for the worker lock
     app.state.worker = None  # its ingestion worker, once this process holds the role
     app.state.load_error = None

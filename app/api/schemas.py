@@ -183,3 +183,8 @@ class ReadyOut(BaseModel):
     version: int | None = None
     generation: int | None = None
     worker: str | None = None
+    #: Where the rows are: ``sqlite`` (the data dir) or ``postgres`` (GEOLOC_DATABASE_URL, shared by replicas).
+    database: str | None = None
+    #: How this process loaded its index: from a ``snapshot`` (plus the changes after it), or ``rebuilt`` from
+    #: the database's codes (a replica starting cold with no snapshot it can trust).
+    index_loaded: str | None = None

@@ -1,6 +1,7 @@
 """The writer role of a data dir, held by one process at a time: encoding the queued uploads (the ingestion
 worker), writing the index snapshots and the database checkpoints, and the housekeeping of image files
-(``app.orphans.Janitor``). The data dir's worker lock (``worker.lock``) says which process holds it; that
+(``app.orphans.Janitor``). The data dir's worker lock (``worker.lock``; on PostgreSQL the database's advisory
+lock, one for all hosts: ``app.jobs.worker.writer_lock``) says which process holds it; that
 process runs all of it, and gives it up in one order: the worker stops, the final snapshot and checkpoint
 are written, then the lock is released (a process that takes it over next finds nothing to replay).
 
@@ -20,7 +21,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from app.collection import Collection, SnapshotWriter
-from app.jobs.worker import IngestWorker, WorkerLock
+from app.jobs.worker import IngestWorker, writer_lock
 from app.service import GeolocService
 from app.storage.orphans import Janitor
 
@@ -43,7 +44,7 @@ class Writer:
         on_batch: Callable[[int, int], None] | None = None,
         logger: logging.Logger = log,
     ):
-        self.lock = WorkerLock(data_dir)
+        self.lock = writer_lock(data_dir)
         self.batch = batch
         self.workers = workers
         self.on_batch = on_batch  # (indexed, failed) -> None, for metrics
@@ -114,8 +115,8 @@ class Writer:
             try:
                 if self._start_threads(on_started):
                     self.log.warning(
-                        "took over the worker lock of %s: this process now runs the ingestion worker",
-                        self.lock.path.parent,
+                        "took over the worker lock (%s): this process now runs the ingestion worker",
+                        self.lock.where,
                     )
                     return
             except Exception:  # an unreadable lock file now may be fine at the next try
@@ -126,7 +127,7 @@ class Writer:
         """Run the role in this thread until ``request_stop`` (a signal handler) or Ctrl-C, then ``stop``.
         The lock must be held (``acquire``)."""
         if not self.held:
-            raise RuntimeError(f"{self.lock.path} is not held by this process")
+            raise RuntimeError(f"{self.lock.where} is not held by this process")
         self.attach(service)
         self.worker = self._worker(service)
         self.snapshots = SnapshotWriter(service.collection)
@@ -207,7 +208,7 @@ def run_worker(
 
     writer = Writer(data_dir, batch)
     if not writer.acquire():
-        raise WriterBusy(f"another worker already holds {writer.lock.path}")
+        raise WriterBusy(f"another worker already holds {writer.lock.where}")
     service = GeolocService.open(data_dir, models_dir, config)
     signal.signal(signal.SIGTERM, lambda *_: writer.request_stop())
     on_ready(service)

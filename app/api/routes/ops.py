@@ -36,6 +36,8 @@ def ready(request: Request):
         version=col.version,
         generation=col.generation,
         worker="in-process" if state.worker is not None else "external",
+        database=state.service.store.engine,
+        index_loaded="rebuilt" if col.stats.full_rebuilds else "snapshot",
     )
 
 

@@ -1,0 +1,142 @@
+"""Several hosts on one PostgreSQL database: two real uvicorn servers, each with a data dir of its own (its
+snapshots, its lock files, its API key) and the images on one shared path, as two hosts would run them.
+An upload on one is found first by /locate on the other, a PATCH and a delete show on both, and kill -9 of
+the writer's process hands the role to the other within seconds, every queued upload encoded once."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from tests.conftest import PENN
+from tests.service.conftest import CONFIG, Server, wait_job
+
+#: Photos the mini collection does not hold (its captures are the penn index's first 16).
+NEW_PHOTOS = [PENN / "crops" / f"img_000{n}_0.jpg" for n in (40, 41, 42, 43)]
+#: From kill -9 of the holder to the other server holding the role (it retries every second here).
+TAKEOVER_S = 15.0
+
+
+@pytest.fixture(scope="module")
+def pg_template(postgres_server, tmp_path_factory, fitted_models, mini_manifest):
+    """The mini manifest's 30 db images ingested once by `geoloc ingest` into a database on the session's
+    server (a template each test copies) and a shared images folder."""
+    url = postgres_server.create_database()
+    root = tmp_path_factory.mktemp("pg-collection")
+    env = {**os.environ, "GEOLOC_DATABASE_URL": url, "GEOLOC_IMAGES_DIR": str(root / "images")}
+    args = ["ingest", "--manifest", str(mini_manifest), "--split", "db", "--config", CONFIG]
+    args += ["--data-dir", str(root / "ingest"), "--models-dir", str(fitted_models)]
+    out = subprocess.run(
+        [sys.executable, "-m", "app.cli", *args],
+        capture_output=True, text=True, timeout=600, env=env,
+    )  # fmt: skip
+    assert "ingested 30 new references" in out.stdout, out.stdout + out.stderr
+    return url.rsplit("/", 1)[1], root / "images"
+
+
+@pytest.fixture
+def hosts_env(postgres_server, pg_template, tmp_path) -> dict:
+    """A fresh copy of the template database and of the images: the environment every "host" shares."""
+    import psycopg
+
+    template, images = pg_template
+    name = f"h_{os.getpid()}_{time.monotonic_ns()}"
+    with psycopg.connect(postgres_server.url(), autocommit=True) as con:
+        con.execute(f'CREATE DATABASE "{name}" TEMPLATE "{template}"')
+    shutil.copytree(images, tmp_path / "images")
+    return {
+        "GEOLOC_DATABASE_URL": postgres_server.url(name),
+        "GEOLOC_IMAGES_DIR": str(tmp_path / "images"),
+        "GEOLOC_WORKER_RETRY_SECONDS": "1",
+    }
+
+
+def _upload(server: Server, photo: Path) -> tuple[str, int]:
+    r = server.client.post(
+        "/references",
+        files=[("image", (photo.name, photo.read_bytes(), "image/jpeg"))],
+        data={"metadata": json.dumps([{"lat": 39.95, "lon": -75.19, "label": photo.name}])},
+    )
+    assert r.status_code == 202, r.text
+    return r.json()["job_id"], r.json()["reference_ids"][0]
+
+
+def _locate(server: Server, photo: Path) -> list[dict]:
+    r = server.client.post("/locate", files=[("image", ("q.jpg", photo.read_bytes(), "image/jpeg"))])
+    assert r.status_code == 200, r.text
+    return r.json()["candidates"]
+
+
+def test_two_hosts_on_one_database_see_each_others_changes(tmp_path, fitted_models, hosts_env):
+    a = Server(tmp_path / "host-a", fitted_models, extra_env=hosts_env)
+    b = None
+    try:
+        ready_a = a.wait_ready()
+        assert ready_a["database"] == "postgres" and ready_a["worker"] == "in-process"
+        b = Server(tmp_path / "host-b", fitted_models, extra_env=hosts_env)
+        ready_b = b.wait_ready()
+        # B started cold (a data dir of its own, no snapshot): its index is rebuilt from the database's codes.
+        assert ready_b["worker"] == "external" and ready_b["index_loaded"] == "rebuilt", ready_b
+        assert ready_b["index_size"] == 30
+
+        # An upload on B (which does not hold the writer role) is encoded by A and found first on both.
+        photo = NEW_PHOTOS[0]
+        job_id, ref_id = _upload(b, photo)
+        assert wait_job(b.client, job_id, 60)["status"] == "done"
+        assert _locate(a, photo)[0]["reference_id"] == ref_id
+        assert _locate(b, photo)[0]["reference_id"] == ref_id
+        thumb = b.client.get(f"/references/{ref_id}/image")  # the image from the shared path, on either host
+        assert thumb.status_code == 200 and thumb.headers["content-type"] == "image/jpeg"
+
+        # A PATCH on A shows on B; a delete on B shows on A (metadata, search and the image).
+        r = a.client.patch(f"/references/{ref_id}", json={"label": "moved", "lat": 39.951})
+        assert r.status_code == 200, r.text
+        got = b.client.get(f"/references/{ref_id}").json()
+        assert got["label"] == "moved" and got["lat"] == pytest.approx(39.951)
+        assert b.client.delete(f"/references/{ref_id}").status_code == 200
+        assert a.client.get(f"/references/{ref_id}").status_code == 404
+        assert ref_id not in [c["reference_id"] for c in _locate(a, photo)]
+        assert a.client.get("/ready").json()["index_size"] == b.client.get("/ready").json()["index_size"] == 30
+        assert "Traceback" not in a.read_log() + b.read_log()
+    finally:
+        a.stop()
+        if b is not None:
+            b.stop()
+
+
+def test_kill_9_of_the_writer_hands_the_role_over_and_uploads_are_encoded_once(tmp_path, fitted_models, hosts_env):
+    import psycopg
+
+    a = Server(tmp_path / "host-a", fitted_models, extra_env=hosts_env)
+    b = None
+    try:
+        assert a.wait_ready()["worker"] == "in-process"
+        b = Server(tmp_path / "host-b", fitted_models, extra_env=hosts_env)
+        assert b.wait_ready()["worker"] == "external"
+        jobs = [_upload(b, p) for p in NEW_PHOTOS]  # queued in the database; A starts encoding them
+        a.kill()
+        killed = time.monotonic()
+        while b.client.get("/ready").json()["worker"] != "in-process":
+            assert time.monotonic() - killed < TAKEOVER_S, b.read_log()
+            time.sleep(0.2)
+        for job_id, _ in jobs:
+            assert wait_job(b.client, job_id, 60)["status"] == "done"
+        assert "took over the worker lock" in b.read_log()
+        for photo, (_, ref_id) in zip(NEW_PHOTOS, jobs, strict=True):
+            assert _locate(b, photo)[0]["reference_id"] == ref_id
+        with psycopg.connect(hosts_env["GEOLOC_DATABASE_URL"]) as con:
+            adds = con.execute("SELECT ref_id, COUNT(*) FROM changes WHERE op='add' GROUP BY ref_id").fetchall()
+            indexed = con.execute("SELECT COUNT(*) FROM refs WHERE status='indexed'").fetchone()[0]
+        assert indexed == 34 and len(adds) == 34 and all(n == 1 for _, n in adds)  # exactly once each
+        assert b.client.get("/ready").json()["index_size"] == 34
+    finally:
+        a.stop()
+        if b is not None:
+            b.stop()
