@@ -20,7 +20,7 @@ import numpy as np
 from app.apikey import KEY_FILE, key_path
 from app.collection import pipeline_source
 from app.errors import OperationRefused
-from app.storage.database import DB_NAME
+from app.storage.database import DATABASE_URL_ENV, DB_NAME, database_url
 from app.storage.files import IMAGES
 from app.storage.maintenance import copy_database, image_names
 from app.storage.orphans import MIN_AGE_S, retry_removals, sweep
@@ -35,6 +35,12 @@ from app.storage.snapshots import (
 from app.storage.store import ReferenceStore
 
 BACKUP_MANIFEST = "backup.json"
+#: What ``geoloc backup`` says on PostgreSQL (README, "Several hosts: PostgreSQL" has the procedure).
+PG_BACKUP_NOTE = (
+    f"the store is on PostgreSQL ({DATABASE_URL_ENV}): back up the database with pg_dump (it holds every row, "
+    "code, the change log and the generations, consistently while the service runs) and the shared images "
+    "folder (GEOLOC_IMAGES_DIR) after it; restore with pg_restore then the images. See README, 'Several hosts'"
+)
 KEY_NOTE = f"this backup holds the API key ({KEY_FILE}, mode 0600): keep it as private as the key itself"
 PIPELINES = "pipelines"  # the data dir's re-fitted pipelines, one folder per generation
 
@@ -52,7 +58,7 @@ def _sample(ids, n: int = 10) -> str:
 
 def check_data_dir(data_dir: Path, models_dir: Path, config: str | None) -> CheckReport:
     r = CheckReport()
-    if not (data_dir / DB_NAME).exists():
+    if database_url() is None and not (data_dir / DB_NAME).exists():
         r.problems.append(f"{data_dir / DB_NAME} does not exist")
         return r
     store = ReferenceStore(data_dir, read_only=True)
@@ -66,7 +72,7 @@ def check_data_dir(data_dir: Path, models_dir: Path, config: str | None) -> Chec
     r.lines.append(f"rows: {counts['indexed']} indexed, {counts['pending']} pending, {counts['failed']} failed")
     rows = store.stored_rows()
     named = {row.image for row in rows}
-    on_disk = {p.name for p in (data_dir / IMAGES).iterdir() if not p.name.startswith(".")}
+    on_disk = {p.name for p in store.images_dir.iterdir() if not p.name.startswith(".")}
     missing = [row.id for row in rows if row.image not in on_disk]
     orphans = sorted(on_disk - named)
     r.lines.append(f"images: {len(on_disk)} files, {len(missing)} missing, {len(orphans)} not named by any row")
@@ -129,7 +135,7 @@ def _check_leftovers(store: ReferenceStore, data_dir: Path, r: CheckReport) -> N
             "(the worker retries; `geoloc check --repair` too)"
         )
     now = time.time()
-    stale = [p.name for p in (data_dir / IMAGES).glob(".*.tmp") if p.is_file() and now - p.stat().st_mtime > MIN_AGE_S]
+    stale = [p.name for p in store.images_dir.glob(".*.tmp") if p.is_file() and now - p.stat().st_mtime > MIN_AGE_S]
     if stale:
         r.problems.append(f"stale temporary files: {_sample(stale)} (`geoloc check --repair` removes them)")
 
@@ -138,7 +144,7 @@ def repair_data_dir(data_dir: Path, min_age_s: float = MIN_AGE_S) -> list[str]:
     """Remove what no longer belongs to anything: queued removals retried, image files no row names and
     temporary files, both older than ``min_age_s`` (younger ones may be uploads in flight). Safe while the
     services run: every unlink is re-checked under the database's write lock. Returns what it did."""
-    if not (data_dir / DB_NAME).exists():
+    if database_url() is None and not (data_dir / DB_NAME).exists():
         raise OperationRefused(f"{data_dir / DB_NAME} does not exist: nothing to repair")
     store = ReferenceStore(data_dir)
     try:
@@ -152,6 +158,8 @@ def repair_data_dir(data_dir: Path, min_age_s: float = MIN_AGE_S) -> list[str]:
 
 
 def backup_data_dir(data_dir: Path, dest: Path) -> dict:
+    if database_url() is not None:
+        raise OperationRefused(PG_BACKUP_NOTE)
     if dest.exists() and any(dest.iterdir()):
         raise OperationRefused(f"{dest} is not empty: back up into a new or empty folder")
     (dest / IMAGES).mkdir(parents=True, exist_ok=True)
@@ -189,6 +197,8 @@ def backup_data_dir(data_dir: Path, dest: Path) -> dict:
 
 
 def restore_data_dir(source: Path, data_dir: Path) -> dict:
+    if database_url() is not None:
+        raise OperationRefused(PG_BACKUP_NOTE)
     if not (source / BACKUP_MANIFEST).exists() or not (source / DB_NAME).exists():
         raise OperationRefused(f"{source} is not a backup written by `geoloc backup`")
     if data_dir.exists() and any(p for p in data_dir.iterdir() if p.name != "README.md"):

@@ -18,9 +18,14 @@ from PIL import Image
 from tests.conftest import PENN
 from tests.service.conftest import Server, start_worker, wait_job
 
-pytestmark = pytest.mark.crash  # not in `make test-quick`
+#: Not in `make test-quick`. Each test runs on SQLite and on PostgreSQL (the ``backend`` fixture: the servers
+#: and workers started here inherit its GEOLOC_DATABASE_URL), on PostgreSQL with half the images (the same
+#: kills, in half the time: `make test` stays within its budget).
+pytestmark = pytest.mark.crash
 
 N = int(os.environ.get("GEOLOC_CRASH_N", "200"))
+#: The images of one run on each engine.
+SHARE = {"sqlite": 1, "postgres": 2}
 FULL = os.environ.get("GEOLOC_CRASH_FULL") == "1"
 
 
@@ -62,28 +67,30 @@ def _upload(client: httpx.Client, batch) -> dict:
 
 def _verify(server: Server, images) -> None:
     c = server.client
+    n = len(images)
     listing = c.get("/references", params={"limit": 500}).json()
-    assert listing["total"] == N
+    assert listing["total"] == n
     assert sorted(i["label"] for i in listing["items"]) == sorted(name for name, _, _, _ in images)
     assert all(i["status"] == "indexed" for i in listing["items"])
     deadline = time.time() + 60
-    while c.get("/ready").json()["index_size"] != N and time.time() < deadline:
+    while c.get("/ready").json()["index_size"] != n and time.time() < deadline:
         time.sleep(0.2)
-    assert c.get("/ready").json()["index_size"] == N
+    assert c.get("/ready").json()["index_size"] == n
     by_label = {i["label"]: i["id"] for i in listing["items"]}
     for name, data, _, _ in images:
         res = c.post("/locate", files=[("image", ("q.jpg", data))], data={"top_k": 1}).json()
         assert res["candidates"][0]["reference_id"] == by_label[name], name
 
 
-def test_worker_killed_at_random_moments(tmp_path, fitted_models, images):
+def test_worker_killed_at_random_moments(tmp_path, fitted_models, images, backend):
+    images = images[: N // SHARE[backend]]
     data = tmp_path / "data"
     server = Server(data, fitted_models, worker="none")
     worker = None
     rng = random.Random(1)
     try:
         server.wait_ready()
-        jobs = [_upload(server.client, images[i : i + 25])["job_id"] for i in range(0, N, 25)]
+        jobs = [_upload(server.client, images[i : i + 25])["job_id"] for i in range(0, len(images), 25)]
         kills = 0
         worker = start_worker(data, fitted_models, tmp_path / "worker.log")
         while kills < 3:
@@ -104,13 +111,14 @@ def test_worker_killed_at_random_moments(tmp_path, fitted_models, images):
         server.stop()
 
 
-def test_api_killed_at_random_moments(tmp_path, fitted_models, images):
+def test_api_killed_at_random_moments(tmp_path, fitted_models, images, backend):
     """The client retries what was not acknowledged; identical bytes are stored once whatever happens."""
+    images = images[: N // SHARE[backend]]
     data = tmp_path / "data"
     rng = random.Random(2)
     server = Server(data, fitted_models)
     server.wait_ready()
-    batches = [images[i : i + 10] for i in range(0, N, 10)]
+    batches = [images[i : i + 10] for i in range(0, len(images), 10)]
     kill_at = sorted(rng.sample(range(1, len(batches)), 3))
     try:
         for n, batch in enumerate(batches):

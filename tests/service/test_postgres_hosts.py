@@ -140,3 +140,26 @@ def test_kill_9_of_the_writer_hands_the_role_over_and_uploads_are_encoded_once(t
         a.stop()
         if b is not None:
             b.stop()
+
+
+def test_check_on_postgres_and_backup_says_how(tmp_path, fitted_models, hosts_env):
+    """`geoloc check` reads the database and the shared images; `geoloc backup` refuses, naming pg_dump."""
+    env = {**os.environ, **hosts_env}
+    base = [sys.executable, "-m", "app.cli"]
+    where = ["--data-dir", str(tmp_path / "host-c")]
+    out = subprocess.run(
+        [*base, "check", *where, "--models-dir", str(fitted_models), "--config", CONFIG],
+        capture_output=True, text=True, timeout=300, env=env,
+    )  # fmt: skip
+    assert out.returncode == 0, out.stdout + out.stderr
+    assert "rows: 30 indexed, 0 pending, 0 failed" in out.stdout and "images: 30 files, 0 missing" in out.stdout
+    # An image lost from the shared folder is a problem the check names.
+    victim = sorted(Path(hosts_env["GEOLOC_IMAGES_DIR"]).iterdir())[0]
+    victim.unlink()
+    out = subprocess.run(
+        [*base, "check", *where, "--models-dir", str(fitted_models), "--config", CONFIG],
+        capture_output=True, text=True, timeout=300, env=env,
+    )  # fmt: skip
+    assert out.returncode == 1 and "image file is missing" in out.stderr, out.stdout + out.stderr
+    out = subprocess.run([*base, "backup", str(tmp_path / "bk"), *where], capture_output=True, text=True, env=env)
+    assert out.returncode != 0 and "pg_dump" in out.stdout + out.stderr, out.stdout + out.stderr

@@ -1,0 +1,46 @@
+"""What only PostgreSQL does: replicas woken by NOTIFY when an index change commits (not by an accepted
+upload, which changes no index), and the writer role held by an advisory lock that dies with its session."""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+
+from app.jobs.worker import DatabaseWriterLock, writer_lock
+from app.storage.postgres import ChangeListener
+from app.storage.store import NewReference, ReferenceStore
+
+
+def _item(rng, encoded: bool) -> NewReference:
+    code = rng.standard_normal(8).astype(np.float32) if encoded else None
+    return NewReference(rng.bytes(64), "jpg", 40.0, -75.0, float_code=code)
+
+
+def test_a_committed_index_change_wakes_the_listener(tmp_path, postgres_server, monkeypatch):
+    url = postgres_server.create_database()
+    monkeypatch.setenv("GEOLOC_DATABASE_URL", url)
+    store = ReferenceStore(tmp_path)
+    woke = threading.Event()
+    listener = ChangeListener(url, woke.set).start()
+    try:
+        assert woke.wait(10)  # the catch-up it does once listening
+        woke.clear()
+        rng = np.random.default_rng(0)
+        store.add_many([_item(rng, encoded=False)])  # accepted, pending: no index change, no wake-up
+        assert not woke.wait(1.5)
+        store.add_many([_item(rng, encoded=True)])
+        assert woke.wait(5) and store.version == 1
+    finally:
+        listener.stop()
+        store.close()
+
+
+def test_the_writer_role_is_one_advisory_lock_released_with_its_session(tmp_path, postgres_server, monkeypatch):
+    monkeypatch.setenv("GEOLOC_DATABASE_URL", postgres_server.create_database())
+    first, second = writer_lock(tmp_path / "a"), writer_lock(tmp_path / "b")  # two hosts' data dirs
+    assert isinstance(first, DatabaseWriterLock)
+    assert first.acquire() and not second.acquire()
+    first._conn.close()  # the holder's session ends (its process died): the lock goes with it
+    assert second.acquire()
+    second.release()
