@@ -41,9 +41,10 @@ COPY --from=web /web/node_modules/swagger-ui-dist/swagger-ui-bundle.js /web/node
 # A virtual environment: the same on python:3.11-slim and on a Debian base (whose system pip refuses
 # installs, PEP 668). With the ray extra: the compose file's ray-head and ray-worker run this same image, so
 # the Python and Ray versions of the driver (geoloc ingest/refit --ray) and of the cluster always match.
+# With the postgres extra (psycopg): the store on PostgreSQL when GEOLOC_DATABASE_URL is set (compose profile).
 # The pip cache mount keeps downloaded wheels between builds (a code change re-installs in seconds).
 RUN --mount=type=cache,target=/root/.cache/pip \
-    python3 -m venv /opt/venv && pip install ".[ray]"
+    python3 -m venv /opt/venv && pip install ".[ray,postgres]"
 
 COPY --from=weights . /tmp/weights
 # Every buildable model of the registry (app/engine/models/registry.py); the build fails if one is missing.

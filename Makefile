@@ -66,7 +66,7 @@ browser:
 	  (apt-get update -q && DEBIAN_FRONTEND=noninteractive apt-get install -y -q chromium) > /tmp/geoloc-apt.log 2>&1 \
 	  || { echo "could not install chromium: see /tmp/geoloc-apt.log"; exit 1; }; }
 
-# The PostgreSQL tests start a server of their own from Debian's package (tests/postgres_server.py): install
+# The PostgreSQL tests start a server of their own from Debian's package (tools/postgres_server.py): install
 # it when it is missing.
 postgres:
 	@ls /usr/lib/postgresql/*/bin/initdb >/dev/null 2>&1 || { echo "installing postgresql (Debian package) for the PostgreSQL tests"; \

@@ -116,10 +116,10 @@ def lite2(models_dir, lite2_wheel):
 
 @pytest.fixture(scope="session")
 def postgres_server():
-    """A PostgreSQL server of the session's own (``tests/postgres_server.py``), stopped at its end. Skips,
+    """A PostgreSQL server of the session's own (``tools/postgres_server.py``), stopped at its end. Skips,
     saying why, only where none can run: no ``postgresql`` package (``make test`` installs it) or no
     psycopg (the ``postgres`` extra, which ``make test`` installs)."""
-    from tests.postgres_server import NoPostgres, PostgresServer
+    from tools.postgres_server import NoPostgres, PostgresServer
 
     try:
         import psycopg  # noqa: F401

@@ -209,7 +209,18 @@ class ReferenceStore(Queue, Generations, Identity, Removals, Maintenance):
             self._files_for(db, created)
             if job_id is not None:
                 self._record_job(db, job_id, now, out)
+        if self.engine == "postgres":
+            self._analyze_after_bulk(len(created), max((i for i, _ in out), default=0))
         return out, job_id
+
+    def _analyze_after_bulk(self, created: int, high: int) -> None:
+        """PostgreSQL: refresh the planner's statistics after a bulk insert that grew the table by a tenth or
+        more. Why: before autovacuum's first ANALYZE (up to a minute) the planner took a freshly seeded table
+        for a tiny one, and a replica's catch-up read (one change) hashed every row: 18 ms at 5,000 rows
+        instead of 0.05 ms. Growth by tenths means a handful of ANALYZEs over a whole seed."""
+        if created >= 1000 and created * 10 >= high:
+            with self._lock, storage_guard("analysing the database"):
+                self.db.execute("ANALYZE refs, changes")
 
     def _insert_each(self, db, items: Sequence[NewReference], now: str):
         """SQLite: one INSERT per row (in-process calls, no round trips to save)."""

@@ -1,4 +1,4 @@
-"""A real PostgreSQL server for the tests: Debian's binaries, ``initdb`` and ``pg_ctl`` run as the
+"""A real PostgreSQL server for the tests and benchmarks: Debian's binaries, ``initdb`` and ``pg_ctl`` run as the
 ``postgres`` user (initdb refuses root) in a temporary directory, on a free port, with its unix socket in
 that directory and trust authentication on localhost. ``make test`` installs the ``postgresql`` package
 where it is missing (the ``postgres`` target of the Makefile)."""
