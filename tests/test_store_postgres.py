@@ -7,8 +7,8 @@ import threading
 
 import numpy as np
 
-from app.jobs.worker import DatabaseWriterLock, writer_lock
-from app.storage.postgres import ChangeListener
+from app.jobs.worker import writer_lock
+from app.storage.postgres import ChangeListener, DatabaseWriterLock
 from app.storage.store import NewReference, ReferenceStore
 
 

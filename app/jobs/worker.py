@@ -21,6 +21,7 @@ from pathlib import Path
 from app.service import GeolocService
 from app.storage.database import database_url
 from app.storage.errors import is_storage_error
+from app.storage.postgres import DatabaseWriterLock
 
 log = logging.getLogger("geoloc.worker")
 
@@ -59,59 +60,6 @@ class WorkerLock:
             fcntl.flock(self._fd, fcntl.LOCK_UN)
             os.close(self._fd)
             self._fd = None
-
-
-class DatabaseWriterLock:
-    """The writer role of a store on PostgreSQL, one for every host: a session-level advisory lock
-    (``pg_try_advisory_lock``) held on a connection of its own for as long as the role is held. Why the
-    database rather than a file: the processes that may hold the role run on several hosts, and the server
-    drops a session's advisory locks when the session ends, so when the holder dies (kill -9, a lost host)
-    its lock goes with its connection and another process's next try takes the role, nobody acting.
-
-    A holder cut off from the server while still running (a network partition) loses the lock too and may
-    briefly work beside the new holder: harmless, as completing is idempotent (a row is indexed once, by
-    whichever commits first) and each host writes snapshots into its own data dir. TCP keepalives bound how
-    long a dead host's session (and so the role) stays held."""
-
-    def __init__(self, url: str):
-        from app.storage.postgres import WRITER_ROLE_KEY
-
-        self.url = url
-        self.key = WRITER_ROLE_KEY
-        self._conn = None
-
-    def acquire(self) -> bool:
-        import psycopg
-
-        conn = psycopg.connect(
-            self.url, autocommit=True, connect_timeout=10, keepalives=1, keepalives_idle=10,
-            keepalives_interval=5, keepalives_count=3,
-        )  # fmt: skip
-        try:
-            got = conn.execute("SELECT pg_try_advisory_lock(%s)", (self.key,)).fetchone()[0]
-        except Exception:
-            conn.close()
-            raise
-        if not got:
-            conn.close()
-            return False
-        self._conn = conn
-        return True
-
-    @property
-    def held(self) -> bool:
-        return self._conn is not None
-
-    @property
-    def where(self) -> str:
-        return f"the database's writer lock (advisory lock {self.key})"
-
-    def release(self) -> None:
-        if self._conn is not None:
-            with contextlib.suppress(Exception):  # a lost connection has released it already
-                self._conn.execute("SELECT pg_advisory_unlock(%s)", (self.key,))
-            self._conn.close()
-            self._conn = None
 
 
 def writer_lock(data_dir: Path) -> WorkerLock | DatabaseWriterLock:

@@ -20,6 +20,7 @@ index change also sends ``NOTIFY geoloc_changes`` (delivered at commit), which w
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import re
@@ -30,7 +31,7 @@ from functools import lru_cache
 log = logging.getLogger("geoloc.store")
 
 #: The advisory lock keys (any 64-bit numbers unlikely to be taken by another application on the database):
-#: every write transaction, and the writer role (``app.jobs.worker.DatabaseWriterLock``).
+#: every write transaction, and the writer role (``DatabaseWriterLock``).
 WRITE_LOCK_KEY = 0x67656F6C6F630001
 WRITER_ROLE_KEY = 0x67656F6C6F630002
 CHANNEL = "geoloc_changes"
@@ -228,3 +229,54 @@ class ChangeListener:
         self._stop.set()
         if self._thread.is_alive():
             self._thread.join(5)
+
+
+class DatabaseWriterLock:
+    """The writer role of a store on PostgreSQL, one for every host: a session-level advisory lock
+    (``pg_try_advisory_lock``) held on a connection of its own for as long as the role is held. Why the
+    database rather than a file: the processes that may hold the role run on several hosts, and the server
+    drops a session's advisory locks when the session ends, so when the holder dies (kill -9, a lost host)
+    its lock goes with its connection and another process's next try takes the role, nobody acting.
+
+    A holder cut off from the server while still running (a network partition) loses the lock too and may
+    briefly work beside the new holder: harmless, as completing is idempotent (a row is indexed once, by
+    whichever commits first) and each host writes snapshots into its own data dir. TCP keepalives bound how
+    long a dead host's session (and so the role) stays held."""
+
+    def __init__(self, url: str):
+        self.url = url
+        self.key = WRITER_ROLE_KEY
+        self._conn = None
+
+    def acquire(self) -> bool:
+        import psycopg
+
+        conn = psycopg.connect(
+            self.url, autocommit=True, connect_timeout=10, keepalives=1, keepalives_idle=10,
+            keepalives_interval=5, keepalives_count=3,
+        )  # fmt: skip
+        try:
+            got = conn.execute("SELECT pg_try_advisory_lock(%s)", (self.key,)).fetchone()[0]
+        except Exception:
+            conn.close()
+            raise
+        if not got:
+            conn.close()
+            return False
+        self._conn = conn
+        return True
+
+    @property
+    def held(self) -> bool:
+        return self._conn is not None
+
+    @property
+    def where(self) -> str:
+        return f"the database's writer lock (advisory lock {self.key})"
+
+    def release(self) -> None:
+        if self._conn is not None:
+            with contextlib.suppress(Exception):  # a lost connection has released it already
+                self._conn.execute("SELECT pg_advisory_unlock(%s)", (self.key,))
+            self._conn.close()
+            self._conn = None

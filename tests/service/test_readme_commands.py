@@ -43,6 +43,9 @@ ELSEWHERE = {
     "geoloc ingest ~/photos --ray local": "tests/service/test_ingest_ray.py (a local Ray instance)",
     "geoloc ingest ~/photos --ray auto": "needs a running Ray cluster (tests/service/test_ingest_ray.py: --ray local)",
     "geoloc ingest ~/photos --ray ray://head:10001 --workers 32": "needs a remote Ray cluster",
+    "geoloc ingest ~/photos --data-dir /var/lib/geoloc": "tests/service/test_postgres_hosts.py (ingest into "
+    "PostgreSQL: the README's 'Several hosts' block needs a database server)",
+    "geoloc serve --data-dir /var/lib/geoloc": "tests/service/test_postgres_hosts.py (two servers on PostgreSQL)",
 }
 
 
