@@ -104,3 +104,19 @@ def test_compose_ray_profile_runs_the_same_image():
     assert any(r'pip install ".[ray,postgres]"' in rest for op, rest in _instructions() if op == "RUN")
     pyproject = (REPO / "pyproject.toml").read_text()
     assert re.search(r'^ray = \["ray\[data,client\]', pyproject, re.M)  # client: for ray:// addresses
+
+
+def test_compose_postgres_profile_runs_a_database_and_a_replica_with_its_own_data_dir():
+    """`--profile postgres`: the database and a second API on it, whose data dir is its own volume while the
+    images are the primary's (mounted, and named by GEOLOC_IMAGES_DIR); `up` alone runs neither."""
+    compose = yaml.safe_load((REPO / "docker-compose.yml").read_text())
+    services = compose["services"]
+    db, replica = services["postgres"], services["api-replica"]
+    assert db["profiles"] == replica["profiles"] == ["postgres"]
+    assert db["image"].startswith("postgres:") and "pg_isready" in db["healthcheck"]["test"]
+    assert replica["image"] == services["api"]["image"]
+    assert "geoloc-replica:/data" in replica["volumes"] and "geoloc-data:/primary" in replica["volumes"]
+    assert replica["environment"]["GEOLOC_IMAGES_DIR"] == "/primary/images"
+    assert replica["depends_on"]["postgres"]["condition"] == "service_healthy"
+    assert {"geoloc-replica", "geoloc-postgres"} <= set(compose["volumes"])
+
