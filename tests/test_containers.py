@@ -119,4 +119,3 @@ def test_compose_postgres_profile_runs_a_database_and_a_replica_with_its_own_dat
     assert replica["environment"]["GEOLOC_IMAGES_DIR"] == "/primary/images"
     assert replica["depends_on"]["postgres"]["condition"] == "service_healthy"
     assert {"geoloc-replica", "geoloc-postgres"} <= set(compose["volumes"])
-
