@@ -6,6 +6,7 @@ from __future__ import annotations
 import threading
 
 import numpy as np
+import pytest
 
 from app.jobs.worker import writer_lock
 from app.storage.postgres import ChangeListener, DatabaseWriterLock
@@ -44,3 +45,30 @@ def test_the_writer_role_is_one_advisory_lock_released_with_its_session(tmp_path
     first._conn.close()  # the holder's session ends (its process died): the lock goes with it
     assert second.acquire()
     second.release()
+
+
+def test_a_database_server_that_goes_away_is_a_storage_error_and_comes_back(tmp_path, postgres_server, monkeypatch):
+    """The server stopped under a running store (a restart, a failover of the database): every call says
+    "storage unavailable" (a 503 the client retries), nothing stored is lost, and once the server is back
+    the same store works again without being reopened."""
+    from app.errors import StorageUnavailable
+    from tools.postgres_server import PostgresServer
+
+    server = PostgresServer().start()  # a server of this test's own: it is stopped and started again
+    try:
+        monkeypatch.setenv("GEOLOC_DATABASE_URL", server.create_database())
+        store = ReferenceStore(tmp_path)
+        rng = np.random.default_rng(2)
+        store.add_many([_item(rng, encoded=True)])
+        server.stop_server()
+        for call in (lambda: store.add_many([_item(rng, encoded=True)]), lambda: store.count(None), store.head):
+            with pytest.raises(StorageUnavailable):
+                call()
+        server.start_server()
+        assert store.count(None) == 1 and store.version == 1
+        store.add_many([_item(rng, encoded=True)])
+        # Versions keep rising (a crashed server's sequences skip ahead: gaps, never a version twice).
+        assert store.count(None) == 2 and store.version > 1
+        assert [c.op for c in store.changes_since(1)] == ["add"]
+    finally:
+        server.stop()

@@ -62,12 +62,20 @@ class PostgresServer:
             str(self.bin / "initdb"), "-D", str(self.data), "-U", self.user, "--auth=trust", "-E", "UTF8",
             "--no-sync", "--locale=C",
         )  # fmt: skip
+        self.start_server()
+        return self
+
+    def start_server(self) -> None:
+        """Start the cluster's server (again, after ``stop_server``)."""
         opts = f"-p {self.port} -k {self.root} -c listen_addresses=127.0.0.1 -c fsync=off -c max_connections=200"
         self._run(
             str(self.bin / "pg_ctl"), "-D", str(self.data), "-o", opts, "-l", str(self.root / "server.log"),
             "-w", "-t", "60", "start",
         )  # fmt: skip
-        return self
+
+    def stop_server(self) -> None:
+        """Stop the server at once (as a crash would), keeping the cluster to start again."""
+        self._run(str(self.bin / "pg_ctl"), "-D", str(self.data), "-m", "immediate", "-w", "stop", timeout=60)
 
     def url(self, dbname: str = "postgres") -> str:
         return f"postgresql://{self.user}@127.0.0.1:{self.port}/{dbname}"
@@ -83,5 +91,5 @@ class PostgresServer:
 
     def stop(self) -> None:
         with contextlib.suppress(NoPostgres, subprocess.TimeoutExpired):
-            self._run(str(self.bin / "pg_ctl"), "-D", str(self.data), "-m", "immediate", "-w", "stop", timeout=60)
+            self.stop_server()
         shutil.rmtree(self.root, ignore_errors=True)

@@ -28,6 +28,8 @@ import threading
 from collections.abc import Callable, Sequence
 from functools import lru_cache
 
+from app.storage.errors import storage_guard
+
 log = logging.getLogger("geoloc.store")
 
 #: The advisory lock keys (any 64-bit numbers unlikely to be taken by another application on the database):
@@ -133,7 +135,9 @@ class PostgresConnection:
     @property
     def raw(self):
         """The psycopg connection (COPY, advisory locks)."""
-        if self._conn is None or (self._conn.closed and not self.in_transaction):
+        if self._conn is None or self._conn.closed or self._conn.broken:
+            if self._conn is not None:
+                self._conn.close()
             self._connect()
         return self._conn
 
@@ -146,35 +150,43 @@ class PostgresConnection:
         return self._conn.info.transaction_status != TransactionStatus.IDLE
 
     def execute(self, sql: str, params: Sequence | None = None):
+        """One statement. A lost server (a restart, a failover) comes out as ``StorageUnavailable`` from every
+        call, reads included (SQLite has no such state), and the next call outside a transaction reconnects."""
         head = sql.strip().upper()
-        if head == "BEGIN IMMEDIATE":  # a write transaction: one at a time across every process and host
-            self.raw.execute("BEGIN")
-            return self._conn.execute("SELECT pg_advisory_xact_lock(%s)", (WRITE_LOCK_KEY,))
-        if head == "BEGIN":  # a consistent read of several statements
-            return self.raw.execute("BEGIN ISOLATION LEVEL REPEATABLE READ READ ONLY")
-        text, lists = translate(sql)
-        return self.raw.execute(text, _bind(params, lists))
+        with storage_guard("using the database"):
+            if head == "BEGIN IMMEDIATE":  # a write transaction: one at a time across every process and host
+                self.raw.execute("BEGIN")
+                return self._conn.execute("SELECT pg_advisory_xact_lock(%s)", (WRITE_LOCK_KEY,))
+            if head == "BEGIN":  # a consistent read of several statements
+                return self.raw.execute("BEGIN ISOLATION LEVEL REPEATABLE READ READ ONLY")
+            text, lists = translate(sql)
+            return self.raw.execute(text, _bind(params, lists))
 
     def executemany(self, sql: str, rows: Sequence[Sequence]):
         text, lists = translate(sql)
-        cur = self.raw.cursor()
-        cur.executemany(text, [_bind(r, lists) for r in rows])
-        return cur
+        with storage_guard("writing the database"):
+            cur = self.raw.cursor()
+            cur.executemany(text, [_bind(r, lists) for r in rows])
+            return cur
 
     def executescript(self, script: str) -> None:
         """Schemas: created under the write lock (two processes creating the same tables at once collide in
         PostgreSQL's catalogue otherwise)."""
-        with self.raw.transaction():
+        with storage_guard("creating the tables"), self.raw.transaction():
             self._conn.execute("SELECT pg_advisory_xact_lock(%s)", (WRITE_LOCK_KEY,))
             self._conn.execute(schema_sql(script))
 
     def notify(self) -> None:
         """Inside a write transaction: wake the replicas at its commit."""
-        self.raw.execute(f"NOTIFY {CHANNEL}")
+        self.execute(f"NOTIFY {CHANNEL}")
 
     def copy_rows(self, table: str, columns: Sequence[str], rows: Sequence[Sequence]) -> None:
         """COPY ``rows`` into ``table`` (the bulk path: one round trip, not one INSERT per row)."""
-        with self.raw.cursor() as cur, cur.copy(f"COPY {table} ({', '.join(columns)}) FROM STDIN") as copy:
+        with (
+            storage_guard("writing the database"),
+            self.raw.cursor() as cur,
+            cur.copy(f"COPY {table} ({', '.join(columns)}) FROM STDIN") as copy,
+        ):
             for row in rows:
                 copy.write_row(row)
 
