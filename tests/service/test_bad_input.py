@@ -11,9 +11,13 @@ from tests.service.conftest import Server, wait_job
 KEY = "k"
 
 
-@pytest.fixture(scope="module")
-def server(tmp_path_factory, fitted_models):
-    s = Server(tmp_path_factory.mktemp("bad") / "data", fitted_models, api_key=KEY)
+@pytest.fixture(scope="module", params=["sqlite", "postgres"])
+def server(request, tmp_path_factory, fitted_models):
+    """One server per engine of the store: every test here runs on SQLite and on PostgreSQL."""
+    env = {}
+    if request.param == "postgres":
+        env["GEOLOC_DATABASE_URL"] = request.getfixturevalue("postgres_server").create_database()
+    s = Server(tmp_path_factory.mktemp("bad") / "data", fitted_models, api_key=KEY, extra_env=env)
     s.wait_ready()
     crop = (PENN / "crops" / "img_00000_0.jpg").read_bytes()
     r = s.client.post(
