@@ -19,13 +19,13 @@ from tests.conftest import PENN
 from tests.service.conftest import Server, start_worker, wait_job
 
 #: Not in `make test-quick`. Each test runs on SQLite and on PostgreSQL (the ``backend`` fixture: the servers
-#: and workers started here inherit its GEOLOC_DATABASE_URL), on PostgreSQL with half the images (the same
-#: kills, in half the time: `make test` stays within its budget).
+#: and workers started here inherit its GEOLOC_DATABASE_URL), on PostgreSQL with a quarter of the images (the same
+#: kills, in a quarter of the time: `make test` stays within its budget).
 pytestmark = pytest.mark.crash
 
 N = int(os.environ.get("GEOLOC_CRASH_N", "200"))
 #: The images of one run on each engine.
-SHARE = {"sqlite": 1, "postgres": 2}
+SHARE = {"sqlite": 1, "postgres": 4}
 FULL = os.environ.get("GEOLOC_CRASH_FULL") == "1"
 
 

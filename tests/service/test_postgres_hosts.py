@@ -1,7 +1,8 @@
 """Several hosts on one PostgreSQL database: two real uvicorn servers, each with a data dir of its own (its
 snapshots, its lock files, its API key) and the images on one shared path, as two hosts would run them.
-An upload on one is found first by /locate on the other, a PATCH and a delete show on both, and kill -9 of
-the writer's process hands the role to the other within seconds, every queued upload encoded once."""
+An upload on one is found first by /locate on the other, a PATCH and a delete show on both, a refit on one
+switches both, and kill -9 of the writer's process hands the role to the other within seconds, every queued
+upload encoded once."""
 
 from __future__ import annotations
 
@@ -74,7 +75,15 @@ def _locate(server: Server, photo: Path) -> list[dict]:
     return r.json()["candidates"]
 
 
-def test_two_hosts_on_one_database_see_each_others_changes(tmp_path, fitted_models, hosts_env):
+def test_two_hosts_on_one_database_see_each_others_changes(tmp_path, fitted_models, hosts_env, mini_manifest):
+    """Then `geoloc refit` on one host re-encodes every reference (images read from the shared path) and
+    switches the generation in the database: both servers load it without a restart. The hosts share one
+    `pipelines/` folder (a symlink here; a shared mount in a deployment), as README 'Several hosts' says."""
+    from app.evaluation.datasets import read_manifest
+
+    (tmp_path / "host-a" / "pipelines").mkdir(parents=True)
+    (tmp_path / "host-b").mkdir()
+    (tmp_path / "host-b" / "pipelines").symlink_to(tmp_path / "host-a" / "pipelines")
     a = Server(tmp_path / "host-a", fitted_models, extra_env=hosts_env)
     b = None
     try:
@@ -105,6 +114,23 @@ def test_two_hosts_on_one_database_see_each_others_changes(tmp_path, fitted_mode
         assert ref_id not in [c["reference_id"] for c in _locate(a, photo)]
         assert a.client.get("/ready").json()["index_size"] == b.client.get("/ready").json()["index_size"] == 30
         assert "Traceback" not in a.read_log() + b.read_log()
+
+        # A refit on host A switches both hosts.
+        known = next(r for r in read_manifest(mini_manifest) if r.split == "db").image
+        own_id = _locate(b, known)[0]["reference_id"]
+        out = subprocess.run(
+            [sys.executable, "-m", "app.cli", "refit", "--data-dir", str(tmp_path / "host-a"),
+             "--models-dir", str(fitted_models), "--sample", "12", "--svm-bank", "none", "--seed", "7"],
+            capture_output=True, text=True, timeout=600, env={**os.environ, **hosts_env},
+        )  # fmt: skip
+        assert out.returncode == 0 and "30 references re-encoded" in out.stdout, out.stdout + out.stderr
+        for server in (a, b):
+            deadline = time.monotonic() + 120
+            while server.client.get("/ready").json()["generation"] != 1:
+                assert time.monotonic() < deadline, server.read_log()
+                time.sleep(0.2)
+            top = _locate(server, known)[0]
+            assert top["reference_id"] == own_id and top["score"] > 0.99
     finally:
         a.stop()
         if b is not None:
@@ -163,39 +189,3 @@ def test_check_on_postgres_and_backup_says_how(tmp_path, fitted_models, hosts_en
     assert out.returncode == 1 and "image file is missing" in out.stderr, out.stdout + out.stderr
     out = subprocess.run([*base, "backup", str(tmp_path / "bk"), *where], capture_output=True, text=True, env=env)
     assert out.returncode != 0 and "pg_dump" in out.stdout + out.stderr, out.stdout + out.stderr
-
-
-def test_a_refit_on_one_host_switches_every_host(tmp_path, fitted_models, hosts_env, mini_manifest):
-    """`geoloc refit` re-encodes every reference (its images read from the shared path) and switches the
-    generation in the database; both servers load it without a restart. The hosts share one `pipelines/`
-    folder (here a symlink; a shared mount in a deployment), as README 'Several hosts' says."""
-    from app.evaluation.datasets import read_manifest
-
-    (tmp_path / "host-a" / "pipelines").mkdir(parents=True)
-    (tmp_path / "host-b").mkdir()
-    (tmp_path / "host-b" / "pipelines").symlink_to(tmp_path / "host-a" / "pipelines")
-    photo = next(r for r in read_manifest(mini_manifest) if r.split == "db").image
-    a = Server(tmp_path / "host-a", fitted_models, extra_env=hosts_env)
-    b = None
-    try:
-        a.wait_ready()
-        b = Server(tmp_path / "host-b", fitted_models, extra_env=hosts_env)
-        b.wait_ready()
-        own_id = _locate(b, photo)[0]["reference_id"]
-        out = subprocess.run(
-            [sys.executable, "-m", "app.cli", "refit", "--data-dir", str(tmp_path / "host-a"),
-             "--models-dir", str(fitted_models), "--sample", "12", "--svm-bank", "none", "--seed", "7"],
-            capture_output=True, text=True, timeout=600, env={**os.environ, **hosts_env},
-        )  # fmt: skip
-        assert out.returncode == 0 and "30 references re-encoded" in out.stdout, out.stdout + out.stderr
-        for server in (a, b):
-            deadline = time.monotonic() + 120
-            while server.client.get("/ready").json()["generation"] != 1:
-                assert time.monotonic() < deadline, server.read_log()
-                time.sleep(0.2)
-            top = _locate(server, photo)[0]
-            assert top["reference_id"] == own_id and top["score"] > 0.99
-    finally:
-        a.stop()
-        if b is not None:
-            b.stop()
