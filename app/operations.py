@@ -20,7 +20,7 @@ import numpy as np
 from app.apikey import KEY_FILE, key_path
 from app.collection import pipeline_source
 from app.errors import OperationRefused
-from app.storage.database import DATABASE_URL_ENV, DB_NAME, database_url
+from app.storage.database import DB_NAME, database_url
 from app.storage.files import IMAGES
 from app.storage.maintenance import copy_database, image_names
 from app.storage.orphans import MIN_AGE_S, retry_removals, sweep
@@ -35,12 +35,6 @@ from app.storage.snapshots import (
 from app.storage.store import ReferenceStore
 
 BACKUP_MANIFEST = "backup.json"
-#: What ``geoloc backup`` says on PostgreSQL (README, "Several hosts: PostgreSQL" has the procedure).
-PG_BACKUP_NOTE = (
-    f"the store is on PostgreSQL ({DATABASE_URL_ENV}): back up the database with pg_dump (it holds every row, "
-    "code, the change log and the generations, consistently while the service runs) and the shared images "
-    "folder (GEOLOC_IMAGES_DIR) after it; restore with pg_restore then the images. See README, 'Several hosts'"
-)
 KEY_NOTE = f"this backup holds the API key ({KEY_FILE}, mode 0600): keep it as private as the key itself"
 PIPELINES = "pipelines"  # the data dir's re-fitted pipelines, one folder per generation
 
@@ -158,17 +152,26 @@ def repair_data_dir(data_dir: Path, min_age_s: float = MIN_AGE_S) -> list[str]:
 
 
 def backup_data_dir(data_dir: Path, dest: Path) -> dict:
-    if database_url() is not None:
-        raise OperationRefused(PG_BACKUP_NOTE)
+    """SQLite: its backup API; PostgreSQL: ``pg_dump`` (``app.storage.postgres.dump_database``). Then, in
+    both, the images the copied rows name (from the shared images folder on PostgreSQL), the data dir's
+    re-fitted pipelines, its newest snapshot and its API key file."""
     if dest.exists() and any(dest.iterdir()):
         raise OperationRefused(f"{dest} is not empty: back up into a new or empty folder")
     (dest / IMAGES).mkdir(parents=True, exist_ok=True)
-    copy_database(data_dir, dest)  # a consistent copy while other processes keep writing
-    names = image_names(dest)
+    url = database_url()
+    if url is not None:
+        from app.storage.postgres import DUMP_NAME, dump_database
+
+        names = dump_database(url, dest / DUMP_NAME)  # one state, while others keep writing
+        images = _images_dir(data_dir)
+    else:
+        copy_database(data_dir, dest)  # a consistent copy while other processes keep writing
+        names = image_names(dest)
+        images = data_dir / IMAGES
     copied = missing = 0
     for name in names:
         try:
-            shutil.copy2(data_dir / IMAGES / name, dest / IMAGES / name)
+            shutil.copy2(images / name, dest / IMAGES / name)
             copied += 1
         except FileNotFoundError:  # deleted since the database copy was taken
             missing += 1
@@ -190,6 +193,7 @@ def backup_data_dir(data_dir: Path, dest: Path) -> dict:
         "api_key": holds_key,
         **({"note": KEY_NOTE} if holds_key else {}),
         "source": str(data_dir.resolve()),
+        "database": "postgres" if url is not None else "sqlite",
         "written_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
     }
     (dest / BACKUP_MANIFEST).write_text(json.dumps(summary, indent=1))
@@ -197,15 +201,31 @@ def backup_data_dir(data_dir: Path, dest: Path) -> dict:
 
 
 def restore_data_dir(source: Path, data_dir: Path) -> dict:
-    if database_url() is not None:
-        raise OperationRefused(PG_BACKUP_NOTE)
-    if not (source / BACKUP_MANIFEST).exists() or not (source / DB_NAME).exists():
-        raise OperationRefused(f"{source} is not a backup written by `geoloc backup`")
+    """Into an empty data dir (and, on PostgreSQL, an empty database: ``pg_restore``, the images into the
+    shared images folder). A backup restores on the engine it was made on."""
+    from app.storage.postgres import DUMP_NAME
+
+    url = database_url()
+    db_file = source / (DUMP_NAME if url is not None else DB_NAME)
+    if not (source / BACKUP_MANIFEST).exists() or not db_file.exists():
+        other = "SQLite (unset GEOLOC_DATABASE_URL)" if url is not None else "PostgreSQL (set GEOLOC_DATABASE_URL)"
+        raise OperationRefused(
+            f"{source} is not a backup written by `geoloc backup` on this engine (a backup of {other}?)"
+            if (source / BACKUP_MANIFEST).exists()
+            else f"{source} is not a backup written by `geoloc backup`"
+        )
     if data_dir.exists() and any(p for p in data_dir.iterdir() if p.name != "README.md"):
         raise OperationRefused(f"{data_dir} is not empty: restore into a new or empty data dir")
     data_dir.mkdir(parents=True, exist_ok=True)
-    copy_database(source, data_dir)
-    shutil.copytree(source / IMAGES, data_dir / IMAGES, dirs_exist_ok=True)
+    if url is not None:
+        from app.storage.postgres import restore_database
+
+        restore_database(url, db_file)
+        images = _images_dir(data_dir, writable=True)  # makes the folders; the restored tables open
+    else:
+        copy_database(source, data_dir)
+        images = data_dir / IMAGES
+    shutil.copytree(source / IMAGES, images, dirs_exist_ok=True)
     if (source / PIPELINES).is_dir():
         shutil.copytree(source / PIPELINES, data_dir / PIPELINES, dirs_exist_ok=True)
     for path in source.glob("*-v*.faiss"):
@@ -214,6 +234,15 @@ def restore_data_dir(source: Path, data_dir: Path) -> dict:
         shutil.copy2(source / MANIFEST, data_dir / MANIFEST)
     _copy_key(source, data_dir)
     return json.loads((source / BACKUP_MANIFEST).read_text())
+
+
+def _images_dir(data_dir: Path, writable: bool = False) -> Path:
+    """Where the store keeps its images (the shared folder on PostgreSQL)."""
+    store = ReferenceStore(data_dir, read_only=not writable)
+    try:
+        return store.images_dir
+    finally:
+        store.close()
 
 
 def _copy_key(src_dir: Path, dest_dir: Path) -> bool:

@@ -292,3 +292,64 @@ class DatabaseWriterLock:
                 self._conn.execute("SELECT pg_advisory_unlock(%s)", (self.key,))
             self._conn.close()
             self._conn = None
+
+
+#: The dump's file name in a backup of a store on PostgreSQL (``geoloc backup``).
+DUMP_NAME = "database.dump"
+
+
+def _client_tool(name: str) -> str:
+    """``pg_dump``/``pg_restore``: on the PATH, else the newest of Debian's versioned folders (a dump must be
+    made by a client at least as new as the server)."""
+    import glob
+    import shutil
+
+    found = sorted(glob.glob(f"/usr/lib/postgresql/*/bin/{name}"), key=lambda p: int(p.split("/")[4]))
+    path = found[-1] if found else shutil.which(name)
+    if path is None:
+        from app.errors import OperationRefused
+
+        raise OperationRefused(f"{name} is not installed: it comes with PostgreSQL's client (postgresql-client)")
+    return path
+
+
+def dump_database(url: str, dest) -> list[str]:
+    """``pg_dump -Fc`` of the database into ``dest`` and the image file names its rows name, both of one
+    state: the names are read in a REPEATABLE READ transaction whose snapshot pg_dump is handed
+    (``--snapshot``), so the backup's images are exactly those its rows name, while others keep writing."""
+    import subprocess
+
+    import psycopg
+
+    with storage_guard("reading the database"), psycopg.connect(url, autocommit=True) as conn:
+        conn.execute("BEGIN ISOLATION LEVEL REPEATABLE READ READ ONLY")
+        snapshot = conn.execute("SELECT pg_export_snapshot()").fetchone()[0]
+        names = [f"{sha}.{ext}" for sha, ext in conn.execute("SELECT sha256, image_ext FROM refs").fetchall()]
+        out = subprocess.run(
+            [_client_tool("pg_dump"), "--format=custom", f"--snapshot={snapshot}", "--file", str(dest), url],
+            capture_output=True, text=True,
+        )  # fmt: skip
+        conn.execute("COMMIT")
+    if out.returncode != 0:
+        raise RuntimeError(f"pg_dump failed: {out.stderr.strip()}")
+    return names
+
+
+def restore_database(url: str, dump) -> None:
+    """``pg_restore`` of a backup's dump into the (empty) database ``url``; refused when it holds the
+    store's tables already (a restore never merges into a collection)."""
+    import subprocess
+
+    import psycopg
+
+    from app.errors import OperationRefused
+
+    with storage_guard("reading the database"), psycopg.connect(url, autocommit=True) as conn:
+        if conn.execute("SELECT to_regclass('refs') IS NOT NULL").fetchone()[0]:
+            raise OperationRefused("the database already holds a collection: restore into a new, empty database")
+    out = subprocess.run(
+        [_client_tool("pg_restore"), "--no-owner", "--exit-on-error", "--dbname", url, str(dump)],
+        capture_output=True, text=True,
+    )  # fmt: skip
+    if out.returncode != 0:
+        raise RuntimeError(f"pg_restore failed: {out.stderr.strip()}")

@@ -168,24 +168,37 @@ def test_kill_9_of_the_writer_hands_the_role_over_and_uploads_are_encoded_once(t
             b.stop()
 
 
-def test_check_on_postgres_and_backup_says_how(tmp_path, fitted_models, hosts_env):
-    """`geoloc check` reads the database and the shared images; `geoloc backup` refuses, naming pg_dump."""
+def test_check_backup_and_restore_on_postgres(tmp_path, fitted_models, hosts_env, postgres_server):
+    """`geoloc check` reads the database and the shared images; `geoloc backup` is a pg_dump and the images
+    its rows name, of one state; `geoloc restore` puts both into an empty database and images folder, which
+    then checks clean and serves the same collection."""
     env = {**os.environ, **hosts_env}
     base = [sys.executable, "-m", "app.cli"]
     where = ["--data-dir", str(tmp_path / "host-c")]
-    out = subprocess.run(
-        [*base, "check", *where, "--models-dir", str(fitted_models), "--config", CONFIG],
-        capture_output=True, text=True, timeout=300, env=env,
-    )  # fmt: skip
+    models = ["--models-dir", str(fitted_models), "--config", CONFIG]
+
+    def run(*args, environ=env):
+        return subprocess.run([*base, *args], capture_output=True, text=True, timeout=300, env=environ)
+
+    out = run("check", *where, *models)
     assert out.returncode == 0, out.stdout + out.stderr
     assert "rows: 30 indexed, 0 pending, 0 failed" in out.stdout and "images: 30 files, 0 missing" in out.stdout
+    out = run("backup", str(tmp_path / "bk"), *where)
+    assert out.returncode == 0 and "backed up 30 references (30 images" in out.stdout, out.stdout + out.stderr
+    assert (tmp_path / "bk" / "database.dump").stat().st_size > 0
     # An image lost from the shared folder is a problem the check names.
     victim = sorted(Path(hosts_env["GEOLOC_IMAGES_DIR"]).iterdir())[0]
     victim.unlink()
-    out = subprocess.run(
-        [*base, "check", *where, "--models-dir", str(fitted_models), "--config", CONFIG],
-        capture_output=True, text=True, timeout=300, env=env,
-    )  # fmt: skip
+    out = run("check", *where, *models)
     assert out.returncode == 1 and "image file is missing" in out.stderr, out.stdout + out.stderr
-    out = subprocess.run([*base, "backup", str(tmp_path / "bk"), *where], capture_output=True, text=True, env=env)
-    assert out.returncode != 0 and "pg_dump" in out.stdout + out.stderr, out.stdout + out.stderr
+    # Restored into a new database and images folder: a clean check, and a server that finds the lost photo.
+    restored = {**env, "GEOLOC_DATABASE_URL": postgres_server.create_database()}
+    restored["GEOLOC_IMAGES_DIR"] = str(tmp_path / "restored-images")
+    out = run("restore", str(tmp_path / "bk"), "--data-dir", str(tmp_path / "restored"), environ=restored)
+    assert out.returncode == 0, out.stdout + out.stderr
+    assert (tmp_path / "restored-images" / victim.name).exists()
+    out = run("check", "--data-dir", str(tmp_path / "restored"), *models, environ=restored)
+    assert out.returncode == 0 and "rows: 30 indexed" in out.stdout, out.stdout + out.stderr
+    # A restore never merges into a database that holds a collection.
+    out = run("restore", str(tmp_path / "bk"), "--data-dir", str(tmp_path / "again"), environ=restored)
+    assert out.returncode != 0 and "new, empty database" in out.stdout + out.stderr
