@@ -172,9 +172,9 @@ class Collection:
     # -- loading --------------------------------------------------------------------------------------
     def _load(self) -> tuple[ReferenceIndex, int]:
         try:
-            index, manifest = load_snapshot(self.store.data_dir, self.pipeline, self.store)
+            index, manifest = load_snapshot(self.store.snapshots_dir, self.pipeline, self.store)
         except SnapshotInvalid as e:
-            if (self.store.data_dir / "index.json").exists():
+            if (self.store.snapshots_dir / "index.json").exists():
                 log.warning("snapshot not used (%s): rebuilding the index from the codes in SQLite", e)
             if isinstance(e, SnapshotMismatch):
                 self.store.retire_snapshot(e.manifest.version, e.manifest.ref_high_water)
@@ -209,7 +209,7 @@ class Collection:
         t0 = time.perf_counter()
         pipeline = pipeline_source(self.store.data_dir, self.models_dir, ref, name or self.pipeline.config.name).load()
         try:
-            index, manifest = load_snapshot(self.store.data_dir, pipeline, self.store)
+            index, manifest = load_snapshot(self.store.snapshots_dir, pipeline, self.store)
             if manifest.generation != generation:
                 raise SnapshotInvalid("the snapshot is of another generation")
             version, rebuilt = manifest.version, False
@@ -325,7 +325,7 @@ class Collection:
             t0 = time.perf_counter()
             if self.store.head()[1] != gen0:  # a re-fit switched meanwhile: this generation is done with
                 return False
-            manifest = write_snapshot(self.store.data_dir, copy, pipeline, v0, gen0, self.store.binding(v0))
+            manifest = write_snapshot(self.store.snapshots_dir, copy, pipeline, v0, gen0, self.store.binding(v0))
             with self.lock:
                 if self.generation != gen0:  # swapped while we wrote: the new generation's index stays
                     return False

@@ -93,10 +93,10 @@ def check_data_dir(data_dir: Path, models_dir: Path, config: str | None) -> Chec
         r.problems.append(f"indexed references without codes of the pipeline's size: {_sample(bad_codes)}")
     indexed = np.array(sorted(row.id for row in rows if row.status == "indexed"), np.int64)
     try:
-        index, manifest = load_snapshot(data_dir, pipeline, store)
+        index, manifest = load_snapshot(store.snapshots_dir, pipeline, store)
     except SnapshotInvalid as e:
-        r.lines.append(f"index: no usable snapshot ({e}); the service rebuilds it from SQLite")
-        if (data_dir / MANIFEST).exists() and not isinstance(e, SnapshotUnverifiable):
+        r.lines.append(f"index: no usable snapshot ({e}); the service rebuilds it from the database")
+        if (store.snapshots_dir / MANIFEST).exists() and not isinstance(e, SnapshotUnverifiable):
             r.problems.append(f"the snapshot is not usable: {e}")
         return r
     from app.collection import apply_changes
@@ -163,11 +163,11 @@ def backup_data_dir(data_dir: Path, dest: Path) -> dict:
         from app.storage.postgres import DUMP_NAME, dump_database
 
         names = dump_database(url, dest / DUMP_NAME)  # one state, while others keep writing
-        images = _images_dir(data_dir)
+        images, snapshots = _store_dirs(data_dir)
     else:
         copy_database(data_dir, dest)  # a consistent copy while other processes keep writing
         names = image_names(dest)
-        images = data_dir / IMAGES
+        images, snapshots = data_dir / IMAGES, data_dir
     copied = missing = 0
     for name in names:
         try:
@@ -179,7 +179,7 @@ def backup_data_dir(data_dir: Path, dest: Path) -> dict:
         shutil.copytree(data_dir / PIPELINES, dest / PIPELINES, ignore=shutil.ignore_patterns(".*"))
     version = None
     try:
-        for path in snapshot_files(data_dir):
+        for path in snapshot_files(snapshots):
             shutil.copy2(path, dest / path.name)
         version = read_manifest(dest).version
     except (SnapshotInvalid, FileNotFoundError):
@@ -221,26 +221,26 @@ def restore_data_dir(source: Path, data_dir: Path) -> dict:
         from app.storage.postgres import restore_database
 
         restore_database(url, db_file)
-        images = _images_dir(data_dir, writable=True)  # makes the folders; the restored tables open
+        images, snapshots = _store_dirs(data_dir, writable=True)  # makes the folders; the restored tables open
     else:
         copy_database(source, data_dir)
-        images = data_dir / IMAGES
+        images, snapshots = data_dir / IMAGES, data_dir
     shutil.copytree(source / IMAGES, images, dirs_exist_ok=True)
     if (source / PIPELINES).is_dir():
         shutil.copytree(source / PIPELINES, data_dir / PIPELINES, dirs_exist_ok=True)
     for path in source.glob("*-v*.faiss"):
-        shutil.copy2(path, data_dir / path.name)
+        shutil.copy2(path, snapshots / path.name)
     if (source / MANIFEST).exists():
-        shutil.copy2(source / MANIFEST, data_dir / MANIFEST)
+        shutil.copy2(source / MANIFEST, snapshots / MANIFEST)
     _copy_key(source, data_dir)
     return json.loads((source / BACKUP_MANIFEST).read_text())
 
 
-def _images_dir(data_dir: Path, writable: bool = False) -> Path:
-    """Where the store keeps its images (the shared folder on PostgreSQL)."""
+def _store_dirs(data_dir: Path, writable: bool = False) -> tuple[Path, Path]:
+    """Where the store keeps its images and its snapshots (shared folders on PostgreSQL, when set)."""
     store = ReferenceStore(data_dir, read_only=not writable)
     try:
-        return store.images_dir
+        return store.images_dir, store.snapshots_dir
     finally:
         store.close()
 

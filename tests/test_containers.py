@@ -117,5 +117,6 @@ def test_compose_postgres_profile_runs_a_database_and_a_replica_with_its_own_dat
     assert replica["image"] == services["api"]["image"]
     assert "geoloc-replica:/data" in replica["volumes"] and "geoloc-data:/primary" in replica["volumes"]
     assert replica["environment"]["GEOLOC_IMAGES_DIR"] == "/primary/images"
+    assert replica["environment"]["GEOLOC_SNAPSHOTS_DIR"] == "/primary"
     assert replica["depends_on"]["postgres"]["condition"] == "service_healthy"
     assert {"geoloc-replica", "geoloc-postgres"} <= set(compose["volumes"])

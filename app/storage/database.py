@@ -35,6 +35,10 @@ DATABASE_URL_ENV = "GEOLOC_DATABASE_URL"
 #: With PostgreSQL, where the image files live: a path every host of a deployment mounts (see README,
 #: "Several hosts"); unset, or on SQLite: ``<data dir>/images``.
 IMAGES_DIR_ENV = "GEOLOC_IMAGES_DIR"
+#: With PostgreSQL, where the index snapshots live: a path every host mounts, so a replica starting cold
+#: loads the writer's newest snapshot (checked against the database) instead of rebuilding; unset, or on
+#: SQLite: the data dir.
+SNAPSHOTS_DIR_ENV = "GEOLOC_SNAPSHOTS_DIR"
 
 
 def database_url() -> str | None:
@@ -67,6 +71,8 @@ class Database:
         self.engine = "postgres" if self.database_url else "sqlite"
         shared = os.environ.get(IMAGES_DIR_ENV, "").strip() if self.database_url else ""
         self._images_dir = Path(shared) if shared else self.data_dir / IMAGES
+        shared = os.environ.get(SNAPSHOTS_DIR_ENV, "").strip() if self.database_url else ""
+        self._snapshots_dir = Path(shared) if shared else self.data_dir
         with storage_guard("opening the data dir"):
             if self.database_url:
                 self._open_postgres(read_only)
@@ -97,6 +103,7 @@ class Database:
         if not read_only:
             private_dir(self.data_dir, parents=True)
             private_dir(self.images_dir, parents=True)
+            private_dir(self.snapshots_dir, parents=True)
         self.db = PostgresConnection(self.database_url, read_only)
         if not read_only:
             self.db.executescript("\n".join(self.SCHEMAS))
@@ -107,6 +114,11 @@ class Database:
     @property
     def images_dir(self) -> Path:
         return self._images_dir
+
+    @property
+    def snapshots_dir(self) -> Path:
+        """Where the index snapshots are written and loaded (the data dir, or a shared path on PostgreSQL)."""
+        return self._snapshots_dir
 
     def _notify(self, db) -> None:
         """Inside a write transaction that changes the index: on PostgreSQL, wake every replica at commit

@@ -55,6 +55,7 @@ def hosts_env(postgres_server, pg_template, tmp_path) -> dict:
     return {
         "GEOLOC_DATABASE_URL": postgres_server.url(name),
         "GEOLOC_IMAGES_DIR": str(tmp_path / "images"),
+        "GEOLOC_SNAPSHOTS_DIR": str(tmp_path / "snapshots"),
         "GEOLOC_WORKER_RETRY_SECONDS": "1",
     }
 
@@ -89,10 +90,16 @@ def test_two_hosts_on_one_database_see_each_others_changes(tmp_path, fitted_mode
     try:
         ready_a = a.wait_ready()
         assert ready_a["database"] == "postgres" and ready_a["worker"] == "in-process"
+        # A started cold (no snapshot yet): it rebuilt its index from the database's codes, and writes a
+        # snapshot into the shared folder right after; B, starting then, loads that snapshot.
+        assert ready_a["index_loaded"] == "rebuilt", ready_a
+        deadline = time.monotonic() + 60
+        while not (Path(hosts_env["GEOLOC_SNAPSHOTS_DIR"]) / "index.json").exists():
+            assert time.monotonic() < deadline, a.read_log()
+            time.sleep(0.2)
         b = Server(tmp_path / "host-b", fitted_models, extra_env=hosts_env)
         ready_b = b.wait_ready()
-        # B started cold (a data dir of its own, no snapshot): its index is rebuilt from the database's codes.
-        assert ready_b["worker"] == "external" and ready_b["index_loaded"] == "rebuilt", ready_b
+        assert ready_b["worker"] == "external" and ready_b["index_loaded"] == "snapshot", ready_b
         assert ready_b["index_size"] == 30
 
         # An upload on B (which does not hold the writer role) is encoded by A and found first on both.
