@@ -41,9 +41,9 @@ def test_the_writer_role_is_one_advisory_lock_released_with_its_session(tmp_path
     monkeypatch.setenv("GEOLOC_DATABASE_URL", postgres_server.create_database())
     first, second = writer_lock(tmp_path / "a"), writer_lock(tmp_path / "b")  # two hosts' data dirs
     assert isinstance(first, DatabaseWriterLock)
-    assert first.acquire() and not second.acquire()
+    assert first.acquire() and not second.acquire() and first.alive()
     first._conn.close()  # the holder's session ends (its process died): the lock goes with it
-    assert second.acquire()
+    assert not first.alive() and second.acquire() and second.alive()
     second.release()
 
 

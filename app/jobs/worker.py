@@ -51,6 +51,9 @@ class WorkerLock:
     def held(self) -> bool:
         return self._fd is not None
 
+    #: A file lock is held until this process lets it go or dies: it cannot be lost while running.
+    can_be_lost = False
+
     @property
     def where(self) -> str:
         return str(self.path)

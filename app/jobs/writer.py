@@ -85,14 +85,18 @@ class Writer:
         runs then, and with ``retry_seconds`` a thread retries that often and starts everything once the
         holder is gone (its flock goes with it), until ``stop``."""
         self.attach(service)
-        if self._start_threads(on_started):
-            return True
-        if retry_seconds is not None:
+        started = self._start_threads(on_started)
+        if retry_seconds is not None and self.lock.can_be_lost:  # the database's lock: held, or not, for now
+            self._watch = threading.Thread(
+                target=self._supervise, args=(retry_seconds, on_started), name="geoloc-worker-failover", daemon=True
+            )
+            self._watch.start()
+        elif retry_seconds is not None and not started:
             self._watch = threading.Thread(
                 target=self._take_over, args=(retry_seconds, on_started), name="geoloc-worker-failover", daemon=True
             )
             self._watch.start()
-        return False
+        return started
 
     def _start_threads(self, on_started: Callable[[IngestWorker], None] | None) -> bool:
         if not self.acquire():
@@ -121,6 +125,42 @@ class Writer:
                     return
             except Exception:  # an unreadable lock file now may be fine at the next try
                 self.log.exception("taking over the worker lock failed; retrying in %.0f s", every)
+
+    def _supervise(self, every: float, on_started: Callable[[IngestWorker], None] | None) -> None:
+        """Failover on PostgreSQL, both ways: take the role once its holder's session is gone, and give it up
+        when this process's own lock session is gone (the database restarted, or this host was cut off from
+        it: another process may hold the role by now), then try to take it again. Without the second half a
+        holder that lost its lock would keep writing snapshots beside the new holder."""
+        while not self._stopping.wait(every):
+            try:
+                if not self.held:
+                    if self._start_threads(on_started):
+                        self.log.warning(
+                            "took over the worker lock (%s): this process now runs the ingestion worker",
+                            self.lock.where,
+                        )
+                elif not self.lock.alive():
+                    self.log.error(
+                        "lost the worker lock (%s): its database session ended; this process stops the worker "
+                        "and tries to take the lock again",
+                        self.lock.where,
+                    )
+                    self._stop_threads()
+                    self.lock.release()
+            except Exception:  # the database unreachable now may answer at the next try
+                self.log.exception("taking over the worker lock failed; retrying in %.0f s", every)
+
+    def _stop_threads(self) -> None:
+        """The role's threads stopped, without a final snapshot (the role may be another process's now)."""
+        if self.worker is not None:
+            self.worker.stop()
+            self.worker = None
+        if self.janitor is not None:
+            self.janitor.stop()
+            self.janitor = None
+        if self.snapshots is not None:
+            self.snapshots.stop(final=False)
+            self.snapshots = None
 
     # -- in the calling thread: `geoloc worker` -----------------------------------------------------------
     def run(self, service: GeolocService) -> None:

@@ -278,9 +278,23 @@ class DatabaseWriterLock:
         self._conn = conn
         return True
 
+    #: The lock goes with its session: a restart of the server, or a network cut, loses it under a running
+    #: holder (``alive`` says so; ``app.jobs.writer.Writer`` then gives the role up).
+    can_be_lost = True
+
     @property
     def held(self) -> bool:
         return self._conn is not None
+
+    def alive(self) -> bool:
+        """Whether the session that holds the lock is still there (one round trip)."""
+        if self._conn is None:
+            return False
+        try:
+            self._conn.execute("SELECT 1")
+        except Exception:
+            return False
+        return True
 
     @property
     def where(self) -> str:

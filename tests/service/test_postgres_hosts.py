@@ -145,30 +145,55 @@ def test_two_hosts_on_one_database_see_each_others_changes(tmp_path, fitted_mode
 
 
 def test_kill_9_of_the_writer_hands_the_role_over_and_uploads_are_encoded_once(tmp_path, fitted_models, hosts_env):
+    """First the writer's database session is cut (what a restart of the server or a network cut does to
+    it): the holder notices and gives the role up, and one process holds it again. Then the holder is
+    killed with SIGKILL while uploads are queued: the other takes the role within seconds and every queued
+    upload is indexed exactly once."""
     import psycopg
 
+    from app.storage.postgres import WRITER_ROLE_KEY
+
+    url = hosts_env["GEOLOC_DATABASE_URL"]
     a = Server(tmp_path / "host-a", fitted_models, extra_env=hosts_env)
     b = None
     try:
         assert a.wait_ready()["worker"] == "in-process"
         b = Server(tmp_path / "host-b", fitted_models, extra_env=hosts_env)
         assert b.wait_ready()["worker"] == "external"
-        jobs = [_upload(b, p) for p in NEW_PHOTOS]  # queued in the database; A starts encoding them
-        a.kill()
+
+        with psycopg.connect(url, autocommit=True) as con:
+            cut = con.execute(
+                "SELECT pg_terminate_backend(pid) FROM pg_locks WHERE locktype = 'advisory' AND granted "
+                "AND ((classid::bigint << 32) | objid::bigint) = %s",
+                (WRITER_ROLE_KEY,),
+            ).fetchall()
+        assert cut == [(True,)]
+        deadline = time.monotonic() + TAKEOVER_S
+        while True:
+            roles = {s: s.client.get("/ready").json()["worker"] for s in (a, b)}
+            if "lost the worker lock" in a.read_log() and list(roles.values()).count("in-process") == 1:
+                break
+            assert time.monotonic() < deadline, (roles, a.read_log())
+            time.sleep(0.2)
+        holder = next(s for s, role in roles.items() if role == "in-process")
+        other = b if holder is a else a
+
+        jobs = [_upload(other, p) for p in NEW_PHOTOS]  # queued in the database; the holder starts on them
+        holder.kill()
         killed = time.monotonic()
-        while b.client.get("/ready").json()["worker"] != "in-process":
-            assert time.monotonic() - killed < TAKEOVER_S, b.read_log()
+        while other.client.get("/ready").json()["worker"] != "in-process":
+            assert time.monotonic() - killed < TAKEOVER_S, other.read_log()
             time.sleep(0.2)
         for job_id, _ in jobs:
-            assert wait_job(b.client, job_id, 60)["status"] == "done"
-        assert "took over the worker lock" in b.read_log()
+            assert wait_job(other.client, job_id, 60)["status"] == "done"
+        assert "took over the worker lock" in other.read_log()
         for photo, (_, ref_id) in zip(NEW_PHOTOS, jobs, strict=True):
-            assert _locate(b, photo)[0]["reference_id"] == ref_id
-        with psycopg.connect(hosts_env["GEOLOC_DATABASE_URL"]) as con:
+            assert _locate(other, photo)[0]["reference_id"] == ref_id
+        with psycopg.connect(url) as con:
             adds = con.execute("SELECT ref_id, COUNT(*) FROM changes WHERE op='add' GROUP BY ref_id").fetchall()
             indexed = con.execute("SELECT COUNT(*) FROM refs WHERE status='indexed'").fetchone()[0]
         assert indexed == 34 and len(adds) == 34 and all(n == 1 for _, n in adds)  # exactly once each
-        assert b.client.get("/ready").json()["index_size"] == 34
+        assert other.client.get("/ready").json()["index_size"] == 34
     finally:
         a.stop()
         if b is not None:

@@ -35,7 +35,7 @@ def ready(request: Request):
         index_size=col.size,
         version=col.version,
         generation=col.generation,
-        worker="in-process" if state.worker is not None else "external",
+        worker="in-process" if state.worker is not None and (state.writer is None or state.writer.held) else "external",
         database=state.service.store.engine,
         index_loaded="rebuilt" if col.stats.full_rebuilds else "snapshot",
     )
