@@ -90,6 +90,12 @@ def main() -> None:
     ap.add_argument("--rounds", type=int, default=30)
     ap.add_argument("--references", type=int, default=64, help="db rows indexed before timing")
     ap.add_argument("--write", action="store_true", help="write the figures into docs/BENCHMARKS.md")
+    ap.add_argument(
+        "--baseline-tree",
+        type=Path,
+        help="another checkout (e.g. `git worktree add ../base <commit>`, beside this one so ../shared "
+        "resolves): its server runs beside this one's, each request and workload pass interleaved",
+    )
     args = ap.parse_args()
 
     rows = penn_rows()
@@ -105,21 +111,34 @@ def main() -> None:
     q12mp = [(p.name, p.read_bytes()) for p in originals]
     workload = Workload(queries[0].image)
 
-    times: dict[str, list[float]] = {"workload": [], "1600 px": [], "12 MP": []}
+    trees = {"": None} if args.baseline_tree is None else {"": None, "baseline ": args.baseline_tree.resolve()}
+    times: dict[str, list[float]] = {"workload": []}
+    for tree in trees:
+        times |= {f"{tree}1600 px": [], f"{tree}12 MP": []}
     with tempfile.TemporaryDirectory(prefix="locate-normalised-") as tmp:
-        server = ServerProcess(Path(tmp) / "data", models, args.config)
-        with server:
-            post_references(server.client, [(r.image.name, r.image.read_bytes(), r.lat, r.lon) for r in refs])
-            for name, data in (q1600[0], q12mp[0]):  # models loaded, caches warm
-                locate_seconds(server, name, data)
+        servers = {
+            tree: ServerProcess(Path(tmp) / f"data{n}", models, args.config, code=code)
+            for n, (tree, code) in enumerate(trees.items())
+        }
+        try:
+            for server in servers.values():
+                server.wait_ready(timeout=300)
+                post_references(server.client, [(r.image.name, r.image.read_bytes(), r.lat, r.lon) for r in refs])
+                for name, data in (q1600[0], q12mp[0]):  # models loaded, caches warm
+                    locate_seconds(server, name, data)
             workload.run()
             for i in range(args.rounds):
-                times["workload"].append(workload.run())
-                times["1600 px"].append(locate_seconds(server, *q1600[i % len(q1600)]))
-                times["workload"].append(workload.run())
-                times["12 MP"].append(locate_seconds(server, *q12mp[i % len(q12mp)]))
+                order = list(servers.items()) if i % 2 == 0 else list(servers.items())[::-1]
+                for tree, server in order:
+                    times["workload"].append(workload.run())
+                    times[f"{tree}1600 px"].append(locate_seconds(server, *q1600[i % len(q1600)]))
+                    times["workload"].append(workload.run())
+                    times[f"{tree}12 MP"].append(locate_seconds(server, *q12mp[i % len(q12mp)]))
                 if (i + 1) % 10 == 0:
                     print(f"  round {i + 1}/{args.rounds}", flush=True)
+        finally:
+            for server in servers.values():
+                server.stop()
 
     p = {k: percentiles(v, (50, 95)) for k, v in times.items()}
     w50 = p["workload"]["p50"]
@@ -144,6 +163,12 @@ def main() -> None:
             f"| {p[k]['p50'] / w50:.2f} |"
         )
     lines += ["", f"- /locate 1600 px p50 / workload p50: **{ratio:.2f}**; 12 MP p50 / 1600 px p50: **{large:.2f}**."]
+    if args.baseline_tree is not None:
+        lines.append(
+            f"- Against the baseline tree ({args.baseline_tree.name}), interleaved request by request: 1600 px "
+            f"p50 **{p['1600 px']['p50'] / p['baseline 1600 px']['p50']:.2f}x**, 12 MP p50 "
+            f"**{p['12 MP']['p50'] / p['baseline 12 MP']['p50']:.2f}x** the baseline's."
+        )
     text = "\n".join(lines)
     print("\n" + text)
     if args.write:

@@ -28,7 +28,8 @@ class ServerProcess:
     Auth is on, as for users: with ``api_key`` the server gets it in GEOLOC_API_KEY and the caller sends it
     where it means to; without one the server makes DATA_DIR/api_key, and once it is ready ``api_key`` holds
     that key and ``client`` sends it on every request (callers that are not about auth need not care).
-    ``no_auth`` starts it with --no-auth."""
+    ``no_auth`` starts it with --no-auth; ``code`` runs the ``app`` package of another tree (a checkout or a
+    ``git archive`` of an older commit) instead of this one's."""
 
     def __init__(
         self,
@@ -40,6 +41,7 @@ class ServerProcess:
         worker: str = "inprocess",
         extra_env: dict | None = None,
         no_auth: bool = False,
+        code: Path | None = None,
     ):
         self.data_dir, self.models_dir, self.config = data_dir, models_dir, config
         self.api_key, self._key_from_file = api_key, not api_key and not no_auth
@@ -48,6 +50,8 @@ class ServerProcess:
         self.url = f"http://127.0.0.1:{self.port}"
         inherited = {k: v for k, v in os.environ.items() if k not in ("GEOLOC_API_KEY", "GEOLOC_NO_AUTH")}
         env = {**inherited, "PYTHONUNBUFFERED": "1", **(extra_env or {})}
+        if code is not None:  # another tree's ``app`` (an older commit, for a benchmark's baseline)
+            env["PYTHONPATH"] = str(code)
         if api_key:
             env["GEOLOC_API_KEY"] = api_key
         self.log = open(data_dir.parent / f"server-{self.port}.log", "w")  # noqa: SIM115
@@ -72,6 +76,7 @@ class ServerProcess:
             stdout=self.log,
             stderr=subprocess.STDOUT,
             env=env,
+            cwd=code,  # ``python -m`` puts the working directory first on sys.path
         )
         self.client = httpx.Client(base_url=self.url, timeout=60)
 

@@ -35,6 +35,7 @@ from app.encoding.items import Encoded, EncodeItem, encode_item, read_item
 from app.engine.configs import get_config
 from app.engine.imageio import ImageLimits
 from app.engine.pipeline import PipelineSource
+from app.errors import ServiceError
 
 log = logging.getLogger("geoloc.ray")
 
@@ -42,10 +43,20 @@ log = logging.getLogger("geoloc.ray")
 START_TIMEOUT_S = 120.0
 #: Seconds one batch may take before the job is declared stuck (a batch is a few images).
 BATCH_TIMEOUT_S = 300.0
+#: A ``ray://`` session runs on a server process the head starts for each client; on a busy head that
+#: start fails now and then ("Starting Ray client server failed") and the next one, on the next port,
+#: succeeds, so a client session is asked for this many times before the error reaches the user.
+CLIENT_ATTEMPTS = 3
+CLIENT_RETRY_PAUSE_S = 2.0
+#: What the Ray Client's error says when the head started this client's server process and it died.
+SESSION_START_FAILED = "Starting Ray client server failed"
 
 
-class RayEngineError(RuntimeError):
-    """Ray could not be reached, the pool could not start, or a batch failed after its retries."""
+class RayEngineError(ServiceError):
+    """Ray could not be reached, the pool could not start, or a batch failed after its retries: the
+    command's ``--ray`` address or cluster, not a bug (the CLI exits 2 with this line)."""
+
+    code = "invalid_request"
 
 
 def _import_ray():
@@ -95,8 +106,21 @@ def connect(address: str, num_cpus: int | None = None, timeout_s: float = START_
         kwargs["_node_ip_address"] = "127.0.0.1"
     else:
         kwargs = {"address": address}
-    with _deadline(timeout_s, f"starting or reaching Ray (address {address!r})"):
-        ray.init(**kwargs, **quiet)
+    attempts = CLIENT_ATTEMPTS if address.startswith("ray://") else 1
+    for attempt in range(1, attempts + 1):
+        try:
+            with _deadline(timeout_s, f"starting or reaching Ray (address {address!r})"):
+                ray.init(**kwargs, **quiet)
+            break
+        except ConnectionError as e:
+            if SESSION_START_FAILED not in str(e):  # nothing listening, refused, a wrong token: no retry
+                raise
+            if attempt == attempts:
+                raise RayEngineError(f"the Ray Client at {address} failed {attempts} times: {e}") from e
+            log.warning("Ray Client session at %s failed to start (%s); trying again", address, e)
+            if ray.is_initialized():
+                ray.shutdown()
+            time.sleep(CLIENT_RETRY_PAUSE_S)
     log.info("Ray reached at %r: %s CPUs", address, ray.cluster_resources().get("CPU", 0))
     return True
 

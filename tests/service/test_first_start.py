@@ -46,37 +46,55 @@ def _server(data: Path, models: Path, env: dict) -> ServerProcess:
     return ServerProcess(data, models, CONFIG, extra_env={"GEOLOC_ORT_THREADS": "1", **env})
 
 
-def _wait_ready(server: ServerProcess, timeout: float) -> tuple[dict, list[str]]:
-    """Poll /health and /ready until ready; returns /ready's answer and every distinct 503 message."""
-    seen: list[str] = []
+def _wait_ready(*servers: ServerProcess, timeout: float) -> list[tuple[dict, list[str]]]:
+    """Poll each server's /health and /ready, turn by turn, until all are ready; per server, /ready's answer
+    and every distinct 503 message it gave."""
+    seen: list[list[str]] = [[] for _ in servers]
+    ready: list[dict | None] = [None for _ in servers]
     deadline = time.time() + timeout
     while time.time() < deadline:
-        assert server.proc.poll() is None, server.read_log()
-        try:
-            health = server.client.get("/health")
-            ready = server.client.get("/ready")
-        except httpx.TransportError:
-            time.sleep(0.2)
-            continue
-        assert health.status_code == 200, health.text  # alive during the whole first start
-        if ready.status_code == 200:
-            return ready.json(), seen
-        assert ready.status_code == 503, ready.text
-        body = ready.json()
-        assert body["error"] == "not_ready"
-        if not seen or seen[-1] != body["message"]:
-            seen.append(body["message"])
+        for n, server in enumerate(servers):
+            if ready[n] is not None:
+                continue
+            assert server.proc.poll() is None, server.read_log()
+            try:
+                health = server.client.get("/health")
+                answer = server.client.get("/ready")
+            except httpx.TransportError:
+                continue
+            assert health.status_code == 200, health.text  # alive during the whole first start
+            if answer.status_code == 200:
+                ready[n] = answer.json()
+                continue
+            assert answer.status_code == 503, answer.text
+            body = answer.json()
+            assert body["error"] == "not_ready"
+            if not seen[n] or seen[n][-1] != body["message"]:
+                seen[n].append(body["message"])
+        if all(r is not None for r in ready):
+            return list(zip(ready, seen, strict=True))
         time.sleep(0.3)
-    raise TimeoutError(f"not ready after {timeout} s; /ready said {seen[-3:]}\n{server.read_log()}")
+    raise TimeoutError(f"not ready after {timeout} s; /ready said {seen}\n" + "\n".join(s.read_log() for s in servers))
 
 
 @pytest.mark.slow
 def test_first_start_fits_ingests_and_serves(tmp_path, photo_folder, bare_models):
+    """Two servers started together on one empty data dir (a scaled api service): one fits and ingests, the
+    other waits for it, says so, and then serves the same generation 0: the fit and the ingest happen once."""
     data = tmp_path / "data"
     env = {"GEOLOC_INITIAL_PHOTOS": str(photo_folder)}
     server = _server(data, bare_models, env)
+    twin = _server(data, bare_models, env)
     try:
-        ready, said = _wait_ready(server, timeout=900)
+        (ready, said), (twin_ready, twin_said) = _wait_ready(server, twin, timeout=900)
+        assert (twin_ready["generation"], twin_ready["index_size"]) == (0, len(PHOTOS))
+        logs = [Path(s.log.name).read_text() for s in (server, twin)]
+        assert sum("first start done" in log for log in logs) == 1, logs  # fitted and ingested once
+        assert sum("step 2 of 3" in log for log in logs) == 1, logs
+        waited = [m for m in said + twin_said if "another process is fitting" in m]
+        assert waited, (said, twin_said)  # the waiting one said why it was not ready
+        if "first start done" in logs[1]:  # the twin won the lock: look at it from here on
+            server, twin, said = twin, server, twin_said
         assert ready["config"] == CONFIG and ready["generation"] == 0
         assert ready["index_size"] == len(PHOTOS)
         # /ready said why it was not ready, step by step, in order
@@ -99,6 +117,7 @@ def test_first_start_fits_ingests_and_serves(tmp_path, photo_folder, bare_models
         assert haversine_m(lat, lon, best["lat"], best["lon"]) < 1.0  # the same photo is in the collection
     finally:
         server.stop()
+        twin.stop()
 
     again = _server(data, bare_models, env)  # a restart: no refit, no re-ingest
     try:
