@@ -2,6 +2,7 @@
 
 import json
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -30,8 +31,15 @@ def test_build_fit_ingest_locate(workdir, mini_manifest):
     m, data, models = str(mini_manifest), str(workdir / "index"), str(workdir / "models")
     assert (workdir / "models" / "squeezenet1_1.onnx").exists()
     # No bank here: this test checks exact self-retrieval (a db photo's own code, all its features).
-    out = geoloc("fit", "--manifest", m, "--config", "hybrid-bin", "--models-dir", models, "--svm-bank", "none")
+    out = geoloc(
+        "fit", "--manifest", m, "--config", "hybrid-bin", "--models-dir", models, "--svm-bank", "none",
+        "--calibration-sample", "20",
+    )  # fmt: skip
     assert "saved" in out.stdout and "no SVM bank" in out.stdout
+    # The 10 db captures of the mini manifest (20 sampled of their 30 images): calibrated or, too few right
+    # answers, the conservative rule; either way it says which, and how many references it sampled.
+    assert re.search(r"calibration \((collection|conservative)\): .*sampled 20", out.stdout), out.stdout
+    assert (workdir / "models" / "pipelines" / "hybrid-bin" / "calibration.json").exists()
     manifest = json.loads((workdir / "models" / "pipelines" / "hybrid-bin" / "pipeline.json").read_text())
     assert manifest["config"]["name"] == "hybrid-bin" and manifest["bits"] > 0
 
@@ -80,8 +88,10 @@ def test_eval_writes_the_report(workdir, mini_manifest):
         str(out_json),
         "--folds",
         "2",
+        "--absent-radius",
+        "100",
     )
-    assert "Recall@1/5/10/20" in p.stdout
+    assert "Recall@1/5/10/20" in p.stdout and "absent places" in p.stdout and "  fold 2:" in p.stdout
     r = json.loads(out_json.read_text())
     assert r["config"] == "hybrid" and r["folds"] == 2 and r["radius_m"] == 25
     assert set(r["recall_at"]) == {"1", "5", "10", "20"} and all(0 <= v <= 1 for v in r["recall_at"].values())
@@ -90,6 +100,10 @@ def test_eval_writes_the_report(workdir, mini_manifest):
     assert r["bytes_per_reference"] == 4 * 256 or r["bytes_per_reference"] < 4 * 256
     assert {"median", "p90", "confident_within_radius"} <= set(r["estimate_error_m"])
     assert out_json.with_suffix(".png").stat().st_size > 1000
+    a = r["answers"]  # answer quality: pooled, per fold, and on the simulated absent places
+    assert len(r["answers_per_fold"]) == 2 and len(r["calibration_per_fold"]) == 2
+    assert 0 <= a["coverage"] <= 1 and a["absent_radius_m"] == 100 and 0 <= a["absent_confident"] <= 1
+    assert sum(a["reason_codes"].values()) == 39 == sum(a["absent_reason_codes"].values())
 
 
 def test_unknown_config_is_a_clear_error(workdir, mini_manifest):
