@@ -96,3 +96,40 @@ def test_verification_evidence_is_more_columns_of_the_same_vector():
     # A rule fitted without verification reads only its own columns from verified evidence.
     plain = gather(lats, lons, scores)
     assert np.array_equal(ev.columns(GLOBAL_NAMES), plain.values)
+
+
+def test_distinctiveness_reads_score_differences_against_other_places():
+    """lead_over_far: a candidate's score above the best candidate more than 100 m from it (the rival place);
+    with no rival among the candidates, above the last one. Shifting every score leaves both columns as
+    they are (a new photo's absolute score level is not evidence)."""
+    here, near, far = _offset(0, 0), _offset(10, 0), _offset(400, 0)
+    lats = np.array([here[0], near[0], far[0]])
+    lons = np.array([here[1], near[1], far[1]])
+    scores = np.array([0.70, 0.66, 0.61])
+    ev = gather(lats, lons, scores)
+    lead = ev.values[:, ev.names.index("lead_over_far")]
+    assert np.allclose(lead, [0.70 - 0.61, 0.66 - 0.61, 0.61 - 0.70])
+    assert ev.values[0, ev.names.index("gap_1_last")] == np.float64(0.70) - np.float64(0.61)
+    lone = gather(lats[:2], lons[:2], scores[:2])  # no rival place: the lead over the last candidate
+    assert np.allclose(lone.values[:, lone.names.index("lead_over_far")], [0.70 - 0.66, 0.0])
+    shifted = gather(lats, lons, scores + 0.05)
+    for name in ("lead_over_far", "gap_1_last"):
+        j = ev.names.index(name)
+        assert np.allclose(shifted.values[:, j], ev.values[:, j])
+
+
+def test_calibration_parts_are_whole_captures_bounded_by_the_sample():
+    """The references the calibration locates: whole captures, each in one part (an auxiliary fit leaves a
+    part out, so a photo's crops are never fitted on while it is located), at most ``sample`` of them."""
+    from app.engine.training.svm_training import Geotagged
+    from app.fitting import HOLDOUT_PARTS, calibration_parts
+
+    refs = {i: Geotagged(None, LAT0, LON0, f"g{i // 3}") for i in range(60)}  # 20 captures of 3
+    parts = calibration_parts(refs, sample=600, seed=0)
+    assert len(parts) == HOLDOUT_PARTS and sorted(sum(parts, [])) == list(range(60))
+    for p in parts:
+        groups = {refs[i].group for i in p}
+        assert all(refs[j].group not in groups for q in parts if q is not p for j in q)
+    small = calibration_parts(refs, sample=20, seed=0)
+    assert sum(len(p) for p in small) == 20 and len(small) < HOLDOUT_PARTS
+    assert calibration_parts(refs, sample=600, seed=1) != parts  # seeded
