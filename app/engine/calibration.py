@@ -147,8 +147,8 @@ class Calibration:
         return Decision(
             False,
             AMBIGUOUS,
-            f"ambiguous: the best group's chance of lying within 25 m is {answer_p:.0%}, below the "
-            f"{self.confident_p:.0%} this collection needs for a confident answer",
+            f"ambiguous: the best group's chance of lying within 25 m is {answer_p:.1%}, below the "
+            f"{self.confident_p:.1%} this collection needs for a confident answer",
             p,
             answer_p,
         )
