@@ -70,7 +70,11 @@ def test_build_fit_ingest_locate(workdir, mini_manifest):
     assert bad.returncode == 2 and "not a JPEG" in bad.stderr
     # --brief: the answer in words (a db photo: its own reference and crops agree on the spot).
     brief = geoloc("locate", str(photo), "--brief", "--compare-exif", "--data-dir", data, "--models-dir", models)
-    assert brief.stdout.startswith("Likely: taken within ") and "img_00000.jpg" in brief.stdout, brief.stdout
+    # Calibrated on 20 of these 30 references (a tiny sample, no threshold reaches 90 %), the rule gives no
+    # confident answer, but a reference's own photo scores above anything its calibration saw: never
+    # "not in this collection", and the reference itself comes first.
+    assert brief.stdout.startswith(("Likely: taken within ", "Possible only")), brief.stdout
+    assert "img_00000.jpg" in brief.stdout and "not in this collection" not in brief.stdout, brief.stdout
     assert "EXIF GPS" in brief.stdout and not brief.stdout.lstrip().startswith("{")
 
 

@@ -87,6 +87,10 @@ class Calibration:
     names: tuple[str, ...] = ()
     mean: list[float] = field(default_factory=list)
     scale: list[float] = field(default_factory=list)
+    #: The range of each column in the calibration sample: evidence beyond it (a photo that IS a reference
+    #: scores 1.0, far above anything the sample saw) is read at the edge, never extrapolated.
+    low: list[float] = field(default_factory=list)
+    high: list[float] = field(default_factory=list)
     coef: list[float] = field(default_factory=list)
     intercept: float = 0.0
     confident_p: float = 1.01
@@ -107,7 +111,10 @@ class Calibration:
     def probabilities(self, evidence: Evidence) -> np.ndarray | None:
         if not self.calibrated:
             return None
-        x = (evidence.columns(self.names) - np.asarray(self.mean)) / np.asarray(self.scale)
+        x = evidence.columns(self.names)
+        if self.low and self.high:
+            x = np.clip(x, np.asarray(self.low), np.asarray(self.high))
+        x = (x - np.asarray(self.mean)) / np.asarray(self.scale)
         z = x @ np.asarray(self.coef) + self.intercept
         return 1.0 / (1.0 + np.exp(-z))
 
@@ -135,6 +142,17 @@ class Calibration:
         if answer_p >= self.confident_p:
             return Decision(True, None, None, p, answer_p)
         best = float(p.max())
+        top, seen = self._beyond_range(evidence)
+        if top is not None:
+            # Clipped to the sample's edge, the probabilities say nothing of such a match: never "not here".
+            return Decision(
+                False,
+                AMBIGUOUS,
+                f"the best match scores {top:.3f}, above anything this collection's calibration saw ({seen:.3f}): "
+                "it may be the same photo as a reference; compare them",
+                p,
+                answer_p,
+            )
         if best < self.no_match_p:
             return Decision(
                 False,
@@ -152,6 +170,15 @@ class Calibration:
             p,
             answer_p,
         )
+
+    def _beyond_range(self, evidence: Evidence) -> tuple[float | None, float]:
+        """The best score when it lies above the calibration sample's highest (a photo that is a reference,
+        or a near copy: the sample never holds one), else None."""
+        if "best_score" not in self.names or not self.high or not len(evidence.values):
+            return None, 0.0
+        seen = float(self.high[self.names.index("best_score")])
+        top = float(evidence.columns(("best_score",))[0, 0])
+        return (top, seen) if top > seen else (None, seen)
 
     # -- persistence ----------------------------------------------------------------------------------
     def save(self, directory: Path) -> None:
@@ -201,6 +228,8 @@ def fit_calibration(samples: list[Sample], seed: int = 0) -> Calibration:
         names=tuple(names),
         mean=mean.tolist(),
         scale=scale.tolist(),
+        low=x.min(axis=0).tolist(),
+        high=x.max(axis=0).tolist(),
         coef=model.coef_[0].tolist(),
         intercept=float(model.intercept_[0]),
         source="collection",

@@ -133,3 +133,19 @@ def test_calibration_parts_are_whole_captures_bounded_by_the_sample():
     small = calibration_parts(refs, sample=20, seed=0)
     assert sum(len(p) for p in small) == 20 and len(small) < HOLDOUT_PARTS
     assert calibration_parts(refs, sample=600, seed=1) != parts  # seeded
+
+
+def test_a_match_above_anything_the_calibration_saw_is_never_not_in_this_collection():
+    """Evidence is read within the calibration sample's range; a best score above it (a reference's own
+    photo: the sample never holds a duplicate) is ambiguous at worst, never no_match."""
+    rng = np.random.default_rng(0)
+    cal = fit_calibration([_sample(rng, present) for present in [True] * 60 + [False] * 60])
+    lats, lons, scores = _answer(np.random.default_rng(9), False)
+    scores = scores.copy()
+    scores[0] = 1.0  # the photo itself, among look-alikes elsewhere
+    d = cal.decide(gather(lats, lons, scores), fuse_position(lats, lons, scores))
+    assert d.code != NO_MATCH and np.all((d.p_within >= 0) & (d.p_within <= 1))
+    assert d.confident or "above anything this collection's calibration saw" in d.reason
+    # The same look-alikes without the photo itself: not in this collection.
+    lats, lons, scores = _answer(np.random.default_rng(9), False)
+    assert cal.decide(gather(lats, lons, scores), fuse_position(lats, lons, scores)).code == NO_MATCH
