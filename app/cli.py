@@ -313,7 +313,8 @@ def locate(
 
 
 def _in_words(out: dict) -> str:
-    """What a /locate answer (its JSON, ``out``) means, as the page says it: likely, possible or no match."""
+    """What a /locate answer (its JSON, ``out``) means, as the page says it: likely, possible, not found in this
+    collection or no match."""
     from app.engine.geo import haversine_m
 
     cands, e = out["candidates"], out["estimate"]
@@ -329,6 +330,12 @@ def _in_words(out: dict) -> str:
             f"match is {name}, score {best['score']:.3f}."
         )
     spread = max(haversine_m(a["lat"], a["lon"], b["lat"], b["lon"]) for a in cands for b in cands)
+    if out.get("reason_code") == "no_match":  # as the page says it
+        return (
+            f"Not found in this collection ({out['reason']}): the closest match is {name} at "
+            f"{best['lat']:.5f},{best['lon']:.5f}, score {best['score']:.3f}, and the {len(cands)} candidates "
+            f"shown are spread over {spread:.0f} m."
+        )
     chance = (
         f", with a {best['p_within_25m']:.0%} chance of lying within 25 m of where the photo was taken"
         if best["p_within_25m"] is not None

@@ -249,3 +249,19 @@ def test_every_failure_is_one_line_and_a_documented_exit_code(tmp_path):
     debug = geoloc("locate", str(tmp_path / "missing.jpg"), "--debug", *empty, check=False)
     assert debug.returncode == 2 and "Traceback" in debug.stderr and "FileNotFoundError" in debug.stderr
     assert debug.stderr.strip().splitlines()[-1].startswith("error: ")
+
+
+def test_brief_says_not_found_in_this_collection_for_no_match():
+    """`geoloc locate --brief` words a no_match answer as the page does (the JSON shape of /locate)."""
+    from app.cli import _in_words
+
+    cand = {"reference_id": 3, "label": "a.jpg", "lat": 39.95, "lon": -75.19, "score": 0.58, "p_within_25m": 0.03}
+    out = {
+        "candidates": [cand, {**cand, "reference_id": 4, "lat": 39.951}],
+        "estimate": None,
+        "reason": "not in this collection: no candidate has a 10% chance of lying within 25 m (best 3%)",
+        "reason_code": "no_match",
+    }
+    words = _in_words(out)
+    assert words.startswith("Not found in this collection (not in this collection") and "reference 3 (a.jpg)" in words
+    assert _in_words({**out, "reason_code": "ambiguous"}).startswith("Possible only")
