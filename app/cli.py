@@ -122,8 +122,12 @@ def fit(
         ),
     ] = None,
     svm_bank_kind: Annotated[str, typer.Option("--svm-bank-kind", help="contrastive or confusers")] = "contrastive",
+    calibration_sample: Annotated[
+        int, typer.Option("--calibration-sample", help="db rows located against the others to calibrate")
+    ] = 600,
 ) -> None:
-    """Fit codebook, PCA-whitening and binariser on the manifest's db and train rows, then the SVM bank."""
+    """Fit codebook, PCA-whitening and binariser on the manifest's db and train rows, then the SVM bank, then
+    the confidence rule and p_within_25m on the db rows (the collection) themselves."""
     from app.engine.configs import get_config
     from app.engine.pipeline import Pipeline, pipeline_dir
     from app.errors import FitRefused
@@ -141,7 +145,9 @@ def fit(
     pipe = Pipeline(cfg, models_dir=models_dir)
     feats = [e.features for e in extract_all(pipe, rows, desc="extract")]
     typer.echo(f"fitting {cfg.name} on {len(feats)} images ...")
-    _fit_with_bank(pipe, rows, feats, svm_bank_kind, seed, source)
+    _fit_with_bank(pipe, rows, feats, svm_bank_kind, seed, source, calibration_sample)
+    cal = pipe.calibration
+    typer.echo(f"calibration ({cal.source}): {cal.note}; " + ", ".join(f"{k} {v}" for k, v in cal.report.items()))
     pipe.save(pipeline_dir(models_dir, cfg.name), {"manifest": str(manifest.resolve())})
     typer.echo(
         f"saved {pipeline_dir(models_dir, cfg.name)} (float dim {pipe.float_dim}, bits {pipe.bits}"
@@ -150,7 +156,7 @@ def fit(
     )
 
 
-def _fit_with_bank(pipe, rows, feats, kind: str, seed: int, source: str) -> None:
+def _fit_with_bank(pipe, rows, feats, kind: str, seed: int, source: str, calibration_sample: int = 600) -> None:
     """``app.fitting.fit_pipeline``: the pipeline on every row, then the bank from the db rows (the collection
     rule, plus train rows) or from the train rows alone, retrieved against an in-memory index of the db rows
     encoded by the pipeline just fitted."""
@@ -169,7 +175,7 @@ def _fit_with_bank(pipe, rows, feats, kind: str, seed: int, source: str) -> None
         _fail("the manifest has no db rows: the SVM bank needs references to retrieve against")
     refs = {i: Geotagged(feats[i], rows[i].lat, rows[i].lon, rows[i].group) for i in db}
     try:
-        fit_pipeline(pipe, feats, refs, train, source, kind, seed)
+        fit_pipeline(pipe, feats, refs, train, source, kind, seed, calibration_sample)
     except FitRefused as e:
         _fail(str(e))
     if pipe.bank is None:
@@ -307,7 +313,8 @@ def locate(
 
 
 def _in_words(out: dict) -> str:
-    """What a /locate answer (its JSON, ``out``) means, as the page says it: likely, possible or no match."""
+    """What a /locate answer (its JSON, ``out``) means, as the page says it: likely, possible, not found in this
+    collection or no match."""
     from app.engine.geo import haversine_m
 
     cands, e = out["candidates"], out["estimate"]
@@ -323,6 +330,12 @@ def _in_words(out: dict) -> str:
             f"match is {name}, score {best['score']:.3f}."
         )
     spread = max(haversine_m(a["lat"], a["lon"], b["lat"], b["lon"]) for a in cands for b in cands)
+    if out.get("reason_code") == "no_match":  # as the page says it
+        return (
+            f"Not found in this collection ({out['reason']}): the closest match is {name} at "
+            f"{best['lat']:.5f},{best['lon']:.5f}, score {best['score']:.3f}, and the {len(cands)} candidates "
+            f"shown are spread over {spread:.0f} m."
+        )
     chance = (
         f", with a {best['p_within_25m']:.0%} chance of lying within 25 m of where the photo was taken"
         if best["p_within_25m"] is not None
@@ -384,6 +397,13 @@ def eval_cmd(
     svm_bank_source: Annotated[
         str, typer.Option("--svm-bank-source", help="train (train rows) or collection (each fold's db + train rows)")
     ] = "train",
+    absent_radius: Annotated[
+        float | None,
+        typer.Option(
+            "--absent-radius",
+            help="also locate each query with every reference within R m removed (a simulated absent place)",
+        ),
+    ] = None,
 ) -> None:
     """Fit, index the db rows in memory, query the query rows through the core; print Recall@N, time, bytes."""
     from app.engine.configs import get_config
@@ -410,6 +430,7 @@ def eval_cmd(
         region_radius_m=region_radius_m,
         bank_source=svm_bank_source,
         models_dir=models_dir,
+        absent_radius_m=absent_radius,
     )
     typer.echo(format_summary(result))
     if json_out:
@@ -585,6 +606,10 @@ def refit(
         ),
     ] = None,
     svm_bank_kind: Annotated[str, typer.Option("--svm-bank-kind", help="contrastive or confusers")] = "contrastive",
+    calibration_sample: Annotated[
+        int,
+        typer.Option("--calibration-sample", help="of the sample, references located against the others to calibrate"),
+    ] = 600,
     ray: Annotated[
         str | None, typer.Option("--ray", help="re-encode on Ray: local, auto or a cluster address (ray://head:10001)")
     ] = None,
@@ -621,13 +646,16 @@ def refit(
         workers=workers,
         batch=batch,
         fresh=fresh,
+        calibration_sample=calibration_sample,
     )
     s = run_refit(data_dir, models_dir, options, ray=ray, limits=_S.image_limits())
     secs = ", ".join(f"{k} {v:.1f} s" for k, v in s.seconds.items())
     typer.echo(
         f"switched {data_dir} to generation {s.generation} ({s.config}, pipeline {data_dir / s.pipeline}"
         + (", continued an interrupted re-index" if s.resumed else f", fitted on {s.fitted_on} references")
-        + f", SVM bank: {s.bank}); {s.reencoded} references re-encoded"
+        + f", SVM bank: {s.bank}"
+        + (f"; calibration: {s.calibration}" if s.calibration else "")
+        + f"); {s.reencoded} references re-encoded"
         + (f" ({s.failed} could not be and are now failed)" if s.failed else "")
         + f"; {secs}"
     )

@@ -17,6 +17,7 @@ from pydantic import AfterValidator, BaseModel, ConfigDict, Field
 from app.engine import rerank as rerank_mod
 from app.engine.errors import InvalidPosition
 from app.engine.estimate import Estimate
+from app.engine.evidence import Evidence
 from app.engine.geo import haversine_m, valid_position
 from app.errors import InvalidRequest
 from app.text import CAPTURED_AT_MAX, LABEL_MAX, iso_captured_at, readable
@@ -117,6 +118,14 @@ class LocateAnswer:
     index_generation: int = 0
     #: The verification outcome per verified candidate (rerank only): not in the JSON, for the evaluation.
     verification: dict[int, rerank_mod.Verification | None] = field(default_factory=dict)
+    #: The reason code a client branches on (``app.engine.calibration``: no_match, ambiguous, no_features,
+    #: no_references); None when confident.
+    reason_code: str | None = None
+    #: The fused candidates' evidence and the best p of the estimate's group (calibration, evaluation).
+    evidence: Evidence | None = None
+    answer_p: float | None = None
+    #: The collection's extent (min_lon, min_lat, max_lon, max_lat), set by the service.
+    extent: tuple[float, float, float, float] | None = None
 
     @property
     def confident_estimate(self) -> Estimate | None:

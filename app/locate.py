@@ -23,14 +23,15 @@ import numpy as np
 
 from app.domain import Candidate, LocateAnswer, LocateOptions, RefInfo, Region
 from app.engine import rerank as rerank_mod
-from app.engine.calibration import candidate_probabilities
+from app.engine.calibration import NO_FEATURES, NO_REFERENCES, Decision
 from app.engine.errors import GeolocError
-from app.engine.estimate import fuse_position
+from app.engine.estimate import Estimate, fuse_position
+from app.engine.evidence import gather
 from app.engine.geo import haversine_m
 from app.engine.imageio import ImageLimits, load_image
 from app.engine.models.base import Matcher
 from app.engine.models.registry import build_matcher
-from app.engine.pipeline import Features, Pipeline
+from app.engine.pipeline import Codes, Features, Pipeline
 from app.storage.store import ReferenceStore
 
 log = logging.getLogger("geoloc.locate")
@@ -42,6 +43,10 @@ DEFAULT_MATCHER = "sift-mnn"
 ESTIMATE_CANDIDATES = 10
 #: How many of the best candidates geometric verification looks at.
 RERANK_CANDIDATES = 10
+#: Fewer local features than this (a plain sky, a blank wall, a black frame) and the photo has nothing to
+#: recognise a place by: no candidates, no probabilities, reason ``no_features``. Only for configurations
+#: with local features (a global-only one always has its one descriptor).
+MIN_LOCAL_FEATURES = 8
 
 
 class Searchable(Protocol):
@@ -81,6 +86,24 @@ class StoreReferences:
             return path.read_bytes() if path is not None else None
         except OSError:
             return None
+
+
+class Excluding:
+    """A ``Searchable`` that never returns ``excluded`` ids: a reference's own capture left out, or every
+    reference near a place removed (calibration and the evaluation's simulated absent places). It asks the
+    index for ``k`` more than it leaves out, so it costs what the excluded set costs, never a scan."""
+
+    def __init__(self, index: Searchable, excluded):
+        self.index = index
+        self.excluded = np.asarray(sorted({int(i) for i in excluded}), np.int64)
+
+    def check_mode(self, mode: str | None) -> str:
+        return self.index.check_mode(mode)
+
+    def search(self, float_code, binary_code, k: int, mode: str | None = None, allowed=None):
+        s, i = self.index.search(float_code, binary_code, k + len(self.excluded), mode, allowed)
+        keep = ~np.isin(i, self.excluded)
+        return s[keep][:k], i[keep][:k]
 
 
 # -- the one locate path --------------------------------------------------------------------------------
@@ -163,8 +186,11 @@ def locate_features(
     query_rgb: np.ndarray | None = None,
     limits: ImageLimits | None = None,
     cluster_radius_m: float = 25.0,
+    codes: Codes | None = None,
 ) -> LocateAnswer:
-    """Search, verify, fuse, shape. ``query_rgb`` is needed only for verification (``options.rerank``)."""
+    """Search, verify, fuse, shape. ``query_rgb`` is needed only for verification (``options.rerank``).
+    ``codes``: the features already encoded by ``pipeline`` (calibration and the evaluation locate one photo
+    twice, its place present and absent: the second search reuses the first's codes)."""
     mode = index.check_mode(options.mode)
     t: dict[str, float] = {}
     allowed = None
@@ -172,8 +198,10 @@ def locate_features(
         t0 = time.perf_counter()
         allowed = refs.in_region(options.region)
         t["region"] = (time.perf_counter() - t0) * 1000
-    keep = pipeline.select(features)
-    codes = pipeline.encode_features(features, keep)
+    if pipeline.config.local is not None and features.n_local < MIN_LOCAL_FEATURES:
+        return _featureless(pipeline, features, mode, t)
+    if codes is None:
+        codes = pipeline.encode_features(features, pipeline.select(features))
     t.update(codes.timings_ms)
     n = max(options.top_k, ESTIMATE_CANDIDATES)
     t0 = time.perf_counter()
@@ -205,19 +233,22 @@ def locate_features(
         np.array([s for _, s in fused]),
         cluster_radius_m,
     )
-    probability = dict(
-        zip(
-            [i for i, _ in fused],
-            candidate_probabilities(
-                [info[i].lat for i, _ in fused], [info[i].lon for i, _ in fused], [s for _, s in fused], estimate
-            ),
-            strict=True,
-        )
+    fused_ids = [i for i, _ in fused]
+    evidence = gather(
+        np.array([info[i].lat for i in fused_ids]),
+        np.array([info[i].lon for i in fused_ids]),
+        np.array([s for _, s in fused]),
+        verification if options.rerank else None,
+        fused_ids,
     )
+    decision = pipeline.calibration.decide(evidence, estimate)
+    probability = {} if decision.p_within is None else dict(zip(fused_ids, decision.p_within, strict=True))
     t["estimate"] = (time.perf_counter() - t0) * 1000
     region_empty = allowed is not None and len(allowed) == 0
-    reason = "no references in the requested region" if region_empty else estimate.reason
-    confident = estimate if reason is None else None
+    if region_empty:
+        decision = Decision(False, NO_REFERENCES, "no references in the requested region", None, None)
+    reason = decision.reason if not decision.confident else None
+    confident = estimate if decision.confident else None
     shown = [(i, s) for i, s in ranked if s >= options.min_score][: options.top_k]
     candidates = [
         Candidate(
@@ -240,10 +271,30 @@ def locate_features(
         candidates=candidates,
         estimate=estimate,
         reason=reason,
+        reason_code=None if decision.confident else decision.code,
         mode=mode,
         config=pipeline.config.name,
         features_extracted=codes.features_extracted,
         features_kept=codes.features_kept,
         timings_ms=t,
         verification=verification,
+        evidence=evidence,
+        answer_p=decision.answer_p,
+    )
+
+
+def _featureless(pipeline: Pipeline, features: Features, mode: str, t: dict[str, float]) -> LocateAnswer:
+    """The answer for a photo without usable features: nothing is searched, so nothing is claimed."""
+    n = features.n_local
+    return LocateAnswer(
+        candidates=[],
+        estimate=Estimate(None, None, None, 0.0, "no features"),
+        reason=f"no usable features: {n} distinctive points found in the photo ({MIN_LOCAL_FEATURES} needed); it "
+        "may be blank, dark or blurred",
+        reason_code=NO_FEATURES,
+        mode=mode,
+        config=pipeline.config.name,
+        features_extracted=n,
+        features_kept=n,
+        timings_ms={**features.timings_ms, **t},
     )

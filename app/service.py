@@ -114,6 +114,7 @@ class GeolocService:
         answer = locate_features(view.pipeline, view, self.refs, features, options, img.rgb, self.limits)
         answer.index_size, answer.index_generation = view.index.size, view.generation
         answer.index_version = col.version if col.generation == view.generation else 0
+        answer.extent = col.store.extent()
         return answer
 
     def locate(self, image: bytes | Callable[[], bytes], options: LocateOptions) -> LocateAnswer:

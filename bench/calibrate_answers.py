@@ -9,10 +9,11 @@ fifth, pooled; the shipped values are then fitted on all folds.
 1. Radius. A confident estimate's radius is ``max(farthest fused candidate + margin, floor)``: never
    smaller than the spread of the candidates it was made of. The margin is the smallest on a grid for which
    the truth lies within the radius for ``--coverage`` of the confident answers.
-2. Candidate probability. A logistic regression of "this candidate lies within 25 m of the photo" on the
-   candidate's score, its gap to the best score, its rank, whether it is in the estimate's group and the
-   estimate's confidence. Reported: the held-out Brier score (against a constant's) and a reliability table.
-Prints the constants to put in app/engine/estimate.py and app/engine/calibration.py.
+2. Candidate probability, one mapping for a whole evaluation set: a logistic regression of "this candidate
+   lies within 25 m of the photo" on the evidence of app/engine/evidence.py (global columns). Reported: the
+   held-out Brier score (against a constant's) and a reliability table. Since issue 20 the service fits
+   this on each collection itself (app/engine/calibration.py); this pooled fit is kept as a reference.
+Prints the radius margin to put in app/engine/estimate.py.
 """
 
 from __future__ import annotations
@@ -24,8 +25,8 @@ from pathlib import Path
 import numpy as np
 from sklearn.linear_model import LogisticRegression
 
-from app.engine.calibration import candidate_features
 from app.engine.estimate import fuse_position
+from app.engine.evidence import gather
 from app.engine.geo import haversine_m
 
 REPO = Path(__file__).resolve().parents[1]
@@ -42,7 +43,7 @@ def per_query(queries: list[dict], radius_m: float):
         e = fuse_position(c[:, 0], c[:, 1], c[:, 2], radius_m, margin_m=0.0, min_radius_m=0.0)
         truth = float(haversine_m(q["lat"], q["lon"], e.lat, e.lon))
         d_true = haversine_m(q["lat"], q["lon"], c[:, 0], c[:, 1])
-        feats = candidate_features(c[:, 0], c[:, 1], c[:, 2], e)
+        feats = gather(c[:, 0], c[:, 1], c[:, 2]).values
         out.append({"fold": q["fold"], "e": e, "truth_m": truth, "X": feats, "y": (d_true <= radius_m).astype(int)})
     return out
 

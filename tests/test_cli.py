@@ -2,6 +2,7 @@
 
 import json
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -30,8 +31,15 @@ def test_build_fit_ingest_locate(workdir, mini_manifest):
     m, data, models = str(mini_manifest), str(workdir / "index"), str(workdir / "models")
     assert (workdir / "models" / "squeezenet1_1.onnx").exists()
     # No bank here: this test checks exact self-retrieval (a db photo's own code, all its features).
-    out = geoloc("fit", "--manifest", m, "--config", "hybrid-bin", "--models-dir", models, "--svm-bank", "none")
+    out = geoloc(
+        "fit", "--manifest", m, "--config", "hybrid-bin", "--models-dir", models, "--svm-bank", "none",
+        "--calibration-sample", "20",
+    )  # fmt: skip
     assert "saved" in out.stdout and "no SVM bank" in out.stdout
+    # The 10 db captures of the mini manifest (20 sampled of their 30 images): calibrated or, too few right
+    # answers, the conservative rule; either way it says which, and how many references it sampled.
+    assert re.search(r"calibration \((collection|conservative)\): .*sampled 20", out.stdout), out.stdout
+    assert (workdir / "models" / "pipelines" / "hybrid-bin" / "calibration.json").exists()
     manifest = json.loads((workdir / "models" / "pipelines" / "hybrid-bin" / "pipeline.json").read_text())
     assert manifest["config"]["name"] == "hybrid-bin" and manifest["bits"] > 0
 
@@ -62,7 +70,11 @@ def test_build_fit_ingest_locate(workdir, mini_manifest):
     assert bad.returncode == 2 and "not a JPEG" in bad.stderr
     # --brief: the answer in words (a db photo: its own reference and crops agree on the spot).
     brief = geoloc("locate", str(photo), "--brief", "--compare-exif", "--data-dir", data, "--models-dir", models)
-    assert brief.stdout.startswith("Likely: taken within ") and "img_00000.jpg" in brief.stdout, brief.stdout
+    # Calibrated on 20 of these 30 references (a tiny sample, no threshold reaches 90 %), the rule gives no
+    # confident answer, but a reference's own photo scores above anything its calibration saw: never
+    # "not in this collection", and the reference itself comes first.
+    assert brief.stdout.startswith(("Likely: taken within ", "Possible only")), brief.stdout
+    assert "img_00000.jpg" in brief.stdout and "not in this collection" not in brief.stdout, brief.stdout
     assert "EXIF GPS" in brief.stdout and not brief.stdout.lstrip().startswith("{")
 
 
@@ -80,8 +92,10 @@ def test_eval_writes_the_report(workdir, mini_manifest):
         str(out_json),
         "--folds",
         "2",
+        "--absent-radius",
+        "100",
     )
-    assert "Recall@1/5/10/20" in p.stdout
+    assert "Recall@1/5/10/20" in p.stdout and "absent places" in p.stdout and "  fold 2:" in p.stdout
     r = json.loads(out_json.read_text())
     assert r["config"] == "hybrid" and r["folds"] == 2 and r["radius_m"] == 25
     assert set(r["recall_at"]) == {"1", "5", "10", "20"} and all(0 <= v <= 1 for v in r["recall_at"].values())
@@ -90,6 +104,10 @@ def test_eval_writes_the_report(workdir, mini_manifest):
     assert r["bytes_per_reference"] == 4 * 256 or r["bytes_per_reference"] < 4 * 256
     assert {"median", "p90", "confident_within_radius"} <= set(r["estimate_error_m"])
     assert out_json.with_suffix(".png").stat().st_size > 1000
+    a = r["answers"]  # answer quality: pooled, per fold, and on the simulated absent places
+    assert len(r["answers_per_fold"]) == 2 and len(r["calibration_per_fold"]) == 2
+    assert 0 <= a["coverage"] <= 1 and a["absent_radius_m"] == 100 and 0 <= a["absent_confident"] <= 1
+    assert sum(a["reason_codes"].values()) == 39 == sum(a["absent_reason_codes"].values())
 
 
 def test_unknown_config_is_a_clear_error(workdir, mini_manifest):
@@ -231,3 +249,19 @@ def test_every_failure_is_one_line_and_a_documented_exit_code(tmp_path):
     debug = geoloc("locate", str(tmp_path / "missing.jpg"), "--debug", *empty, check=False)
     assert debug.returncode == 2 and "Traceback" in debug.stderr and "FileNotFoundError" in debug.stderr
     assert debug.stderr.strip().splitlines()[-1].startswith("error: ")
+
+
+def test_brief_says_not_found_in_this_collection_for_no_match():
+    """`geoloc locate --brief` words a no_match answer as the page does (the JSON shape of /locate)."""
+    from app.cli import _in_words
+
+    cand = {"reference_id": 3, "label": "a.jpg", "lat": 39.95, "lon": -75.19, "score": 0.58, "p_within_25m": 0.03}
+    out = {
+        "candidates": [cand, {**cand, "reference_id": 4, "lat": 39.951}],
+        "estimate": None,
+        "reason": "not in this collection: no candidate has a 10% chance of lying within 25 m (best 3%)",
+        "reason_code": "no_match",
+    }
+    words = _in_words(out)
+    assert words.startswith("Not found in this collection (not in this collection") and "reference 3 (a.jpg)" in words
+    assert _in_words({**out, "reason_code": "ambiguous"}).startswith("Possible only")

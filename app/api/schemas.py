@@ -33,8 +33,9 @@ class CandidateOut(BaseModel):
     inliers: int | None = Field(None, description="geometric verification inliers, when rerank=true")
     p_within_25m: float | None = Field(
         None,
-        description="calibrated probability that this reference lies within 25 m of where the photo was taken "
-        "(cross-validated on penn-campus-gps; given for the first 10 candidates)",
+        description="probability that this reference lies within 25 m of where the photo was taken, calibrated on "
+        "this collection by `geoloc fit` / `geoloc refit` (given for the first 10 candidates; null when the "
+        "collection is too small to calibrate)",
     )
 
     @field_validator("score", "p_within_25m")
@@ -80,16 +81,33 @@ class FeaturesOut(BaseModel):
     kept: int
 
 
+class ExtentOut(BaseModel):
+    min_lat: float
+    min_lon: float
+    max_lat: float
+    max_lon: float
+
+
 class IndexOut(BaseModel):
     size: int
     version: int
     generation: int = Field(0, description="the index generation answering (a re-fit makes the next one)")
+    extent: ExtentOut | None = Field(
+        None, description="the bounding box of the collection's references (what it covers); null when empty"
+    )
 
 
 class LocateOut(BaseModel):
     candidates: list[CandidateOut]
     estimate: EstimateOut | None
-    reason: str | None = Field(None, description="why there is no confident estimate")
+    reason: str | None = Field(None, description="why there is no confident estimate, in words")
+    reason_code: str | None = Field(
+        None,
+        description="null when the estimate is confident; else no_match (the evidence says the place is not in "
+        "this collection), ambiguous (candidates, but not enough evidence for one place), no_features (the photo "
+        "has no usable features: no candidates, no probabilities) or no_references (the collection or the "
+        "region searched holds none)",
+    )
     mode: str
     config: str
     features: FeaturesOut
@@ -105,11 +123,24 @@ class LocateOut(BaseModel):
             candidates=[CandidateOut.model_validate(c, from_attributes=True) for c in answer.candidates],
             estimate=None if e is None else EstimateOut.model_validate(e, from_attributes=True),
             reason=answer.reason,
+            reason_code=answer.reason_code,
             mode=answer.mode,
             config=answer.config,
             features=FeaturesOut(extracted=answer.features_extracted, kept=answer.features_kept),
             timings_ms={k: round(v, 3) for k, v in answer.timings_ms.items()},
-            index=IndexOut(size=answer.index_size, version=answer.index_version, generation=answer.index_generation),
+            index=IndexOut(
+                size=answer.index_size,
+                version=answer.index_version,
+                generation=answer.index_generation,
+                extent=None
+                if answer.extent is None
+                else ExtentOut(
+                    min_lon=answer.extent[0],
+                    min_lat=answer.extent[1],
+                    max_lon=answer.extent[2],
+                    max_lat=answer.extent[3],
+                ),
+            ),
         )
 
 

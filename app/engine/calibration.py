@@ -1,42 +1,304 @@
-"""Each candidate's probability of lying within 25 m of the photo, from what the ranking knows.
+"""Know when it does not know: each candidate's ``p_within_25m`` and the confidence rule, fitted on the
+user's own collection.
 
-Why: raw scores are squeezed into a narrow band (0.56-0.65 on penn-campus-gps) and mean nothing on their
-own; a person needs "how likely is this one right". A logistic regression on the candidate's score, its
-gap to the best score, its rank, whether it belongs to the estimate's group and the estimate's confidence,
-fitted and checked cross-validated over the evaluation folds (bench/calibrate_answers.py, which prints the
-constants below, with its held-out Brier score and reliability table in docs/RESULTS.md). Fitted on the
-default configuration; other configurations get the same mapping, which is less well calibrated for them.
+Why on the collection itself: a mapping fitted on penn-campus-gps gave 0.83-0.89 to every query of a user's
+21-photo collection, wrong ones included, and 0.27 to the median photo of a place the collection does not
+hold. So ``geoloc fit`` and ``geoloc refit`` locate a seeded sample of the references against the others
+(``app.fitting.calibrate_collection``): once with the reference's own capture left out (the place is
+present, when another capture shows it) and once with every reference within ``absent_radius_m`` removed
+(the place is absent). A logistic regression on the evidence (``app.engine.evidence``) of those answers'
+candidates gives ``p_within_25m``; the rule then says, from the same sample:
+
+- **confident** when the best ``p_within_25m`` among the candidates of the estimate's group reaches
+  ``confident_p``: the lowest threshold at which the sample's confident answers were within 25 m at least
+  ``TARGET_PRECISION`` of the time (a pessimistic count) and at most ``MAX_ABSENT_CONFIDENT`` of the absent
+  places were confident (never if no threshold does);
+- **no_match** ("not in this collection") when no candidate reaches ``NO_MATCH_P``;
+- **ambiguous** otherwise.
+
+A collection too small to calibrate (fewer than ``MIN_QUERIES`` sampled references, or fewer than
+``MIN_POSITIVES`` right candidates among their answers) gets ``conservative()``: no probabilities at all,
+and confident only when at least ``CONSERVATIVE_SUPPORT`` candidates agree on one spot holding
+``CONSERVATIVE_SHARE`` of the weight. It never falls back to another collection's figures.
 """
 
 from __future__ import annotations
 
+import json
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
 import numpy as np
 
+from app.engine.artifacts import atomic_write_bytes
 from app.engine.estimate import Estimate
+from app.engine.evidence import Evidence
 
-#: Order: score, score - best score, log(1 + rank), in the estimate's group, estimate confidence.
-#: From ``bench/calibrate_answers.py --eval out/eval/hybrid.json`` (hybrid with its collection-trained SVM bank,
-#: as served; 5 folds, 4,850 candidates): held-out Brier score 0.115 against 0.166 for a constant rate.
-COEF = (1.9396, 0.7653, -0.1715, 1.6356, 4.1667)
-INTERCEPT = -5.0784
+CALIBRATION_FILE = "calibration.json"
+FORMAT = 1
+
+TARGET_PRECISION = 0.9
+MAX_ABSENT_CONFIDENT = 0.01
+NO_MATCH_P = 0.1
+MIN_QUERIES = 16
+MIN_POSITIVES = 3
+#: The weight of each absent sample against a present one: places not in the collection are as common as
+#: places in it, for all the rule knows.
+ABSENT_WEIGHT = 1.0
+#: L2 regularisation of the logistic regression (sklearn's C): strong, since small collections give few
+#: right candidates.
+C = 0.5
+CONSERVATIVE_SUPPORT = 3
+CONSERVATIVE_SHARE = 0.8
+
+# The reason codes a client can branch on (documented in the README and in /locate's schema).
+NO_FEATURES = "no_features"
+NO_REFERENCES = "no_references"
+NO_MATCH = "no_match"
+AMBIGUOUS = "ambiguous"
 
 
-def candidate_features(lats: np.ndarray, lons: np.ndarray, scores: np.ndarray, estimate: Estimate) -> np.ndarray:
-    scores = np.asarray(scores, np.float64)
-    n = len(scores)
-    rank = np.arange(n, dtype=np.float64)
-    members = np.zeros(n)
-    m = np.asarray(estimate.members, bool)
-    members[: len(m)] = m
-    return np.column_stack(
-        [scores, scores - (scores.max() if n else 0.0), np.log1p(rank), members, np.full(n, estimate.confidence)]
+@dataclass(frozen=True)
+class Decision:
+    """What the rule says of one answer: confident or the reason code and words, and the candidates'
+    probabilities (None where the collection could not be calibrated)."""
+
+    confident: bool
+    code: str | None
+    reason: str | None
+    p_within: np.ndarray | None
+    answer_p: float | None  # the best p among the estimate's group: what the confident threshold reads
+
+
+@dataclass
+class Sample:
+    """One sampled answer: its candidates' evidence, whether each lies within 25 m of the truth, which ones
+    the estimate fused into its group, and whether the estimate lies within 25 m."""
+
+    evidence: Evidence
+    within: np.ndarray
+    members: np.ndarray
+    estimate_within: bool
+    absent: bool
+
+
+@dataclass
+class Calibration:
+    names: tuple[str, ...] = ()
+    mean: list[float] = field(default_factory=list)
+    scale: list[float] = field(default_factory=list)
+    #: The range of each column in the calibration sample: evidence beyond it (a photo that IS a reference
+    #: scores 1.0, far above anything the sample saw) is read at the edge, never extrapolated.
+    low: list[float] = field(default_factory=list)
+    high: list[float] = field(default_factory=list)
+    coef: list[float] = field(default_factory=list)
+    intercept: float = 0.0
+    confident_p: float = 1.01
+    no_match_p: float = NO_MATCH_P
+    source: str = "conservative"  # "collection": fitted on the collection; "conservative": too small
+    note: str = ""
+    report: dict = field(default_factory=dict)
+
+    @classmethod
+    def conservative(cls, note: str, report: dict | None = None) -> Calibration:
+        return cls(source="conservative", note=note, report=report or {})
+
+    @property
+    def calibrated(self) -> bool:
+        return self.source == "collection"
+
+    # -- applying -------------------------------------------------------------------------------------
+    def probabilities(self, evidence: Evidence) -> np.ndarray | None:
+        if not self.calibrated:
+            return None
+        x = evidence.columns(self.names)
+        if self.low and self.high:
+            x = np.clip(x, np.asarray(self.low), np.asarray(self.high))
+        x = (x - np.asarray(self.mean)) / np.asarray(self.scale)
+        z = x @ np.asarray(self.coef) + self.intercept
+        return 1.0 / (1.0 + np.exp(-z))
+
+    def decide(self, evidence: Evidence, estimate: Estimate) -> Decision:
+        if estimate.lat is None or len(evidence.values) == 0:
+            return Decision(False, NO_REFERENCES, estimate.reason or "no candidates", None, None)
+        p = self.probabilities(evidence)
+        members = np.zeros(len(evidence.values), bool)
+        m = np.asarray(estimate.members, bool)[: len(members)]
+        members[: len(m)] = m
+        if p is None:
+            strong = estimate.support >= CONSERVATIVE_SUPPORT and estimate.confidence >= CONSERVATIVE_SHARE
+            if strong:
+                return Decision(True, None, None, None, None)
+            return Decision(
+                False,
+                AMBIGUOUS,
+                f"uncalibrated: {self.note}; only {CONSERVATIVE_SUPPORT} or more candidates agreeing on one spot "
+                f"count as confident, and the best group has {estimate.support} holding {estimate.confidence:.0%} "
+                "of the weight",
+                None,
+                None,
+            )
+        answer_p = float(p[members].max()) if members.any() else float(p.max())
+        if answer_p >= self.confident_p:
+            return Decision(True, None, None, p, answer_p)
+        best = float(p.max())
+        top, seen = self._beyond_range(evidence)
+        if top is not None:
+            # Clipped to the sample's edge, the probabilities say nothing of such a match: never "not here".
+            return Decision(
+                False,
+                AMBIGUOUS,
+                f"the best match scores {top:.3f}, above anything this collection's calibration saw ({seen:.3f}): "
+                "it may be the same photo as a reference; compare them",
+                p,
+                answer_p,
+            )
+        if best < self.no_match_p:
+            return Decision(
+                False,
+                NO_MATCH,
+                f"not in this collection: no candidate has a {self.no_match_p:.0%} chance of lying within 25 m "
+                f"(best {best:.0%})",
+                p,
+                answer_p,
+            )
+        return Decision(
+            False,
+            AMBIGUOUS,
+            f"ambiguous: the best group's chance of lying within 25 m is {answer_p:.1%}, below the "
+            f"{self.confident_p:.1%} this collection needs for a confident answer",
+            p,
+            answer_p,
+        )
+
+    def _beyond_range(self, evidence: Evidence) -> tuple[float | None, float]:
+        """The best score when it lies above the calibration sample's highest (a photo that is a reference,
+        or a near copy: the sample never holds one), else None."""
+        if "best_score" not in self.names or not self.high or not len(evidence.values):
+            return None, 0.0
+        seen = float(self.high[self.names.index("best_score")])
+        top = float(evidence.columns(("best_score",))[0, 0])
+        return (top, seen) if top > seen else (None, seen)
+
+    # -- persistence ----------------------------------------------------------------------------------
+    def save(self, directory: Path) -> None:
+        data = {"format": FORMAT, **asdict(self)}
+        atomic_write_bytes(Path(directory) / CALIBRATION_FILE, json.dumps(data, indent=1).encode())
+
+    @classmethod
+    def load(cls, directory: Path) -> Calibration:
+        path = Path(directory) / CALIBRATION_FILE
+        if not path.exists():
+            return cls.conservative("this pipeline was fitted before calibration existed: run `geoloc refit`")
+        data = json.loads(path.read_text())
+        if data.pop("format", None) != FORMAT:
+            return cls.conservative(f"{path} has another format: run `geoloc refit`")
+        data["names"] = tuple(data["names"])
+        return cls(**data)
+
+
+# -- fitting ----------------------------------------------------------------------------------------------
+def fit_calibration(samples: list[Sample], seed: int = 0) -> Calibration:
+    """The logistic regression and the thresholds from the sampled answers (present and absent)."""
+    from sklearn.linear_model import LogisticRegression
+
+    present = [s for s in samples if not s.absent]
+    positives = int(sum(int(s.within.sum()) for s in present))
+    report = {
+        "present": len(present),
+        "absent": len(samples) - len(present),
+        "right_candidates": positives,
+        "candidates": int(sum(len(s.within) for s in samples)),
+    }
+    if len(present) < MIN_QUERIES or positives < MIN_POSITIVES:
+        return Calibration.conservative(
+            f"the collection is too small to calibrate ({len(present)} references sampled, {positives} right "
+            f"candidates among their answers; at least {MIN_QUERIES} and {MIN_POSITIVES} needed)",
+            report,
+        )
+    names = samples[0].evidence.names
+    x = np.vstack([s.evidence.columns(names) for s in samples if len(s.within)])
+    y = np.concatenate([s.within for s in samples]).astype(int)
+    w = np.concatenate([np.full(len(s.within), ABSENT_WEIGHT if s.absent else 1.0) for s in samples])
+    mean, scale = x.mean(axis=0), x.std(axis=0)
+    scale[scale < 1e-9] = 1.0
+    model = LogisticRegression(C=C, max_iter=1000, random_state=seed)
+    model.fit((x - mean) / scale, y, sample_weight=w)
+    cal = Calibration(
+        names=tuple(names),
+        mean=mean.tolist(),
+        scale=scale.tolist(),
+        low=x.min(axis=0).tolist(),
+        high=x.max(axis=0).tolist(),
+        coef=model.coef_[0].tolist(),
+        intercept=float(model.intercept_[0]),
+        source="collection",
+        report=report,
     )
+    cal.confident_p = choose_threshold(cal, samples)
+    absent_best = [float(p.max()) for s in samples if s.absent and len(p := cal.probabilities(s.evidence))]
+    cal.report.update(
+        {
+            "confident_p": round(cal.confident_p, 4),
+            "brier": round(brier(cal, samples), 4),
+            "mean_best_p_absent": round(float(np.mean(absent_best or [0.0])), 4),
+        }
+    )
+    cal.note = f"fitted on {len(present)} references of this collection"
+    return cal
 
 
-def probability_within(features: np.ndarray) -> np.ndarray:
-    z = features @ np.asarray(COEF) + INTERCEPT
-    return 1.0 / (1.0 + np.exp(-z))
+def answer_probability(cal: Calibration, s: Sample) -> float:
+    p = cal.probabilities(s.evidence)
+    if p is None or len(p) == 0:
+        return 0.0
+    return float(p[s.members].max()) if s.members.any() else float(p.max())
 
 
-def candidate_probabilities(lats, lons, scores, estimate: Estimate) -> np.ndarray:
-    return probability_within(candidate_features(np.asarray(lats), np.asarray(lons), scores, estimate))
+def choose_threshold(cal: Calibration, samples: list[Sample]) -> float:
+    """The lowest answer probability at which the sample's confident answers are right at least
+    ``TARGET_PRECISION`` of the time, counted pessimistically (one wrong answer added), with at most
+    ``MAX_ABSENT_CONFIDENT`` of the absent places confident; 1.01 (never confident) when none is."""
+    scored = sorted(((answer_probability(cal, s), s) for s in samples), key=lambda t: -t[0])
+    n_absent = max(1, sum(s.absent for s in samples))
+    best = 1.01
+    hits = n = absent = 0
+    for k, (p, s) in enumerate(scored):
+        n += 1
+        hits += int(s.estimate_within and not s.absent)
+        absent += int(s.absent)
+        if k + 1 < len(scored) and scored[k + 1][0] == p:
+            continue  # ties go together
+        if hits / (n + 1) >= TARGET_PRECISION and absent / n_absent <= MAX_ABSENT_CONFIDENT:
+            best = p
+    return float(best)
+
+
+def brier(cal: Calibration, samples: list[Sample]) -> float:
+    ps, ys = [], []
+    for s in samples:
+        p = cal.probabilities(s.evidence)
+        if p is not None and len(p):
+            ps.append(p)
+            ys.append(s.within)
+    if not ps:
+        return float("nan")
+    return float(np.mean((np.concatenate(ps) - np.concatenate(ys).astype(float)) ** 2))
+
+
+def reliability(p: np.ndarray, y: np.ndarray, edges=(0.0, 0.1, 0.2, 0.3, 0.5, 0.7, 1.0001)) -> list[dict]:
+    """Predicted against observed, per bin of predicted probability (the evaluation's reliability table)."""
+    p, y = np.asarray(p, float), np.asarray(y, float)
+    out = []
+    for lo, hi in zip(edges[:-1], edges[1:], strict=True):
+        m = (p >= lo) & (p < hi)
+        if m.any():
+            out.append(
+                {
+                    "bin": f"{lo:.1f}-{min(hi, 1.0):.1f}",
+                    "n": int(m.sum()),
+                    "predicted": round(float(p[m].mean()), 3),
+                    "observed": round(float(y[m].mean()), 3),
+                }
+            )
+    return out

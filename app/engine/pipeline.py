@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from app.engine.artifacts import atomic_write_bytes, library_versions
+from app.engine.calibration import Calibration
 from app.engine.codes import Binariser
 from app.engine.configs import PipelineConfig, get_config
 from app.engine.dense import gem_pool, sample_at
@@ -103,6 +104,7 @@ class Pipeline:
         manifest: dict | None = None,
         bank: SvmBank | None = None,
         models_dir: Path | None = None,
+        calibration: Calibration | None = None,
     ):
         """``models_dir`` holds the built models (the global model, learned local extractors); a
         ``global_model`` given here (loaded once, shared by tests or an evaluation) wins over the one the
@@ -122,6 +124,9 @@ class Pipeline:
         self.binariser = binariser
         self.manifest = manifest or {}
         self.bank = bank  # SVM bank: which local features to aggregate (None = all)
+        #: The confidence rule and ``p_within_25m``, fitted on the collection (``app.fitting.calibrate_collection``);
+        #: the conservative rule until then.
+        self.calibration: Calibration = calibration or Calibration.conservative("this pipeline is not calibrated")
         self.bank_select = "positive"  # or "negative" (the thesis ablation)
         self.source: PipelineSource | None = None  # set when loaded from disk (see PipelineSource)
         self._local = (
@@ -253,13 +258,23 @@ class Pipeline:
         return self.binariser.bits if self.binariser is not None else None
 
     # -- fitting --------------------------------------------------------------------------------------
-    def fit(self, features: list[Features], seed: int = 0, progress: Iterable | None = None) -> None:
-        """Fit codebook, then PCA-whitening, then the binariser, each on the previous stage's output."""
+    def fit(
+        self,
+        features: list[Features],
+        seed: int = 0,
+        progress: Iterable | None = None,
+        codebook: Codebook | None = None,
+    ) -> None:
+        """Fit codebook, then PCA-whitening, then the binariser, each on the previous stage's output.
+        ``codebook``: take this one instead of fitting one (the calibration's auxiliary fits, which leave
+        references out of the whitening, reuse the served pipeline's codebook: k-means is most of a fit's time)."""
         c = self.config
         if not features:
             raise ModelNotReady(f"nothing to fit {c.name} on: no db or train images were given")
         rng = np.random.default_rng(seed)
-        if c.local is not None:
+        if codebook is not None:
+            self.codebook = codebook
+        elif c.local is not None:
             sample = []
             for f in features:
                 if f.n_local:
@@ -285,6 +300,7 @@ class Pipeline:
             self.binariser.save(directory)
         if self.bank is not None:
             self.bank.save(directory)
+        self.calibration.save(directory)
         manifest = {
             "format_version": PIPELINE_FORMAT,
             "config": self.config.model_dump(),
@@ -323,6 +339,7 @@ class Pipeline:
             manifest=manifest,
             bank=SvmBank.load(directory) if SvmBank.exists(directory) else None,
             models_dir=models_dir,
+            calibration=Calibration.load(directory),
         )
 
     @property

@@ -23,14 +23,15 @@ from tqdm import tqdm
 
 from app.domain import LocateOptions, RefInfo, Region
 from app.engine.artifacts import atomic_write_bytes
+from app.engine.calibration import reliability
 from app.engine.configs import PipelineConfig
 from app.engine.geo import haversine_m
 from app.engine.pipeline import Features, Pipeline
 from app.engine.training.svm_training import Geotagged, index_of
 from app.errors import ManifestCannotBeEvaluated
 from app.evaluation.datasets import Row, read_manifest
-from app.fitting import EVAL_BANK_SOURCES, train_bank
-from app.locate import locate_features
+from app.fitting import EVAL_BANK_SOURCES, calibrate_collection, near_ids, train_bank
+from app.locate import ESTIMATE_CANDIDATES, MIN_LOCAL_FEATURES, Excluding, locate_features
 
 RECALL_AT = (1, 5, 10, 20)
 
@@ -62,6 +63,23 @@ class BankSummary(BaseModel):
     folds: list[dict]  # each fold's bank manifest entries, as the bank wrote them
 
 
+class AnswerQuality(BaseModel):
+    """How far the answers can be trusted (issue 20): confident answers' precision (estimate within the
+    radius) and coverage, and the Brier score and reliability of ``p_within_25m`` over the first candidates;
+    ``absent``: the same queries with every reference within ``absent_radius_m`` of them removed."""
+
+    coverage: float
+    precision: float | None
+    brier: float | None
+    reliability: list[dict]
+    reason_codes: dict[str, int]
+    absent_radius_m: float | None = None
+    absent_confident: float | None = None
+    absent_mean_best_p: float | None = None
+    absent_brier: float | None = None
+    absent_reason_codes: dict[str, int] | None = None
+
+
 class EvalResult(BaseModel):
     """One evaluation run. Its JSON form (``model_dump``) is the report ``geoloc eval --out`` writes and
     docs/RESULTS.md is made from."""
@@ -84,6 +102,9 @@ class EvalResult(BaseModel):
     bytes_per_reference: float
     estimate_error_m: EstimateErrors
     svm_bank: BankSummary
+    answers: AnswerQuality | None = None
+    answers_per_fold: list[AnswerQuality] = []
+    calibration_per_fold: list[dict] = []
     config_definition: dict
     queries: list[dict]  # per query: image, group, fold, position, candidates, estimate (the report's rows)
 
@@ -201,6 +222,7 @@ def evaluate(
     region_radius_m: float | None = None,
     bank_source: str = "train",
     models_dir: Path | None = None,
+    absent_radius_m: float | None = None,
 ) -> EvalResult:
     """``models_dir``: where the built models are (the global model through the registry, XFeat).
     ``svm_bank``: off (all features), positive (features the bank predicts useful) or negative (only
@@ -226,6 +248,7 @@ def evaluate(
     per_fold, all_hits, est_err, est_conf, stage_times = [], [], [], [], []
     per_fold_plain, rerank_ms = [], []  # with rerank: recall without it, and the time it adds
     bank_reports, kept_fractions, per_query = [], [], []
+    quality, all_present, all_absent, calibration_reports = [], [], [], []
     n_db = n_query = 0
     bytes_per_ref = 0.0
     for f, qgroups in enumerate(query_sets):
@@ -254,18 +277,31 @@ def evaluate(
                     for k in ("training", "chosen_keep_fraction", "threshold_trials", "train_seconds", "source")
                 }
             )
+        # The confidence rule and p_within_25m, calibrated on this fold's db alone (never on its queries), as
+        # `geoloc fit` calibrates on the collection.
+        geotagged = {i: Geotagged(extracted[i].features, rows[i].lat, rows[i].lon, rows[i].group) for i in db_idx}
+        train_features = [extracted[i].features for i, r in enumerate(rows) if r.split == "train"]
+        pipe.calibration = calibrate_collection(pipe, geotagged, train_features, seed=seed + f)
+        calibration_reports.append({"source": pipe.calibration.source, **pipe.calibration.report})
         refs = RowReferences(rows, db_idx)
         hits, hits_plain = [], []
+        fold_present, fold_absent = [], []
         for i in q_idx:
             region = Region(rows[i].lat, rows[i].lon, region_radius_m) if region_radius_m else None
             options = LocateOptions(top_k=top_n, mode=mode, rerank=rerank, region=region)
             rgb = pipe.decode(rows[i].image.read_bytes()).rgb if rerank else None
-            res = locate_features(pipe, index, refs, extracted[i].features, options, rgb, cluster_radius_m=radius_m)
+            f_i = extracted[i].features
+            codes = (
+                pipe.encode_features(f_i, pipe.select(f_i))
+                if pipe.config.local is None or f_i.n_local >= MIN_LOCAL_FEATURES
+                else None
+            )  # once for every search of this query (with and without rerank, its place present and absent)
+            res = locate_features(pipe, index, refs, f_i, options, rgb, cluster_radius_m=radius_m, codes=codes)
             hits.append(_hits(rows, i, lat, lon, res.candidates, top_n, radius_m))
             verified = None
             if rerank:
                 plain = LocateOptions(top_k=top_n, mode=mode, rerank=False, region=region)
-                res0 = locate_features(pipe, index, refs, extracted[i].features, plain, cluster_radius_m=radius_m)
+                res0 = locate_features(pipe, index, refs, f_i, plain, cluster_radius_m=radius_m, codes=codes)
                 hits_plain.append(_hits(rows, i, lat, lon, res0.candidates, top_n, radius_m))
                 rerank_ms.append(res.timings_ms.get("rerank", 0.0))
                 # What bench/verification.py analyses: the retrieval order, and each verified pair's outcome.
@@ -283,6 +319,14 @@ def evaluate(
                         for r, v in res.verification.items()
                     },
                 }
+            fold_present.append(_answer_record(res, rows[i], radius_m))
+            if absent_radius_m:
+                gone = near_ids(geotagged, rows[i].lat, rows[i].lon, absent_radius_m)
+                plain = LocateOptions(top_k=top_n, mode=mode, region=region)
+                res_absent = locate_features(
+                    pipe, Excluding(index, gone), refs, f_i, plain, cluster_radius_m=radius_m, codes=codes
+                )
+                fold_absent.append(_answer_record(res_absent, rows[i], radius_m))
             e = res.estimate
             if e.lat is not None:
                 err = float(haversine_m(rows[i].lat, rows[i].lon, e.lat, e.lon))
@@ -311,6 +355,9 @@ def evaluate(
                 per_query[-1]["verification"] = verified
             if res.features_extracted:
                 kept_fractions.append(res.features_kept / res.features_extracted)
+        quality.append(answer_quality(fold_present, fold_absent, absent_radius_m))
+        all_present += fold_present
+        all_absent += fold_absent
         hits_arr = np.array(hits, bool)
         all_hits.append(hits_arr)
         per_fold.append({str(n): float(hits_arr[:, n - 1].mean()) for n in RECALL_AT})
@@ -367,11 +414,64 @@ def evaluate(
                 "kept_fraction_median": float(np.median(kept_fractions)) if kept_fractions else None,
                 "folds": bank_reports,
             },
+            "answers": answer_quality(all_present, all_absent, absent_radius_m),
+            "answers_per_fold": quality,
+            "calibration_per_fold": calibration_reports,
             "config_definition": config.model_dump(),
             "queries": per_query,
         }
     )
     return result
+
+
+def _answer_record(res, row: Row, radius_m: float) -> dict:
+    """What the answer-quality figures need of one answer: confident or not and then right, its reason
+    code, and the first candidates' p_within_25m with whether each lies within the radius."""
+    e = res.estimate
+    cands = [c for c in res.candidates[:ESTIMATE_CANDIDATES] if c.p_within_25m is not None]
+    d = haversine_m(row.lat, row.lon, np.array([c.lat for c in cands]), np.array([c.lon for c in cands]))
+    return {
+        "confident": res.reason is None,
+        "right": e.lat is not None and bool(haversine_m(row.lat, row.lon, e.lat, e.lon) <= radius_m),
+        "code": res.reason_code or "confident",
+        "p": [c.p_within_25m for c in cands],
+        "within": [bool(x) for x in np.atleast_1d(d <= radius_m)] if cands else [],
+    }
+
+
+def answer_quality(present: list[dict], absent: list[dict], absent_radius_m: float | None) -> dict:
+    def codes(records):
+        out: dict[str, int] = {}
+        for r in records:
+            out[r["code"]] = out.get(r["code"], 0) + 1
+        return out
+
+    def brier(records):
+        p = np.array([x for r in records for x in r["p"]], float)
+        y = np.array([x for r in records for x in r["within"]], float)
+        return (float(np.mean((p - y) ** 2)) if len(p) else None), p, y
+
+    conf = [r["right"] for r in present if r["confident"]]
+    b, p, y = brier(present)
+    out = {
+        "coverage": len(conf) / max(len(present), 1),
+        "precision": float(np.mean(conf)) if conf else None,
+        "brier": b,
+        "reliability": reliability(p, y),
+        "reason_codes": codes(present),
+    }
+    if absent_radius_m:
+        ab, _, _ = brier(absent)
+        out.update(
+            {
+                "absent_radius_m": absent_radius_m,
+                "absent_confident": float(np.mean([r["confident"] for r in absent])) if absent else None,
+                "absent_mean_best_p": float(np.mean([max(r["p"], default=0.0) for r in absent])) if absent else None,
+                "absent_brier": ab,
+                "absent_reason_codes": codes(absent),
+            }
+        )
+    return out
 
 
 def write_report(result: EvalResult, out: Path) -> Path:
@@ -432,5 +532,48 @@ def format_summary(result: EvalResult | dict) -> str:
         f"estimate error: median {e['median']:.1f} m, p90 {e['p90']:.1f} m; confident "
         f"{e['confident_fraction']:.0%} of the time, and then within the radius "
         + (f"{e['confident_within_radius']:.0%}" if e["confident_within_radius"] is not None else "n/a"),
+        *_quality_lines(result),
     ]
     return "\n".join(lines)
+
+
+def _pct(x) -> str:
+    return "n/a" if x is None else f"{x:.1%}"
+
+
+def _num(x) -> str:
+    return "n/a" if x is None else f"{x:.3f}"
+
+
+def _quality_lines(result: dict) -> list[str]:
+    """Answer quality per fold and pooled: confident precision / coverage, Brier, absent places."""
+    a = result.get("answers")
+    if not a:
+        return []
+    out = [
+        "answers (confident: within the radius / share of queries; Brier of p_within_25m"
+        + ("; absent places: confident, mean best p, Brier" if a.get("absent_radius_m") else "")
+        + "):"
+    ]
+    for name, q in [*((f"  fold {k + 1}", q) for k, q in enumerate(result.get("answers_per_fold", []))), ("  all", a)]:
+        line = f"{name}: {_pct(q['precision'])} / {_pct(q['coverage'])}, Brier {_num(q['brier'])}"
+        if q.get("absent_radius_m"):
+            line += (
+                f"; absent {_pct(q['absent_confident'])} confident, mean best p {_num(q['absent_mean_best_p'])}, "
+                f"Brier {_num(q['absent_brier'])}"
+            )
+        out.append(line)
+    out.append(
+        "  reliability (bin: predicted -> observed, n): "
+        + ", ".join(f"{r['bin']}: {r['predicted']:.2f} -> {r['observed']:.2f} ({r['n']})" for r in a["reliability"])
+    )
+    out.append(
+        "  reason codes: "
+        + ", ".join(f"{k} {v}" for k, v in sorted(a["reason_codes"].items()))
+        + (
+            "; absent: " + ", ".join(f"{k} {v}" for k, v in sorted(a["absent_reason_codes"].items()))
+            if a.get("absent_reason_codes")
+            else ""
+        )
+    )
+    return out

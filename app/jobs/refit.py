@@ -35,7 +35,7 @@ from app.engine.errors import GeolocError
 from app.engine.imageio import ImageLimits
 from app.engine.pipeline import Features, Pipeline, PipelineSource
 from app.errors import FitRefused, RefitError, StorageUnavailable
-from app.fitting import bank_source, check_bank_kind, train_bank
+from app.fitting import bank_source, calibrate_collection, check_bank_kind, train_bank
 from app.jobs.writer import write_snapshot_if_free
 from app.storage.generations import ReindexTarget
 from app.storage.store import ReferenceStore
@@ -51,6 +51,7 @@ class RefitOptions:
     config: str | None = None  # None: the data dir's own configuration
     train_manifest: Path | None = None
     sample: int = 2000  # references the codebook, PCA and binariser are fitted on
+    calibration_sample: int = 600  # of those, references located against the others to calibrate
     svm_bank: str | None = None  # collection | train | none; None: train with a manifest, else collection
     bank_kind: str = "contrastive"
     seed: int = 0
@@ -77,6 +78,7 @@ class RefitSummary:
     failed: int = 0
     resumed: bool = False
     bank: str = "none"
+    calibration: str = ""
     seconds: dict[str, float] = field(default_factory=dict)
 
 
@@ -136,12 +138,13 @@ def fit_generation(
         raise RefitError("fewer than 2 stored references could be read to fit on")
     pipe.fit([f for _, f in kept], seed=options.seed)
     seconds = {"fit": time.perf_counter() - t0}
+    refs = {
+        i: Geotagged(f, rows[i].lat, rows[i].lon, capture_group(rows[i].lat, rows[i].lon, rows[i].captured_at))
+        for i, f in kept
+    }
+    train = []
     if source != "none":
         t1 = time.perf_counter()
-        refs = {
-            i: Geotagged(f, rows[i].lat, rows[i].lon, capture_group(rows[i].lat, rows[i].lon, rows[i].captured_at))
-            for i, f in kept
-        }
         train = _train_photos(pipe, options.train_manifest, limits, options.workers)
         if source == "train" and not train:
             raise RefitError(f"{options.train_manifest} has no photo that could be read")
@@ -150,9 +153,16 @@ def fit_generation(
         except FitRefused as e:
             raise RefitError(str(e)) from None
         seconds["bank"] = time.perf_counter() - t1
+    t1 = time.perf_counter()
+    pipe.calibration = calibrate_collection(
+        pipe, refs, [t.features for t in train], options.calibration_sample, seed=options.seed
+    )
+    seconds["calibration"] = time.perf_counter() - t1
     extra = {"refit_sample": len(kept), "svm_bank_source": source}
     target = save_generation(store.data_dir, pipe, generation + 1, extra)
-    summary = RefitSummary(target.generation, target.pipeline, name, fitted_on=len(kept), bank=source)
+    summary = RefitSummary(
+        target.generation, target.pipeline, name, fitted_on=len(kept), bank=source, calibration=pipe.calibration.note
+    )
     summary.seconds.update(seconds)
     return target, summary
 

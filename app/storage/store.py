@@ -66,6 +66,7 @@ CREATE TABLE IF NOT EXISTS refs (
 );
 CREATE INDEX IF NOT EXISTS refs_lat_lon ON refs(lat, lon);
 CREATE INDEX IF NOT EXISTS refs_status ON refs(status);
+CREATE INDEX IF NOT EXISTS refs_lon ON refs(lon);
 """
 
 
@@ -420,6 +421,19 @@ class ReferenceStore(Queue, Generations, Identity, Removals, Maintenance):
             return np.zeros(0, np.int64), np.zeros(0), np.zeros(0)
         a = np.array(rows, np.float64)
         return a[:, 0].astype(np.int64), a[:, 1], a[:, 2]
+
+    def extent(self) -> tuple[float, float, float, float] | None:
+        """(min_lon, min_lat, max_lon, max_lat) of every stored reference, None when there is none. Four
+        reads of one end of an index each (refs_lat_lon, refs_lon): constant cost at 10^6 references, so
+        /locate can show what the collection covers with every answer."""
+        q = "SELECT {f}({c}) FROM refs"
+        lo_lat = self.db.execute(q.format(f="min", c="lat")).fetchone()[0]
+        if lo_lat is None:
+            return None
+        hi_lat = self.db.execute(q.format(f="max", c="lat")).fetchone()[0]
+        lo_lon = self.db.execute(q.format(f="min", c="lon")).fetchone()[0]
+        hi_lon = self.db.execute(q.format(f="max", c="lon")).fetchone()[0]
+        return float(lo_lon), float(lo_lat), float(hi_lon), float(hi_lat)
 
     def ids_in_bbox(self, bbox: tuple[float, float, float, float]) -> np.ndarray:
         return self.in_bbox(bbox)[0]

@@ -1,28 +1,151 @@
-"""Candidate probabilities: in (0, 1), higher for members of a confident estimate's group than for outliers."""
+"""The confidence rule and p_within_25m (app.engine.calibration) on evidence gathered the way locate gathers
+it (app.engine.evidence): fitted on present and absent answers, it says "no_match" for an absent place,
+is confident for a clear present one, round-trips through the pipeline folder, and a sample too small to
+calibrate falls back to the conservative rule with no probabilities."""
 
 import numpy as np
 
-from app.engine.calibration import candidate_probabilities
+from app.engine.calibration import AMBIGUOUS, NO_MATCH, Calibration, Sample, fit_calibration
 from app.engine.estimate import fuse_position
+from app.engine.evidence import GLOBAL_NAMES, VERIFIED_NAMES, gather
 from app.engine.geo import haversine_m
+from app.engine.rerank import Verification
+
+LAT0, LON0 = 39.952, -75.193
 
 
-def _offset(dx_m: float, dy_m: float, lat0=39.952, lon0=-75.193):
-    return lat0 + dy_m / 111_320, lon0 + dx_m / (111_320 * np.cos(np.radians(lat0)))
+def _offset(dx_m: float, dy_m: float):
+    return LAT0 + dy_m / 111_320, LON0 + dx_m / (111_320 * np.cos(np.radians(LAT0)))
 
 
-def test_group_members_of_a_confident_estimate_are_likelier():
-    pts = [_offset(0, 0), _offset(5, 3), _offset(-4, 2), _offset(300, 300), _offset(-250, 100)]
-    lats, lons = np.array(pts).T
-    scores = np.array([0.66, 0.65, 0.65, 0.60, 0.59])
+def _answer(rng, present: bool):
+    """Ten candidates best first: a present place has a few right ones agreeing near the truth (0, 0) with
+    a score lead; an absent one has look-alikes scattered 150-800 m away with flat scores."""
+    n_right = int(rng.integers(2, 5)) if present else 0
+    pts, scores = [], []
+    for k in range(10):
+        if k < n_right:
+            pts.append(_offset(*rng.uniform(-8, 8, 2)))
+            scores.append(0.72 - 0.01 * k + rng.normal(0, 0.01))
+        else:
+            r, a = rng.uniform(150, 800), rng.uniform(0, 2 * np.pi)
+            pts.append(_offset(r * np.cos(a), r * np.sin(a)))
+            scores.append(0.60 - 0.004 * k + rng.normal(0, 0.01))
+    order = np.argsort(-np.array(scores))
+    lats, lons = np.array(pts)[order].T
+    return lats, lons, np.array(scores)[order]
+
+
+def _sample(rng, present: bool) -> Sample:
+    lats, lons, scores = _answer(rng, present)
     e = fuse_position(lats, lons, scores)
-    p = candidate_probabilities(lats, lons, scores, e)
-    assert e.confident and ((p > 0) & (p < 1)).all()
-    assert p[:3].min() > p[3:].max() and p[0] > 0.5
-    # The same candidates scattered: nobody agrees, every probability drops.
-    far = [_offset(0, 0), _offset(200, 0), _offset(-200, 50), _offset(300, 300), _offset(-250, 100)]
-    flat, flon = np.array(far).T
-    e2 = fuse_position(flat, flon, scores)
-    p2 = candidate_probabilities(flat, flon, scores, e2)
-    assert not e2.confident and p2[0] < p[0] and (p2 < 0.5).all()
-    assert haversine_m(e.lat, e.lon, lats[0], lons[0]) < e.radius_m
+    within = haversine_m(LAT0, LON0, lats, lons) <= 25
+    return Sample(
+        gather(lats, lons, scores),
+        within,
+        np.array(e.members, bool),
+        bool(haversine_m(LAT0, LON0, e.lat, e.lon) <= 25),
+        absent=not present,
+    )
+
+
+def _decide(cal: Calibration, rng, present: bool):
+    lats, lons, scores = _answer(rng, present)
+    return cal.decide(gather(lats, lons, scores), fuse_position(lats, lons, scores))
+
+
+def test_absent_places_get_no_match_and_present_ones_a_confident_answer(tmp_path):
+    rng = np.random.default_rng(0)
+    cal = fit_calibration([_sample(rng, present) for present in [True] * 60 + [False] * 60])
+    assert cal.calibrated and cal.names == GLOBAL_NAMES and 0 < cal.confident_p <= 1
+    absent = [_decide(cal, rng, False) for _ in range(30)]
+    assert all(not d.confident and d.code == NO_MATCH and d.p_within.max() < 0.1 for d in absent)
+    assert "not in this collection" in absent[0].reason
+    present = [_decide(cal, rng, True) for _ in range(30)]
+    assert sum(d.confident for d in present) >= 25
+    assert all(d.p_within[0] > 0.5 for d in present)
+    # The rule is stored with the pipeline and read back unchanged.
+    cal.save(tmp_path)
+    back = Calibration.load(tmp_path)
+    d0, d1 = _decide(cal, np.random.default_rng(5), True), _decide(back, np.random.default_rng(5), True)
+    assert back.names == cal.names and np.allclose(d0.p_within, d1.p_within) and d0.confident == d1.confident
+
+
+def test_a_collection_too_small_to_calibrate_says_so_and_gives_no_probabilities(tmp_path):
+    rng = np.random.default_rng(1)
+    cal = fit_calibration([_sample(rng, p) for p in [True] * 5 + [False] * 5])
+    assert not cal.calibrated and "too small to calibrate" in cal.note
+    strong = _decide(cal, np.random.default_rng(2), True)
+    lats, lons, scores = _answer(np.random.default_rng(3), False)
+    weak = cal.decide(gather(lats, lons, scores), fuse_position(lats, lons, scores))
+    assert strong.p_within is None and weak.p_within is None
+    assert not weak.confident and weak.code == AMBIGUOUS and "too small to calibrate" in weak.reason
+    # A pipeline folder from before calibration existed: the same conservative rule, never another's figures.
+    assert not Calibration.load(tmp_path / "old").calibrated
+
+
+def test_verification_evidence_is_more_columns_of_the_same_vector():
+    lats, lons, scores = _answer(np.random.default_rng(4), True)
+    ids = list(range(100, 110))
+    verified = {100: Verification(80, 40, "F"), 101: None, 102: Verification(10, 0, None)}
+    ev = gather(lats, lons, scores, verified, ids)
+    assert ev.names == GLOBAL_NAMES + VERIFIED_NAMES and ev.verified
+    row = dict(zip(ev.names, ev.values[0], strict=True))
+    assert row["log_inliers"] == np.log1p(40) and row["inlier_ratio"] == 0.5
+    assert ev.values[1, len(GLOBAL_NAMES) :].tolist() == [0, 0, 0, 0]  # unverifiable: reads as no evidence
+    # A rule fitted without verification reads only its own columns from verified evidence.
+    plain = gather(lats, lons, scores)
+    assert np.array_equal(ev.columns(GLOBAL_NAMES), plain.values)
+
+
+def test_distinctiveness_reads_score_differences_against_other_places():
+    """lead_over_far: a candidate's score above the best candidate more than 100 m from it (the rival place);
+    with no rival among the candidates, above the last one. Shifting every score leaves both columns as
+    they are (a new photo's absolute score level is not evidence)."""
+    here, near, far = _offset(0, 0), _offset(10, 0), _offset(400, 0)
+    lats = np.array([here[0], near[0], far[0]])
+    lons = np.array([here[1], near[1], far[1]])
+    scores = np.array([0.70, 0.66, 0.61])
+    ev = gather(lats, lons, scores)
+    lead = ev.values[:, ev.names.index("lead_over_far")]
+    assert np.allclose(lead, [0.70 - 0.61, 0.66 - 0.61, 0.61 - 0.70])
+    assert ev.values[0, ev.names.index("gap_1_last")] == np.float64(0.70) - np.float64(0.61)
+    lone = gather(lats[:2], lons[:2], scores[:2])  # no rival place: the lead over the last candidate
+    assert np.allclose(lone.values[:, lone.names.index("lead_over_far")], [0.70 - 0.66, 0.0])
+    shifted = gather(lats, lons, scores + 0.05)
+    for name in ("lead_over_far", "gap_1_last"):
+        j = ev.names.index(name)
+        assert np.allclose(shifted.values[:, j], ev.values[:, j])
+
+
+def test_calibration_parts_are_whole_captures_bounded_by_the_sample():
+    """The references the calibration locates: whole captures, each in one part (an auxiliary fit leaves a
+    part out, so a photo's crops are never fitted on while it is located), at most ``sample`` of them."""
+    from app.engine.training.svm_training import Geotagged
+    from app.fitting import HOLDOUT_PARTS, calibration_parts
+
+    refs = {i: Geotagged(None, LAT0, LON0, f"g{i // 3}") for i in range(60)}  # 20 captures of 3
+    parts = calibration_parts(refs, sample=600, seed=0)
+    assert len(parts) == HOLDOUT_PARTS and sorted(sum(parts, [])) == list(range(60))
+    for p in parts:
+        groups = {refs[i].group for i in p}
+        assert all(refs[j].group not in groups for q in parts if q is not p for j in q)
+    small = calibration_parts(refs, sample=20, seed=0)
+    assert sum(len(p) for p in small) == 20 and len(small) < HOLDOUT_PARTS
+    assert calibration_parts(refs, sample=600, seed=1) != parts  # seeded
+
+
+def test_a_match_above_anything_the_calibration_saw_is_never_not_in_this_collection():
+    """Evidence is read within the calibration sample's range; a best score above it (a reference's own
+    photo: the sample never holds a duplicate) is ambiguous at worst, never no_match."""
+    rng = np.random.default_rng(0)
+    cal = fit_calibration([_sample(rng, present) for present in [True] * 60 + [False] * 60])
+    lats, lons, scores = _answer(np.random.default_rng(9), False)
+    scores = scores.copy()
+    scores[0] = 1.0  # the photo itself, among look-alikes elsewhere
+    d = cal.decide(gather(lats, lons, scores), fuse_position(lats, lons, scores))
+    assert d.code != NO_MATCH and np.all((d.p_within >= 0) & (d.p_within <= 1))
+    assert d.confident or "above anything this collection's calibration saw" in d.reason
+    # The same look-alikes without the photo itself: not in this collection.
+    lats, lons, scores = _answer(np.random.default_rng(9), False)
+    assert cal.decide(gather(lats, lons, scores), fuse_position(lats, lons, scores)).code == NO_MATCH

@@ -371,6 +371,68 @@ def test_calibrated_probabilities_in_words(browser, server, tile_png):
     assert not page.errors, page.errors
 
 
+@pytest.mark.parametrize("viewport", ["desktop", "phone"])
+def test_not_found_in_this_collection(browser, server, tile_png, viewport):
+    """reason_code no_match (the calibrated rule says the place is absent): the page says "Not found in this
+    collection" in words and outlines the collection's extent on the map. Served by the test in the service's
+    shape (the tests' collection is too small to calibrate; tests/service/test_answers.py calibrates one)."""
+    refs = server.client.get("/references?limit=3").json()["items"]
+    lats, lons = [r["lat"] for r in refs], [r["lon"] for r in refs]
+    extent = {"min_lat": min(lats), "min_lon": min(lons), "max_lat": max(lats), "max_lon": max(lons)}
+    answer = {
+        "candidates": [
+            {"reference_id": r["id"], "lat": r["lat"], "lon": r["lon"], "score": s, "distance_m": None,
+             "label": r["label"], "captured_at": None, "heading": None, "inliers": None, "p_within_25m": p}
+            for r, s, p in zip(refs, (0.58, 0.57, 0.55), (0.03, 0.02, 0.02), strict=True)
+        ],
+        "estimate": None,
+        "reason": "not in this collection: no candidate has a 10% chance of lying within 25 m (best 3%)",
+        "reason_code": "no_match",
+        "mode": "float",
+        "config": "hybrid-bin",
+        "features": {"extracted": 1000, "kept": 800},
+        "timings_ms": {"total": 12.0},
+        "index": {"size": len(server.rows), "version": 1, "generation": 0, "extent": extent},
+    }  # fmt: skip
+    page = open_page(browser, server, viewport, tile_png)
+    page.route("**/locate", lambda route: route.fulfill(status=200, json=answer))
+    page.set_input_files("#locate-file", str(UNRELATED))
+    page.click("#locate-btn")
+    page.wait_for_selector("#answer:not([hidden])")
+    assert page.inner_text("#level") == "Not found"
+    assert page.inner_text("#headline") == "Not found in this collection."
+    explain = page.inner_text("#explain")
+    assert "probably not in this collection" in explain and "only a 3 % chance" in explain
+    assert f"{len(server.rows)} references lie between" in explain and "outlined on the map" in explain
+    assert page.locator("#map path.extent").count() == 1  # the collection's extent, drawn
+    assert page.locator("#map path.leaflet-interactive").count() == 0  # and no estimate circle
+    assert "no_match" in page.text_content("#tech")  # in the closed technical details
+    screenshot(page, f"locate-not-found-{viewport}.png")
+    if viewport == "phone":
+        no_horizontal_scroll(page)
+    assert not page.errors, page.errors
+
+
+def test_a_photo_without_features(browser, server, tile_png, tmp_path):
+    """A plain blue image, located for real: no candidates, and the page says why in words."""
+    import cv2
+    import numpy as np
+
+    blue = np.zeros((480, 640, 3), np.uint8)
+    blue[:] = (200, 120, 30)
+    path = tmp_path / "sky.jpg"
+    cv2.imwrite(str(path), blue)
+    page = open_page(browser, server, "phone", tile_png)
+    page.set_input_files("#locate-file", str(path))
+    page.click("#locate-btn")
+    page.wait_for_selector("#answer:not([hidden])", timeout=60_000)
+    assert page.inner_text("#level") == "No match"
+    assert page.inner_text("#headline") == "This photo has nothing to recognise a place by."
+    assert "No features" in page.inner_text("#features-used")
+    assert page.locator("#candidates li").count() == 0 and page.locator("#map .num-marker").count() == 0
+    assert not page.errors, page.errors
+
+
 def test_references_view_at_phone_width_with_the_keyboard(browser, server):
     page = open_page(browser, server, "phone", None)
     page.focus("#tab-refs")

@@ -56,7 +56,10 @@ def test_every_face_gives_the_same_answer(ingested, fitted_models):
             assert other["estimate"] == pytest.approx(core["estimate"], abs=1e-6)
     assert len(core["candidates"]) == 5 and core["index"]["size"] == 0  # the bare function knows no data dir
     assert api["index"]["size"] == 30 == cli["index"]["size"]
-    assert all(0 < c["p_within_25m"] < 1 for c in api["candidates"])
+    # The tests' pipeline is fitted without calibration: the conservative rule gives no probabilities, and
+    # says why (tests/service/test_answers.py has a calibrated collection).
+    assert all(c["p_within_25m"] is None for c in api["candidates"])
+    assert api["reason_code"] in (None, "ambiguous") and api["index"]["extent"] is not None
 
 
 def test_the_estimate_does_not_depend_on_top_k(ingested, fitted_models):

@@ -138,16 +138,14 @@ def _decimals(x: float) -> int:
 def test_answers_round_metres_and_scores(server):
     r = server.client.post("/locate", files=[("image", ("q.jpg", PHOTO.read_bytes()))], data={"top_k": 5})
     answer = r.json()
-    assert answer["estimate"] is not None, answer  # the photo itself and its crop at one spot: confident
-    e = answer["estimate"]
-    assert _decimals(e["radius_m"]) <= 1 and _decimals(e["confidence"]) <= 4, e
-    assert _decimals(e["lat"]) <= 7 and _decimals(e["lon"]) <= 7, e
+    # The tests' pipeline is not calibrated (issue 20): the conservative rule wants 3 candidates agreeing on
+    # one spot, and the photo itself and its crop are 2: no estimate, and it says why.
+    assert answer["estimate"] is None and answer["reason_code"] == "ambiguous", answer
+    assert answer["reason"].startswith("uncalibrated") and "the best group has 2" in answer["reason"], answer
     for cand in answer["candidates"]:
         assert _decimals(cand["score"]) <= 4, cand
-        assert cand["distance_m"] is None or _decimals(cand["distance_m"]) <= 1, cand
-        assert cand["p_within_25m"] is None or _decimals(cand["p_within_25m"]) <= 4, cand
-    # The photo's own reference is at the estimate: 0.0 m, not 1.2e-09.
-    assert answer["candidates"][0]["distance_m"] is not None and answer["candidates"][0]["distance_m"] < 1
+        assert cand["distance_m"] is None and cand["p_within_25m"] is None, cand
+    assert answer["candidates"][0]["score"] == 1.0  # the photo's own reference: 1.0, not 0.99999994
 
 
 def test_unsupported_mode_names_the_configurations_that_serve_it():

@@ -243,11 +243,22 @@ $("region-clear").addEventListener("click", () => REGION.forEach(([id]) => { $(i
 
 // -- locate: the answer in words --------------------------------------------------------------------
 // The level comes from the answer itself: the service gives an estimate only when it is confident
-// (likely); candidates without one mean they point at different places (possible); none is no match.
-const LEVELS = { likely: "Likely", possible: "Possible", none: "No match" };
+// (likely); reason_code no_match says the place is not in the collection (notfound); other candidates
+// without an estimate point at different places (possible); none is no match (no features, no references).
+const LEVELS = { likely: "Likely", possible: "Possible", notfound: "Not found", none: "No match" };
 function levelOf(res) {
   if (res.estimate) return "likely";
+  if (res.reason_code === "no_match") return "notfound";
   return res.candidates.length ? "possible" : "none";
+}
+
+// The collection's extent in words (the map outlines it).
+function extentInWords(res) {
+  const x = res.index && res.index.extent;
+  if (!x) return "";
+  const size = metres(haversine({ lat: x.min_lat, lon: x.min_lon }, { lat: x.max_lat, lon: x.max_lon }));
+  return ` The collection's ${res.index.size.toLocaleString("en")} references lie between ` +
+    `${position(x.min_lat, x.min_lon)} and ${position(x.max_lat, x.max_lon)} (${size} across), outlined on the map.`;
 }
 
 function verdict(res, level) {
@@ -277,6 +288,23 @@ function verdict(res, level) {
         "with yours below before trusting any of them.",
     };
   }
+  if (level === "notfound") {
+    const best = cands[0];
+    const chance = best && best.p_within_25m != null ?
+      ` Even the best match has only a ${Math.round(best.p_within_25m * 100)} % chance of lying within 25 m of it.` : "";
+    return {
+      headline: "Not found in this collection.",
+      explain: "None of the references looks enough like your photo: the place is probably not in this " +
+        `collection.${chance}${extentInWords(res)} The closest matches are listed below for comparison.`,
+    };
+  }
+  if (res.reason_code === "no_features") {
+    return {
+      headline: "This photo has nothing to recognise a place by.",
+      explain: "No usable features (distinctive points) were found: it may be blank, dark or blurred. " +
+        "Try a sharper photo showing buildings or streets.",
+    };
+  }
   const region = (res.reason || "").includes("region");
   return {
     headline: region ? "There are no references in the region searched." : "No reference could be compared with this photo.",
@@ -293,7 +321,7 @@ function featuresInWords(f) {
 function technical(res) {
   const rows = [
     ["Confidence", res.estimate ? `${Math.round(res.estimate.confidence * 100)} % of the candidates' weight agrees` : "no confident estimate"],
-    ["Service's reason", res.reason || "none (confident)"],
+    ["Service's reason", res.reason ? `${res.reason_code || "?"}: ${res.reason}` : "none (confident)"],
     ["Search", `${res.mode}, configuration ${res.config}, ${res.index.size} references`],
     ["Time", `${Math.round(res.timings_ms.total)} ms`],
   ];
@@ -402,6 +430,14 @@ function drawLocate(res) {
     bounds.extend(circle.getBounds());
     L.circleMarker([est.lat, est.lon], { radius: 5, color: "#c92a2a", fillOpacity: 1, className: "estimate-marker" })
       .addTo(layer);
+  }
+  // Without a confident estimate, the collection's extent shows what it covers (not clickable).
+  const x = res.index && res.index.extent;
+  if (!est && x) {
+    const box = L.rectangle([[x.min_lat, x.min_lon], [x.max_lat, x.max_lon]],
+      { color: "#1c5fa8", weight: 2, dashArray: "6 4", fill: false, interactive: false, className: "extent" })
+      .addTo(layer);
+    bounds.extend(box.getBounds());
   }
   candidateMarkers = res.candidates.map((c, i) => {
     const name = refName(c.reference_id, c.label).title;
