@@ -16,6 +16,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Sequence
+from dataclasses import replace
 from typing import Protocol
 
 import cv2
@@ -23,7 +24,7 @@ import numpy as np
 
 from app.domain import Candidate, LocateAnswer, LocateOptions, RefInfo, Region
 from app.engine import rerank as rerank_mod
-from app.engine.calibration import NO_FEATURES, NO_REFERENCES, Decision
+from app.engine.calibration import NO_FEATURES, NO_MATCH, NO_REFERENCES, Calibration, Decision
 from app.engine.errors import GeolocError
 from app.engine.estimate import Estimate, fuse_position
 from app.engine.evidence import gather
@@ -241,7 +242,14 @@ def locate_features(
         verification if options.rerank else None,
         fused_ids,
     )
-    decision = pipeline.calibration.decide(evidence, estimate)
+    calibration = pipeline.calibration
+    if mode != index.check_mode(None) and calibration.calibrated:
+        # The calibration located its sample in the default mode: another mode's scores (Hamming similarities
+        # in binary mode) are on another scale, and reading them through it would invent probabilities.
+        calibration = Calibration.conservative(f"this collection is calibrated for {index.check_mode(None)} search")
+    decision = calibration.decide(evidence, estimate)
+    if allowed is not None and decision.code == NO_MATCH:  # absent from the region, not the collection
+        decision = replace(decision, reason=decision.reason.replace("in this collection", "in the requested region"))
     probability = {} if decision.p_within is None else dict(zip(fused_ids, decision.p_within, strict=True))
     t["estimate"] = (time.perf_counter() - t0) * 1000
     region_empty = allowed is not None and len(allowed) == 0

@@ -62,6 +62,15 @@ def test_build_fit_ingest_locate(workdir, mini_manifest):
         geoloc("locate", str(photo), "--mode", "binary", "--data-dir", data, "--models-dir", models).stdout
     )
     assert res["mode"] == "binary"
+    # The calibration located its sample in two-stage search: binary mode's Hamming similarities are on
+    # another scale, so they are not read through it (no probabilities, the conservative rule, and why).
+    calibration = json.loads((workdir / "models" / "pipelines" / "hybrid-bin" / "calibration.json").read_text())
+    assert all(c["p_within_25m"] is None for c in res["candidates"])
+    assert (
+        calibration["source"] == "conservative"
+        or res["estimate"] is not None
+        or ("calibrated for two-stage search" in res["reason"])
+    ), res["reason"]
     bad = geoloc("locate", str(photo), "--mode", "float-ish", "--data-dir", data, "--models-dir", models, check=False)
     assert bad.returncode == 2 and "serves two-stage" in bad.stderr
     bad = geoloc(

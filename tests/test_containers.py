@@ -118,5 +118,7 @@ def test_compose_postgres_profile_runs_a_database_and_a_replica_with_its_own_dat
     assert "geoloc-replica:/data" in replica["volumes"] and "geoloc-data:/primary" in replica["volumes"]
     assert replica["environment"]["GEOLOC_IMAGES_DIR"] == "/primary/images"
     assert replica["environment"]["GEOLOC_SNAPSHOTS_DIR"] == "/primary"
+    # the pipelines the primary's first start fits (and a refit adds) are the replica's too
+    assert "ln -sfn /primary/pipelines /data/pipelines && exec geoloc serve" in replica["command"][-1]
     assert replica["depends_on"]["postgres"]["condition"] == "service_healthy"
     assert {"geoloc-replica", "geoloc-postgres"} <= set(compose["volumes"])

@@ -3,6 +3,7 @@ upload, which changes no index), and the writer role held by an advisory lock th
 
 from __future__ import annotations
 
+import os
 import threading
 
 import numpy as np
@@ -72,3 +73,17 @@ def test_a_database_server_that_goes_away_is_a_storage_error_and_comes_back(tmp_
         assert [c.op for c in store.changes_since(1)] == ["add"]
     finally:
         server.stop()
+
+
+def test_the_client_tools_get_the_password_in_their_environment_not_on_their_command_line():
+    """pg_dump and pg_restore run with the URL's password in PGPASSWORD: a command line is readable by every
+    local user (`ps`), a process's environment is not."""
+    pytest.importorskip("psycopg")
+    from app.storage.postgres import _client_conninfo
+
+    conninfo, env = _client_conninfo("postgresql://geoloc:s3cret@db.internal:5433/geoloc?sslmode=require")
+    assert "s3cret" not in conninfo and env["PGPASSWORD"] == "s3cret"
+    for part in ("host=db.internal", "port=5433", "dbname=geoloc", "user=geoloc", "sslmode=require"):
+        assert part in conninfo, conninfo
+    conninfo, env = _client_conninfo("postgresql://geoloc@db.internal/geoloc")
+    assert "password" not in conninfo and env.get("PGPASSWORD") == os.environ.get("PGPASSWORD")

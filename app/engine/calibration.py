@@ -162,11 +162,17 @@ class Calibration:
                 p,
                 answer_p,
             )
+        if self.confident_p > 1.0:
+            needs = (
+                "and no answer of this collection is confident: its calibration found no level at which its own "
+                "confident answers held (too few references of the same places); add some, then `geoloc refit`"
+            )
+        else:
+            needs = f"below the {self.confident_p:.1%} this collection needs for a confident answer"
         return Decision(
             False,
             AMBIGUOUS,
-            f"ambiguous: the best group's chance of lying within 25 m is {answer_p:.1%}, below the "
-            f"{self.confident_p:.1%} this collection needs for a confident answer",
+            f"ambiguous: the best group's chance of lying within 25 m is {answer_p:.1%}, {needs}",
             p,
             answer_p,
         )

@@ -56,7 +56,9 @@ def _postgres_unavailable(exc: BaseException) -> bool:
         | InterfaceError
         | errors.ReadOnlySqlTransaction
         | errors.InsufficientPrivilege
-        | errors.DiskFull,
+        | errors.DiskFull
+        | errors.LockNotAvailable  # lock_timeout: another host holds the write lock past CONNECT_OPTIONS' bound
+        | errors.QueryCanceled,
     )
 
 

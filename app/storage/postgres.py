@@ -37,6 +37,18 @@ log = logging.getLogger("geoloc.store")
 WRITE_LOCK_KEY = 0x67656F6C6F630001
 WRITER_ROLE_KEY = 0x67656F6C6F630002
 CHANNEL = "geoloc_changes"
+#: Every connection's bounds, so a lost host or a stuck peer becomes a 503 instead of a hang: TCP keepalives
+#: on both ends (the server's settings are per session: it drops a dead client's session, and with it the
+#: write lock or the writer role, within about 25 s instead of the kernel's 2 hours), and a write that
+#: waits more than a minute for the shared write lock gives up (``LockNotAvailable``: storage_unavailable).
+CONNECT_OPTIONS = dict(
+    connect_timeout=10,
+    keepalives=1,
+    keepalives_idle=10,
+    keepalives_interval=5,
+    keepalives_count=3,
+    options="-c lock_timeout=60s -c tcp_keepalives_idle=10 -c tcp_keepalives_interval=5 -c tcp_keepalives_count=3",
+)
 
 _LIST_IN = re.compile(r"IN\s*\(\s*SELECT value FROM json_each\(\?\)\s*\)")
 _TOKEN = re.compile(r"IN\s*\(\s*SELECT value FROM json_each\(\?\)\s*\)|FROM json_each\(\?\)|\?|%")
@@ -126,7 +138,7 @@ class PostgresConnection:
     def _connect(self) -> None:
         import psycopg
 
-        self._conn = psycopg.connect(self.url, autocommit=True, connect_timeout=10)
+        self._conn = psycopg.connect(self.url, autocommit=True, **CONNECT_OPTIONS)
         _numpy_adapters(self._conn)
         if self.read_only:  # what SQLite's mode=ro gives: every write refused (ReadOnlySqlTransaction)
             self._conn.execute("SET default_transaction_read_only = on")
@@ -217,7 +229,7 @@ class ChangeListener:
         backoff = 1.0
         while not self._stop.is_set():
             try:
-                with psycopg.connect(self.url, autocommit=True, connect_timeout=10) as conn:
+                with psycopg.connect(self.url, autocommit=True, **CONNECT_OPTIONS) as conn:
                     conn.execute(f"LISTEN {CHANNEL}")
                     backoff = 1.0
                     self._call()  # what was committed before LISTEN
@@ -250,9 +262,11 @@ class DatabaseWriterLock:
     its lock goes with its connection and another process's next try takes the role, nobody acting.
 
     A holder cut off from the server while still running (a network partition) loses the lock too and may
-    briefly work beside the new holder: harmless, as completing is idempotent (a row is indexed once, by
-    whichever commits first) and each host writes snapshots into its own data dir. TCP keepalives bound how
-    long a dead host's session (and so the role) stays held."""
+    briefly work beside the new holder until its next ``alive`` check: harmless for the references, as
+    completing is idempotent (a row is indexed once, by whichever commits first); with a shared
+    GEOLOC_SNAPSHOTS_DIR both may write and prune snapshots there meanwhile, and a cold replica that finds a
+    manifest naming a pruned file rebuilds from the database's codes (a snapshot is only a cache). TCP
+    keepalives (``CONNECT_OPTIONS``) bound how long a dead host's session, and so the role, stays held."""
 
     def __init__(self, url: str):
         self.url = url
@@ -262,10 +276,7 @@ class DatabaseWriterLock:
     def acquire(self) -> bool:
         import psycopg
 
-        conn = psycopg.connect(
-            self.url, autocommit=True, connect_timeout=10, keepalives=1, keepalives_idle=10,
-            keepalives_interval=5, keepalives_count=3,
-        )  # fmt: skip
+        conn = psycopg.connect(self.url, autocommit=True, **CONNECT_OPTIONS)
         try:
             got = conn.execute("SELECT pg_try_advisory_lock(%s)", (self.key,)).fetchone()[0]
         except Exception:
@@ -326,6 +337,21 @@ def _client_tool(name: str) -> str:
     return path
 
 
+def _client_conninfo(url: str) -> tuple[str, dict[str, str]]:
+    """``url`` for pg_dump/pg_restore's command line without its password, which goes in PGPASSWORD instead:
+    a command line is readable by every local user (``ps``), a process's environment is not."""
+    import os
+
+    from psycopg.conninfo import conninfo_to_dict, make_conninfo
+
+    parts = conninfo_to_dict(url)
+    password = parts.pop("password", None)
+    env = dict(os.environ)
+    if password is not None:
+        env["PGPASSWORD"] = str(password)
+    return make_conninfo(**{k: str(v) for k, v in parts.items()}), env
+
+
 def dump_database(url: str, dest) -> list[str]:
     """``pg_dump -Fc`` of the database into ``dest`` and the image file names its rows name, both of one
     state: the names are read in a REPEATABLE READ transaction whose snapshot pg_dump is handed
@@ -338,9 +364,10 @@ def dump_database(url: str, dest) -> list[str]:
         conn.execute("BEGIN ISOLATION LEVEL REPEATABLE READ READ ONLY")
         snapshot = conn.execute("SELECT pg_export_snapshot()").fetchone()[0]
         names = [f"{sha}.{ext}" for sha, ext in conn.execute("SELECT sha256, image_ext FROM refs").fetchall()]
+        conninfo, env = _client_conninfo(url)
         out = subprocess.run(
-            [_client_tool("pg_dump"), "--format=custom", f"--snapshot={snapshot}", "--file", str(dest), url],
-            capture_output=True, text=True,
+            [_client_tool("pg_dump"), "--format=custom", f"--snapshot={snapshot}", "--file", str(dest), conninfo],
+            capture_output=True, text=True, env=env,
         )  # fmt: skip
         conn.execute("COMMIT")
     if out.returncode != 0:
@@ -360,9 +387,11 @@ def restore_database(url: str, dump) -> None:
     with storage_guard("reading the database"), psycopg.connect(url, autocommit=True) as conn:
         if conn.execute("SELECT to_regclass('refs') IS NOT NULL").fetchone()[0]:
             raise OperationRefused("the database already holds a collection: restore into a new, empty database")
-    out = subprocess.run(
-        [_client_tool("pg_restore"), "--no-owner", "--exit-on-error", "--dbname", url, str(dump)],
-        capture_output=True, text=True,
+    conninfo, env = _client_conninfo(url)
+    out = subprocess.run(  # one transaction: a restore that fails leaves the database empty, so a retry works
+        [_client_tool("pg_restore"), "--no-owner", "--exit-on-error", "--single-transaction", "--dbname", conninfo,
+         str(dump)],
+        capture_output=True, text=True, env=env,
     )  # fmt: skip
     if out.returncode != 0:
         raise RuntimeError(f"pg_restore failed: {out.stderr.strip()}")

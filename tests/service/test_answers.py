@@ -88,6 +88,15 @@ def test_a_refit_calibrates_on_the_collection_and_a_removed_place_is_not_confide
         sf = _locate(s, SF)
         assert sf["estimate"] is None and sf["reason_code"] in ("no_match", "ambiguous")
         assert all(c["p_within_25m"] is not None for c in sf["candidates"])
+        # The same photo searched within a region (here the whole extent: the same candidates): the same
+        # decision, and a "not found" speaks of the region searched, not of the whole collection.
+        box = ",".join(str(extent[k]) for k in ("min_lon", "min_lat", "max_lon", "max_lat"))
+        files = [("image", ("q.jpg", SF.read_bytes(), "image/jpeg"))]
+        r = s.client.post("/locate", files=files, data={"top_k": 10, "bbox": box})
+        assert r.status_code == 200, r.text
+        in_region = r.json()
+        assert in_region["reason_code"] == sf["reason_code"] and "in this collection" not in in_region["reason"]
+        assert sf["reason_code"] != "no_match" or "in the requested region" in in_region["reason"]
 
         # Remove every reference within 100 m of the query's place: it must not get a confident estimate.
         q = next(r for r in _penn_rows() if r["photo"] == "photos/img_00010.jpg")
