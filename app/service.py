@@ -27,7 +27,7 @@ from app.errors import InvalidRequest
 from app.locate import StoreReferences, locate_features
 from app.runtime import release_free_memory
 from app.storage.queue import Job
-from app.storage.store import NewReference, Reference, ReferenceStore
+from app.storage.store import KeysetPage, NewReference, Reference, ReferenceStore
 from app.uploads import _differences, prepare_upload
 
 log = logging.getLogger("geoloc.core")
@@ -233,6 +233,12 @@ class GeolocService:
 
     def list(self, offset: int, limit: int, bbox=None) -> tuple[list[Reference], int]:
         return self.store.list(offset, limit, bbox)
+
+    def page(self, after: int | None, before: int | None, limit: int, bbox=None) -> KeysetPage:
+        return self.store.page(after, before, limit, bbox)
+
+    def count_in(self, bbox=None) -> int:
+        return self.store.count_in(bbox)
 
     def job(self, job_id: str) -> Job | None:
         return self.store.job(job_id)

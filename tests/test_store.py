@@ -105,6 +105,30 @@ def test_id_lists_of_any_length(tmp_path, fitted):
     assert set(store.get_many(ids)) == {1, 2, 3}
 
 
+def test_pages_by_id_read_the_same_rows_as_pages_by_offset(tmp_path, fitted):
+    pipe, rows, codes = fitted
+    store = ReferenceStore(tmp_path)
+    store.add_many([_new(r, c) for r, c in zip(rows[:9], codes[:9], strict=True)])
+    store.delete(4)
+    by_offset = [r.id for r in store.list(0, 100)[0]]
+    assert by_offset == [1, 2, 3, 5, 6, 7, 8, 9]
+    forward, after = [], 0
+    while after is not None:
+        page = store.page(after=after, limit=3)
+        forward.append([r.id for r in page.items])
+        after = page.next_after
+    assert forward == [[1, 2, 3], [5, 6, 7], [8, 9]]
+    last = store.page(before=2**63 - 1, limit=3)
+    assert [r.id for r in last.items] == [7, 8, 9] and last.next_after is None and last.prev_before == 7
+    first = store.page(before=5, limit=3)
+    assert [r.id for r in first.items] == [1, 2, 3] and first.prev_before is None and first.next_after == 3
+    assert store.page(after=9).items == [] and store.count_in() == 8
+    lats = sorted(r.lat for r in rows[:9])
+    box = (-180.0, lats[0], 180.0, lats[3])
+    assert [r.id for r in store.page(after=0, limit=100, bbox=box).items] == [r.id for r in store.list(0, 100, box)[0]]
+    assert store.count_in(box) == store.list(0, 1, box)[1]
+
+
 def test_storage_failures_lose_nothing_and_recover(tmp_path, fitted):
     pipe, rows, _ = fitted
     store = ReferenceStore(tmp_path)

@@ -164,10 +164,16 @@ class ReferenceOut(BaseModel):
 
 
 class ReferenceList(BaseModel):
+    """A page of references. Paging by ``offset`` counts and skips rows (O(rows): fine for a few thousand);
+    paging by id (``after`` / ``before``, the ids in ``next_after`` / ``prev_before``) costs the same on any
+    page of 10^6 references."""
+
     items: list[ReferenceOut]
-    total: int
-    offset: int
+    total: int | None = Field(description="matching rows of any status; null on id pages unless total=true")
+    offset: int | None = Field(description="the position of the first item; null on id pages")
     limit: int
+    next_after: int | None = Field(None, description="pass as after= for the next page; null: this is the last")
+    prev_before: int | None = Field(None, description="pass as before= for the previous page; null: the first")
 
 
 class AcceptedOut(BaseModel):

@@ -736,7 +736,15 @@ def test_add_shows_the_new_reference_and_clears_the_form(browser, server, tile_p
     assert "Added from the page" in added.inner_text() and "Just added" in page.inner_text("#refs-added-title")
     new_id = added.get_attribute("data-id")
     page.wait_for_selector(f'#refs li.added[data-id="{new_id}"]')  # listed, on the page it falls on
-    assert f"of {total + 1}" in page.inner_text("#refs-count") and f"{total + 1} of" in page.inner_text("#refs-count")
+    # The list moved to the last page by id (before=the largest id), which ends with the new reference.
+    assert page.inner_text("#refs-count").endswith(f"–#{new_id} (by id), of {total + 1}")
+    assert page.locator("#next").is_disabled() and not page.locator("#prev").is_disabled()
+    page.click("#prev")  # before= the first id shown: the lowest ids, the first page
+    page.wait_for_function("() => document.getElementById('prev').disabled")
+    first_ids = [int(i) for i in page.locator("#refs li").evaluate_all("els => els.map(e => e.dataset.id)")]
+    assert first_ids == sorted(first_ids) and len(first_ids) == total + 1 - 20
+    assert page.inner_text("#refs-count").startswith(f"References #{first_ids[0]}–")
+    assert not page.locator("#next").is_disabled()
     form = page.evaluate(
         "() => [document.getElementById('add-file').files.length, ...['add-lat', 'add-lon', 'add-label']"
         ".map((id) => document.getElementById(id).value)]"

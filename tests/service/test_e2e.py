@@ -82,6 +82,31 @@ def test_full_cycle_and_restart(server, mini_manifest, tmp_path):
     assert top["reference_id"] not in [x["reference_id"] for x in after["candidates"]]
     listing = c.get("/references", params={"limit": 100}).json()
     assert listing["total"] == len(rows)  # len(rows) + 1 added, 1 deleted
+    # Paging by id: the same rows as by offset, the deleted id skipped, cursors that end; and backwards.
+    by_offset = [r["id"] for r in listing["items"]]
+    assert listing["next_after"] is None and listing["prev_before"] is None
+    seen, cursor = [], {"after": 0}
+    while cursor:
+        page = c.get("/references", params={**cursor, "limit": 7}).json()
+        assert page["total"] is None and page["offset"] is None and len(page["items"]) <= 7
+        seen += [r["id"] for r in page["items"]]
+        cursor = {"after": page["next_after"]} if page["next_after"] is not None else None
+    assert seen == by_offset and top["reference_id"] not in seen
+    last = c.get("/references", params={"before": 2**63 - 1, "limit": 7, "total": "true"}).json()
+    assert [r["id"] for r in last["items"]] == by_offset[-7:] and last["next_after"] is None
+    assert last["total"] == len(rows) and last["prev_before"] == by_offset[-7]
+    back = c.get("/references", params={"before": last["prev_before"], "limit": 7}).json()
+    assert [r["id"] for r in back["items"]] == by_offset[-14:-7] and back["next_after"] == by_offset[-8]
+    lats = sorted(r["lat"] for r in listing["items"])
+    lons = [r["lon"] for r in listing["items"]]
+    box = f"{min(lons)},{lats[0]},{max(lons)},{lats[len(lats) // 2]}"  # the southern half
+    in_box = [r["id"] for r in c.get("/references", params={"bbox": box, "limit": 500}).json()["items"]]
+    assert 0 < len(in_box) < len(by_offset)
+    boxed = c.get("/references", params={"bbox": box, "after": 0, "limit": 500}).json()
+    assert [r["id"] for r in boxed["items"]] == in_box
+    for bad in ({"after": 1, "before": 5}, {"after": 1, "offset": 2}, {"after": -1}):
+        r = c.get("/references", params=bad)
+        assert r.status_code == 422 and r.json()["error"] and r.json()["message"], (bad, r.text)
 
     # Stop, start again on the same data dir: same answer.
     server.stop()

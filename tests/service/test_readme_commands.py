@@ -186,6 +186,8 @@ def test_every_readme_command_is_run_here_or_elsewhere(shell):
     assert (shell.work / "thumb.jpg").read_bytes()[:2] == b"\xff\xd8"
     assert json.loads(next(b for line, b in answers.items() if "-X PATCH" in line))["label"] == "College Hall"
     assert "geoloc_" in next(b for line, b in answers.items() if line.endswith("/metrics"))
+    by_id = json.loads(next(b for line, b in answers.items() if "after=0" in line))
+    assert by_id["items"] and by_id["total"] is None and "next_after" in by_id
 
     ran = []
     for line in (c for c in lines if c.startswith("geoloc")):

@@ -138,12 +138,41 @@ def _ref_out(ref) -> ReferenceOut:
 )
 def list_references(
     core: Core,
-    offset: Annotated[int, Query(ge=0, le=2**63 - 1)] = 0,
+    offset: Annotated[int, Query(ge=0, le=2**63 - 1, description="page by position (counts every row)")] = 0,
     limit: Annotated[int, Query(ge=1, le=500)] = 50,
     bbox: Annotated[str | None, Query(description="min_lon,min_lat,max_lon,max_lat")] = None,
+    after: Annotated[
+        int | None, Query(ge=0, le=2**63 - 1, description="page by id: the references with ids above this")
+    ] = None,
+    before: Annotated[
+        int | None, Query(ge=0, le=2**63 - 1, description="page by id: the references with ids below this")
+    ] = None,
+    total: Annotated[bool, Query(description="on id pages: count every matching row too (O(rows))")] = False,
 ) -> ReferenceList:
-    refs, total = core.list(offset, limit, Region(bbox=parse_bbox(bbox)).bbox if bbox else None)
-    return ReferenceList(items=[_ref_out(r) for r in refs], total=total, offset=offset, limit=limit)
+    box = Region(bbox=parse_bbox(bbox)).bbox if bbox else None
+    if after is None and before is None:
+        refs, count = core.list(offset, limit, box)
+        return ReferenceList(
+            items=[_ref_out(r) for r in refs],
+            total=count,
+            offset=offset,
+            limit=limit,
+            next_after=refs[-1].id if refs and offset + len(refs) < count else None,
+            prev_before=refs[0].id if refs and offset > 0 else None,
+        )
+    if after is not None and before is not None:
+        raise ApiError(422, "invalid_request", "give after or before, not both")
+    if offset:
+        raise ApiError(422, "invalid_request", "offset pages by position, after/before by id: give one of them")
+    page = core.page(after, before, limit, box)
+    return ReferenceList(
+        items=[_ref_out(r) for r in page.items],
+        total=core.count_in(box) if total else None,
+        offset=None,
+        limit=limit,
+        next_after=page.next_after,
+        prev_before=page.prev_before,
+    )
 
 
 @router.get(

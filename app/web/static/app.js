@@ -6,7 +6,11 @@
 const $ = (id) => document.getElementById(id);
 const hasLeaflet = typeof window.L !== "undefined";
 const PAGE = 20;
-let refsOffset = 0;
+// The references list pages by id (after= / before=): a page deep in 10^6 references costs what the first
+// does, where an offset would make the server skip every row before it.
+const LAST_PAGE = "before=9223372036854775807";
+let refsCursor = "after=0";
+let lastPage = null; // the page shown: its next_after / prev_before are the cursors of its neighbours
 let candidateMarkers = []; // the locate map's markers, by rank
 
 // -- API key: kept for this browser session only --------------------------------------------------
@@ -457,7 +461,8 @@ function drawLocate(res) {
 // -- references -------------------------------------------------------------------------------------
 async function loadRefs() {
   try {
-    const page = await api(`/references?offset=${refsOffset}&limit=${PAGE}`, { headers: keyHeaders() });
+    const page = await api(`/references?${refsCursor}&limit=${PAGE}&total=true`, { headers: keyHeaders() });
+    lastPage = page;
     renderRefs(page);
   } catch (e) {
     showError("refs", e.message);
@@ -488,11 +493,12 @@ function refItem(r) {
 }
 
 function renderRefs(page) {
-  $("refs-count").textContent = page.total
-    ? `References ${page.offset + 1}–${page.offset + page.items.length} of ${page.total}`
-    : "No references yet.";
-  $("prev").disabled = page.offset === 0;
-  $("next").disabled = page.offset + page.items.length >= page.total;
+  const items = page.items;
+  $("refs-count").textContent = items.length
+    ? `References #${items[0].id}–#${items[items.length - 1].id} (by id), of ${page.total}`
+    : page.total ? `No references on this page, of ${page.total}` : "No references yet.";
+  $("prev").disabled = page.prev_before === null;
+  $("next").disabled = page.next_after === null;
   $("refs").replaceChildren(...page.items.map(refItem));
   if (refsMap) {
     refsMap.layer.clearLayers();
@@ -516,8 +522,12 @@ async function deleteRef(id) {
   }
 }
 
-$("prev").addEventListener("click", () => { refsOffset = Math.max(0, refsOffset - PAGE); loadRefs(); });
-$("next").addEventListener("click", () => { refsOffset += PAGE; loadRefs(); });
+$("prev").addEventListener("click", () => {
+  if (lastPage && lastPage.prev_before !== null) { refsCursor = `before=${lastPage.prev_before}`; loadRefs(); }
+});
+$("next").addEventListener("click", () => {
+  if (lastPage && lastPage.next_after !== null) { refsCursor = `after=${lastPage.next_after}`; loadRefs(); }
+});
 
 let pick = null; // the position clicked for the next reference
 if (refsMap) {
@@ -545,8 +555,7 @@ async function showAdded(id, duplicate) {
   $("refs-added-item").replaceChildren(item);
   $("refs-added").hidden = false;
   if (!duplicate) {
-    const first = await api("/references?offset=0&limit=1", { headers: keyHeaders() });
-    refsOffset = Math.max(0, Math.floor((first.total - 1) / PAGE) * PAGE);
+    refsCursor = LAST_PAGE;
   }
   await loadRefs();
   const listed = document.querySelector(`#refs li[data-id="${id}"]`);
