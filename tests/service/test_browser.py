@@ -744,6 +744,7 @@ def test_add_shows_the_new_reference_and_clears_the_form(browser, server, tile_p
     first_ids = [int(i) for i in page.locator("#refs li").evaluate_all("els => els.map(e => e.dataset.id)")]
     assert first_ids == sorted(first_ids) and len(first_ids) == total + 1 - 20
     assert page.inner_text("#refs-count").startswith(f"References #{first_ids[0]}–")
+    assert page.inner_text("#refs-count").endswith(f"of {total + 1}")  # the count kept, not read again
     assert not page.locator("#next").is_disabled()
     form = page.evaluate(
         "() => [document.getElementById('add-file').files.length, ...['add-lat', 'add-lon', 'add-label']"

@@ -459,9 +459,13 @@ function drawLocate(res) {
 }
 
 // -- references -------------------------------------------------------------------------------------
-async function loadRefs() {
+// The count of every reference (total=true) reads every row (0.3 s at 10^6 on PostgreSQL): asked for when the
+// view opens and after an add or a delete, not for every Next / Previous.
+async function loadRefs(recount = true) {
   try {
-    const page = await api(`/references?${refsCursor}&limit=${PAGE}&total=true`, { headers: keyHeaders() });
+    const count = recount || !lastPage ? "&total=true" : "";
+    const page = await api(`/references?${refsCursor}&limit=${PAGE}${count}`, { headers: keyHeaders() });
+    if (!count) page.total = lastPage.total;
     lastPage = page;
     renderRefs(page);
   } catch (e) {
@@ -523,10 +527,10 @@ async function deleteRef(id) {
 }
 
 $("prev").addEventListener("click", () => {
-  if (lastPage && lastPage.prev_before !== null) { refsCursor = `before=${lastPage.prev_before}`; loadRefs(); }
+  if (lastPage && lastPage.prev_before !== null) { refsCursor = `before=${lastPage.prev_before}`; loadRefs(false); }
 });
 $("next").addEventListener("click", () => {
-  if (lastPage && lastPage.next_after !== null) { refsCursor = `after=${lastPage.next_after}`; loadRefs(); }
+  if (lastPage && lastPage.next_after !== null) { refsCursor = `after=${lastPage.next_after}`; loadRefs(false); }
 });
 
 let pick = null; // the position clicked for the next reference
