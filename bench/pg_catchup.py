@@ -12,7 +12,8 @@ their change log entries as ``add_many`` writes them, in big batches (COPY on Po
 syncing 10^6 files per engine was where a 10^6 run spent its time (see docs/BENCHMARKS.md).
 
 What is measured is the store's real code, as the service runs it: the cold start is ``all_codes`` (the
-bulk read a replica starting without a snapshot makes, on a connection opened for it); then,
+bulk read a replica starting without a snapshot makes, in a process started for it, with that process's
+peak resident memory); then,
 ``--changes`` times, one change is committed on one connection and another connection, holding the
 previous version, reads ``head`` + ``changes_since`` (exactly what ``Collection.catch_up`` asks of the
 store when the ``ChangeListener`` wakes it). Last, the per-request and per-change reads (``head``,
@@ -25,8 +26,11 @@ from __future__ import annotations
 
 import argparse
 import hashlib
+import json
 import os
 import statistics
+import subprocess
+import sys
 import tempfile
 import time
 from collections.abc import Callable
@@ -60,9 +64,17 @@ def _items(rng: np.random.Generator, start: int, n: int) -> list[NewReference]:
     ]
 
 
-def _rss_mb() -> float:
+def _status_mb(field: str) -> float:
     with open("/proc/self/status") as f:
-        return next(int(line.split()[1]) for line in f if line.startswith("VmRSS:")) / 1024
+        return next(int(line.split()[1]) for line in f if line.startswith(field + ":")) / 1024
+
+
+def _rss_mb() -> float:
+    return _status_mb("VmRSS")
+
+
+def _peak_rss_mb() -> float:
+    return _status_mb("VmHWM")
 
 
 def _seed_rows(store: ReferenceStore, rng: np.random.Generator, start: int, n: int) -> None:
@@ -115,16 +127,26 @@ def _catch_up_ms(writer: ReferenceStore, reader: ReferenceStore, changes: int) -
     return out
 
 
-def _cold_start(store: ReferenceStore) -> tuple[float, int, float]:
-    """(seconds, codes read, resident MB the read added) of the bulk read a cold replica makes."""
-    rss0 = _rss_mb()
+def _cold_start(data: Path) -> dict:
+    """The bulk read a replica starting cold makes (``all_codes``, then the codes as one array), in a fresh
+    process as a replica would run it: seconds, codes read, and that process's resident memory before the
+    read and at its peak."""
+    out = subprocess.run(
+        [sys.executable, "-m", "bench.pg_catchup", "--cold-read", str(data)],
+        capture_output=True, text=True, check=True, env=os.environ.copy(),
+    )  # fmt: skip
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def _cold_read(data: Path) -> None:
+    """``--cold-read DIR``: the child process of ``_cold_start``; prints one line of JSON."""
+    store = ReferenceStore(data, read_only=True)
+    base = _rss_mb()
     t0 = time.perf_counter()
     _, ids, fcodes, _ = store.all_codes()
     codes = np.frombuffer(b"".join(fcodes), np.float32).reshape(len(ids), FLOAT_DIM)
     took = time.perf_counter() - t0
-    grown = _rss_mb() - rss0
-    del fcodes
-    return took, len(codes), grown
+    print(json.dumps({"s": took, "n": len(codes), "base_mb": base, "peak_mb": _peak_rss_mb()}))
 
 
 def _plan(store: ReferenceStore, sql: str, params) -> list[str]:
@@ -198,15 +220,16 @@ def _service_queries(store: ReferenceStore, repeat: int) -> dict[str, tuple[floa
 def _one_engine(name: str, data: Path, args) -> dict:
     store, add_rate, seed_s = _seed(data, args.refs, args.add_rows, args.batch, args.seed_batch)
     print(f"{name}: {args.refs} references stored in {seed_s:.0f} s", flush=True)
+    cold = _cold_start(data)
+    assert cold["n"] == args.refs, cold
     reader = ReferenceStore(data)
-    cold_s, n, cold_mb = _cold_start(reader)
     catch = _catch_up_ms(store, reader, args.changes)
     out = {
         "engine": name,
         "add_many_rows_per_s": add_rate,
-        "cold_read_s": cold_s,
-        "cold_read_mb": cold_mb,
-        "codes_read": n,
+        "cold_read_s": cold["s"],
+        "cold_read_peak_mb": cold["peak_mb"] - cold["base_mb"],
+        "codes_read": cold["n"],
         "catch_up_ms_median": statistics.median(catch),
         "catch_up_ms_p95": float(np.percentile(catch, 95)),
         "queries": _service_queries(reader, args.repeat),
@@ -236,7 +259,11 @@ def main() -> None:
     ap.add_argument("--seed-batch", type=int, default=50_000, help="rows per transaction of the rest")
     ap.add_argument("--repeat", type=int, default=50, help="calls per service query timed")
     ap.add_argument("--plans", action="store_true", help="print every query plan, not only flagged ones")
+    ap.add_argument("--cold-read", type=Path, help=argparse.SUPPRESS)  # the cold read's child process
     args = ap.parse_args()
+    if args.cold_read:
+        _cold_read(args.cold_read)
+        return
     server = PostgresServer().start()
     try:
         with tempfile.TemporaryDirectory(prefix="geoloc-bench-pg-") as tmp:
@@ -248,7 +275,7 @@ def main() -> None:
         os.environ.pop("GEOLOC_DATABASE_URL", None)
         server.stop()
     print(f"{args.refs} references ({args.add_rows} through add_many), {args.changes} changes, {FLOAT_DIM} floats")
-    for key in ("add_many_rows_per_s", "cold_read_s", "cold_read_mb", "catch_up_ms_median", "catch_up_ms_p95"):
+    for key in ("add_many_rows_per_s", "cold_read_s", "cold_read_peak_mb", "catch_up_ms_median", "catch_up_ms_p95"):
         ratio = postgres[key] / sqlite[key]
         print(f"{key:>20}: sqlite {sqlite[key]:10.3f}  postgres {postgres[key]:10.3f}  ratio {ratio:5.2f}")
     print(
