@@ -81,35 +81,34 @@ def main() -> None:
     args = ap.parse_args()
     rows = penn_rows()
     key = secrets.token_urlsafe(24)
-    server = PostgresServer().start()
     servers: list[ServerProcess] = []
     runs: dict[int, list[LoadReport]] = {1: [], 2: []}
-    try:
-        with tempfile.TemporaryDirectory(prefix="geoloc-bench-replicas-") as tmp:
+    with tempfile.TemporaryDirectory(prefix="geoloc-bench-replicas-") as tmp:
+        server = PostgresServer().start()
+        try:  # the servers stopped before their folder goes (a stopping writer writes its last snapshot)
             servers = _replicas(Path(tmp), server.create_database(), args.config, rows, args.seed, key)
             size = servers[0].client.get("/ready").json()["index_size"]
             print(f"{machine()}; PostgreSQL {server.bin.parent.name}; {size} references; config {args.config}")
             _warm_up(servers, rows, key)
             for rnd in range(args.rounds):
                 for n in (1, 2):
-                    urls = [s.url for s in servers[:n]]
                     report = run_load(
-                        urls, args.clients, args.seconds, locate_share=1.0, max_requests=10**6, api_key=key,
-                        seed=rnd, rows=rows,
+                        [s.url for s in servers[:n]], args.clients, args.seconds, locate_share=1.0,
+                        max_requests=10**6, api_key=key, seed=rnd, rows=rows,
                     )  # fmt: skip
                     runs[n].append(report)
-                    s = report.summary()
-                    loc = s["ops"].get("/locate", {})
+                    summary = report.summary()
+                    loc = summary["ops"].get("/locate", {})
                     print(
-                        f"round {rnd + 1}, {n} replica(s): {s['requests_per_s']:.2f} req/s, /locate p50 "
+                        f"round {rnd + 1}, {n} replica(s): {summary['requests_per_s']:.2f} req/s, /locate p50 "
                         f"{loc.get('p50', float('nan')):.0f} ms p95 {loc.get('p95', float('nan')):.0f} ms, "
-                        f"errors {s['errors'] or 'none'}",
+                        f"errors {summary['errors'] or 'none'}",
                         flush=True,
                     )
-    finally:
-        for s in servers:
-            s.stop()
-        server.stop()
+        finally:
+            for replica in servers:
+                replica.stop()
+            server.stop()
     one, two = _setting(runs[1]), _setting(runs[2])
     print(f"{args.clients} clients, /locate only, {args.rounds} x {args.seconds:.0f} s per setting, interleaved:")
     for n, s in ((1, one), (2, two)):
