@@ -8,8 +8,9 @@
 #   compose file mounts a folder of photos there), see app/jobs/first_start.py.
 #   docker build --build-context weights=../shared/models/squeezenet1.1/caffe-openvino-ir -t geoloc .
 # BASE and WEB_BASE: any Debian-like image with Python >= 3.11 (python3-venv) and one with npm; the
-# container test (tests/test_container_build.py) builds with a base made from Debian packages.
-ARG BASE=python:3.11-slim
+# container test (tests/test_container_build.py) builds with a base made from Debian packages. BASE names
+# its Debian release (bookworm) because the release fixes the PostgreSQL client's version below.
+ARG BASE=python:3.11-slim-bookworm
 ARG WEB_BASE=node:20-slim
 
 FROM ${WEB_BASE} AS web
@@ -27,8 +28,11 @@ ENV PYTHONDONTWRITEBYTECODE=1 \
     GEOLOC_DATA_DIR=/data \
     GEOLOC_MODELS_DIR=/app/models
 
+# postgresql-client: pg_dump and pg_restore, which `geoloc backup`/`restore` run when the store is on
+# PostgreSQL. pg_dump refuses a server of a newer major version than its own: Debian bookworm's client is
+# 15, the compose file's server is postgres:15; a newer server needs a newer client (README, "Several hosts").
 RUN apt-get update \
-    && apt-get install -y --no-install-recommends libgomp1 \
+    && apt-get install -y --no-install-recommends libgomp1 postgresql-client \
     && rm -rf /var/lib/apt/lists/* \
     && useradd --create-home --uid 10001 geoloc
 

@@ -506,7 +506,9 @@ def worker_cmd(
     batch: int = _S.worker_batch,
 ) -> None:
     """Run the ingestion worker as its own process (one per data dir; a second one refuses to start). It also
-    writes the index snapshots, and a last one when stopped with SIGTERM or Ctrl-C."""
+    writes the index snapshots, and a last one when stopped with SIGTERM or Ctrl-C. On PostgreSQL it checks
+    every GEOLOC_WORKER_RETRY_SECONDS that it still holds the database's writer lock; when it lost it, it
+    stops working and waits to take it again."""
     import logging
 
     from app.jobs.writer import WriterBusy, run_worker
@@ -517,7 +519,7 @@ def worker_cmd(
         typer.echo(f"worker: {data_dir} ({service.pipeline.config.name}), {service.store.count('pending')} pending")
 
     try:
-        run_worker(data_dir, models_dir, config, batch, on_ready=ready)
+        run_worker(data_dir, models_dir, config, batch, on_ready=ready, retry_seconds=_S.worker_retry_seconds)
     except WriterBusy as e:
         _fail(str(e), code=4)
 

@@ -52,7 +52,8 @@ class Settings(BaseSettings):
         5.0,
         gt=0,
         description="with worker=inprocess and the worker lock held elsewhere: how often to try to "
-        "take it over (failover when that process dies)",
+        "take it over (failover when that process dies); on PostgreSQL also how often a holder (the API's "
+        "worker or `geoloc worker`) checks that it still holds the lock",
     )
     locate_concurrency: int = Field(
         default_factory=usable_cpus,

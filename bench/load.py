@@ -18,6 +18,7 @@ import json
 import tempfile
 import time
 from collections import Counter
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -146,17 +147,21 @@ async def _client(
             report.samples.append(Sample(op, status, (time.perf_counter() - t0) * 1000))
 
 
-async def _run_clients(url, work, report, max_requests, api_key, timeout, seed) -> None:
+async def _run_clients(urls, work, report, max_requests, api_key, timeout, seed) -> None:
+    """Client ``c`` talks to ``urls[c % len(urls)]``: the clients spread round-robin over the servers."""
     deadline = time.perf_counter() + report.seconds
     budget = [max_requests]
     rngs = [np.random.default_rng([seed, c]) for c in range(report.clients)]
     await asyncio.gather(
-        *(_client(url, work, report, deadline, budget, rngs[c], api_key, timeout) for c in range(report.clients))
+        *(
+            _client(urls[c % len(urls)], work, report, deadline, budget, rngs[c], api_key, timeout)
+            for c in range(report.clients)
+        )
     )
 
 
 def run_load(
-    url: str,
+    url: str | Sequence[str],
     clients: int,
     seconds: float,
     locate_share: float = 0.8,
@@ -166,7 +171,11 @@ def run_load(
     seed: int = 0,
     rows=None,
 ) -> LoadReport:
-    require_loopback(url)
+    """``url``: one server, or several (replicas of one collection) that the clients spread over; the
+    resident memory reported is then the sum of theirs, the index size the first one's."""
+    urls = [url] if isinstance(url, str) else list(url)
+    for u in urls:
+        require_loopback(u)
     if not 1 <= clients <= MAX_CLIENTS:
         raise SystemExit(f"--clients must be 1..{MAX_CLIENTS}")
     if not 0 < seconds <= MAX_SECONDS:
@@ -175,14 +184,22 @@ def run_load(
     n_refs = min(int(max_requests * (1 - locate_share)) + clients, 1000)
     work = Workload(rows, max(n_refs, 1), seed)
     report = LoadReport(clients, seconds, locate_share)
-    with httpx.Client(base_url=url, timeout=30) as c:
-        report.rss_before = resident_bytes(c)
+    servers = [httpx.Client(base_url=u, timeout=30) for u in urls]
+    try:
+        report.rss_before = _total([resident_bytes(c) for c in servers])
         t0 = time.perf_counter()
-        asyncio.run(_run_clients(url, work, report, max_requests, api_key, timeout, seed))
+        asyncio.run(_run_clients(urls, work, report, max_requests, api_key, timeout, seed))
         report.seconds = time.perf_counter() - t0
-        report.rss_after = resident_bytes(c)
-        report.references_indexed_after = c.get("/ready").json().get("index_size")
+        report.rss_after = _total([resident_bytes(c) for c in servers])
+        report.references_indexed_after = servers[0].get("/ready").json().get("index_size")
+    finally:
+        for c in servers:
+            c.close()
     return report
+
+
+def _total(values: list[float | None]) -> float | None:
+    return None if any(v is None for v in values) else sum(values)
 
 
 def seeded_server(data_dir: Path, config: str, rows, n_seed: int = 40) -> ServerProcess:

@@ -109,6 +109,20 @@ def test_image_holds_every_registered_model(container, build_log):
             assert name in listed.split(), f"{name} ({entry.name}) is not in the image: {listed}"
 
 
+def test_image_dumps_the_compose_database_version(container, build_log):
+    """`geoloc backup` on PostgreSQL runs pg_dump, which must be at least the server's major version: the
+    image's client against the compose file's postgres image."""
+    import re
+
+    import yaml
+
+    out = _run(["buildah", "run", "--isolation", "chroot", container, "--", "pg_dump", "--version"], 120, build_log)
+    client = int(re.search(r"\(PostgreSQL\) (\d+)", out).group(1))
+    compose = yaml.safe_load((REPO / "docker-compose.yml").read_text())
+    server = int(re.match(r"postgres:(\d+)", compose["services"]["postgres"]["image"]).group(1))
+    assert client >= server, out
+
+
 def test_container_first_start_then_locate(container, tmp_path):
     """The image's own CMD environment on an empty data volume and a mounted photo folder (as the compose
     file runs it): /health at once, /ready 503 with the first start's step, then ready, then /locate."""

@@ -27,7 +27,7 @@ def test_dockerfile_shape():
     ops = [op for op, _ in ins]
     final_from = [rest for op, rest in ins if op == "FROM"][-1]
     assert final_from == "${BASE}"  # python:3.11-slim by default; the container test gives a Debian-made one
-    assert re.search(r"^ARG BASE=python:3\.1[1-9]-slim$", DOCKERFILE, re.M)
+    assert re.search(r"^ARG BASE=python:3\.1[1-9]-slim-[a-z]+$", DOCKERFILE, re.M)
     assert any(op == "COPY" and rest.startswith("--from=web") and "leaflet" in rest for op, rest in ins)
     swagger = next(rest for op, rest in ins if op == "COPY" and "swagger-ui-dist" in rest)  # /docs works offline
     assert "swagger-ui-bundle.js" in swagger and "swagger-ui.css" in swagger and "vendor/swagger-ui/" in swagger
@@ -122,3 +122,20 @@ def test_compose_postgres_profile_runs_a_database_and_a_replica_with_its_own_dat
     assert "ln -sfn /primary/pipelines /data/pipelines && exec geoloc serve" in replica["command"][-1]
     assert replica["depends_on"]["postgres"]["condition"] == "service_healthy"
     assert {"geoloc-replica", "geoloc-postgres"} <= set(compose["volumes"])
+
+
+#: The major version of PostgreSQL's client (``postgresql-client``) in each Debian release.
+DEBIAN_POSTGRES_CLIENT = {"bookworm": 15, "trixie": 17}
+
+
+def test_image_can_dump_the_compose_database():
+    """`geoloc backup` on PostgreSQL runs pg_dump, which refuses a server of a newer major version than its
+    own: the image installs Debian's client, its base names the Debian release (which fixes the client's
+    version), and the compose file's server is no newer than that client. The container test checks the
+    built image's pg_dump (tests/test_container_build.py)."""
+    install = next(rest for op, rest in _instructions() if op == "RUN" and "apt-get install" in rest)
+    assert "postgresql-client" in install.split()
+    release = re.search(r"^ARG BASE=python:3\.\d+-slim-([a-z]+)$", DOCKERFILE, re.M).group(1)
+    compose = yaml.safe_load((REPO / "docker-compose.yml").read_text())
+    server = int(re.fullmatch(r"postgres:(\d+)(\.\d+)?(-\w+)?", compose["services"]["postgres"]["image"]).group(1))
+    assert server <= DEBIAN_POSTGRES_CLIENT[release], (server, release)

@@ -163,23 +163,81 @@ class Writer:
             self.snapshots = None
 
     # -- in the calling thread: `geoloc worker` -----------------------------------------------------------
-    def run(self, service: GeolocService) -> None:
+    def run(self, service: GeolocService, retry_seconds: float | None = None) -> None:
         """Run the role in this thread until ``request_stop`` (a signal handler) or Ctrl-C, then ``stop``.
-        The lock must be held (``acquire``)."""
+        The lock must be held (``acquire``). With a lock that can be lost under a running holder (the
+        database's, on PostgreSQL) and ``retry_seconds``: every ``retry_seconds`` the lock's session is
+        checked; once it is gone the role is given up as the in-process writer gives it up (the worker and
+        the snapshot writer stop, no final snapshot: another process may hold the role by now), and the
+        process waits to take it again, retrying as often."""
         if not self.held:
             raise RuntimeError(f"{self.lock.where} is not held by this process")
         self.attach(service)
+        watch = retry_seconds is not None and self.lock.can_be_lost
+        lost = False
+        try:
+            while not self._stopping.is_set():
+                lost = self._run_held(service, retry_seconds if watch else None)
+                if not lost or not self._wait_for_role(retry_seconds):
+                    break
+                lost = False
+        except KeyboardInterrupt:
+            pass
+        finally:
+            self.stop(final=not lost)
+
+    def _run_held(self, service: GeolocService, check_every: float | None) -> bool:
+        """The role's work while the lock is held; True when it ended because the lock's session was lost."""
         self.worker = self._worker(service)
         self.snapshots = SnapshotWriter(service.collection)
         self.snapshots.start()
         self.janitor = Janitor(service.store).start()
+        lost = threading.Event()
+        done = threading.Event()
+        checker = None
+        if check_every is not None:
+            checker = threading.Thread(
+                target=self._check_lock, args=(check_every, lost, done), name="geoloc-worker-lock", daemon=True
+            )
+            checker.start()
         try:
             if not self._stopping.is_set():
                 self.worker.run_forever()
-        except KeyboardInterrupt:
-            pass
         finally:
-            self.stop()
+            done.set()
+            if checker is not None:
+                checker.join()
+        if not lost.is_set():
+            return False
+        self._stop_threads()
+        self.lock.release()
+        return True
+
+    def _check_lock(self, every: float, lost: threading.Event, done: threading.Event) -> None:
+        """Beside ``run``: end the worker's run once this process's lock session is gone."""
+        while not done.wait(every):
+            if not self.lock.alive():
+                self.log.error(
+                    "lost the worker lock (%s): its database session ended; this worker stops and tries to "
+                    "take the lock again",
+                    self.lock.where,
+                )
+                lost.set()
+                if self.worker is not None:
+                    self.worker.stop_event.set()
+                    self.worker.wake.set()
+                return
+
+    def _wait_for_role(self, every: float) -> bool:
+        """After losing the lock: take it again once free; False when stopped meanwhile."""
+        while not self._stopping.wait(every):
+            try:
+                if self.acquire():
+                    self.log.warning("took over the worker lock (%s) again", self.lock.where)
+                    return True
+            except Exception:  # the database unreachable now may answer at the next try
+                self.log.exception("taking the worker lock failed; retrying in %.0f s", every)
+        return False
 
     def request_stop(self) -> None:
         """Make ``run`` return; only sets events, so a signal handler may call it."""
@@ -239,11 +297,17 @@ def write_snapshot_if_free(data_dir: Path, open_collection: Callable[[], Collect
 
 
 def run_worker(
-    data_dir: Path, models_dir: Path, config: str, batch: int, on_ready: Callable[[GeolocService], None]
+    data_dir: Path,
+    models_dir: Path,
+    config: str,
+    batch: int,
+    on_ready: Callable[[GeolocService], None],
+    retry_seconds: float | None = None,
 ) -> None:
     """``geoloc worker``: take the lock (``WriterBusy`` when another process holds it; nothing is opened),
     open the service, call ``on_ready`` and run the role in this (the main) thread until SIGTERM or Ctrl-C;
-    a clean stop writes the last snapshot."""
+    a clean stop writes the last snapshot. ``retry_seconds``: on PostgreSQL, how often the lock's session
+    is checked (and, once lost, the lock retried): see ``Writer.run``."""
     import signal
 
     writer = Writer(data_dir, batch)
@@ -252,4 +316,4 @@ def run_worker(
     service = GeolocService.open(data_dir, models_dir, config)
     signal.signal(signal.SIGTERM, lambda *_: writer.request_stop())
     on_ready(service)
-    writer.run(service)
+    writer.run(service, retry_seconds)

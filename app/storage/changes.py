@@ -63,10 +63,11 @@ class ChangeLog(Database):
         """Every indexed row's codes and the index version they make up, read in one consistent snapshot."""
         with self.read_snapshot() as db:
             version = int(db.execute("SELECT COALESCE(MAX(version), 0) FROM changes").fetchone()[0])
-            rows = db.execute(
+            rows = self.fetch_bulk(
+                db,
                 f"SELECT r.id, {CODES} FROM refs r LEFT JOIN switched_codes s ON s.ref_id = r.id "
-                "WHERE r.status='indexed' ORDER BY r.id"
-            ).fetchall()
+                "WHERE r.status='indexed' ORDER BY r.id",
+            )
         return version, np.array([r[0] for r in rows], np.int64), [r[1] for r in rows], [r[2] for r in rows]
 
     def indexed_ids(self) -> np.ndarray:

@@ -143,6 +143,14 @@ class Database:
                     self.db.execute("ROLLBACK")
                 raise
 
+    def fetch_bulk(self, db, sql: str) -> list[tuple]:
+        """Every row of a bulk read (all the codes: a cold start, a new generation). On PostgreSQL in the
+        binary format: BYTEA codes travel as stored instead of as hex text, half the bytes and no decoding
+        (a cold read of 10^5 codes: 0.85 s in text, 0.44 s in binary; docs/BENCHMARKS.md)."""
+        if self.engine == "postgres":
+            return db.execute(sql, binary=True).fetchall()
+        return db.execute(sql).fetchall()
+
     @contextmanager
     def read_snapshot(self) -> Iterator[sqlite3.Connection]:
         """Several reads that must see one consistent state (WAL readers keep their snapshot until COMMIT)."""

@@ -105,10 +105,11 @@ class Generations(Database):
         with self.read_snapshot() as db:
             gen = db.execute("SELECT value FROM meta WHERE key='generation'").fetchone()
             version = int(db.execute("SELECT COALESCE(MAX(version), 0) FROM changes").fetchone()[0])
-            rows = db.execute(
+            rows = self.fetch_bulk(
+                db,
                 f"SELECT r.id, {CODES} FROM refs r LEFT JOIN switched_codes s ON s.ref_id = r.id "
-                "WHERE r.status='indexed' ORDER BY r.id"
-            ).fetchall()
+                "WHERE r.status='indexed' ORDER BY r.id",
+            )
         ids = np.array([r[0] for r in rows], np.int64)
         return int(gen[0]) if gen else 0, version, ids, [r[1] for r in rows], [r[2] for r in rows]
 

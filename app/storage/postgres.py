@@ -160,9 +160,10 @@ class PostgresConnection:
             return False
         return self._conn.info.transaction_status != TransactionStatus.IDLE
 
-    def execute(self, sql: str, params: Sequence | None = None):
+    def execute(self, sql: str, params: Sequence | None = None, binary: bool = False):
         """One statement. A lost server (a restart, a failover) comes out as ``StorageUnavailable`` from every
-        call, reads included (SQLite has no such state), and the next call outside a transaction reconnects."""
+        call, reads included (SQLite has no such state), and the next call outside a transaction reconnects.
+        ``binary``: results in PostgreSQL's binary format (``Database.fetch_bulk``)."""
         head = sql.strip().upper()
         with storage_guard("using the database"):
             if head == "BEGIN IMMEDIATE":  # a write transaction: one at a time across every process and host
@@ -171,7 +172,7 @@ class PostgresConnection:
             if head == "BEGIN":  # a consistent read of several statements
                 return self.raw.execute("BEGIN ISOLATION LEVEL REPEATABLE READ READ ONLY")
             text, lists = translate(sql)
-            return self.raw.execute(text, _bind(params, lists))
+            return self.raw.execute(text, _bind(params, lists), binary=binary)
 
     def executemany(self, sql: str, rows: Sequence[Sequence]):
         text, lists = translate(sql)

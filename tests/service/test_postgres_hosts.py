@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import signal
 import subprocess
 import sys
 import time
@@ -234,3 +235,81 @@ def test_check_backup_and_restore_on_postgres(tmp_path, fitted_models, hosts_env
     # A restore never merges into a database that holds a collection.
     out = run("restore", str(tmp_path / "bk"), "--data-dir", str(tmp_path / "again"), environ=restored)
     assert out.returncode != 0 and "new, empty database" in out.stdout + out.stderr
+
+
+def _writer_sessions(url: str) -> list[int]:
+    """The server-side pids of the sessions holding the writer role's advisory lock."""
+    import psycopg
+
+    from app.storage.postgres import WRITER_ROLE_KEY
+
+    with psycopg.connect(url, autocommit=True) as con:
+        rows = con.execute(
+            "SELECT pid FROM pg_locks WHERE locktype = 'advisory' AND granted "
+            "AND ((classid::bigint << 32) | objid::bigint) = %s",
+            (WRITER_ROLE_KEY,),
+        ).fetchall()
+    return [r[0] for r in rows]
+
+
+def _wait_for(what: str, ok, log: Path, timeout: float = TAKEOVER_S) -> None:
+    deadline = time.monotonic() + timeout
+    while not ok():
+        assert time.monotonic() < deadline, f"{what}: {log.read_text()[-3000:]}"
+        time.sleep(0.2)
+
+
+def test_standalone_worker_gives_the_role_up_when_its_session_is_cut(tmp_path, fitted_models, hosts_env):
+    """`geoloc worker` on PostgreSQL: its lock's session is terminated on the server (what a restart or a
+    network cut does); it notices, stops encoding while another session holds the role (an upload stays
+    pending), and takes the role again once that one lets it go, then encodes the upload."""
+    import psycopg
+
+    from app.storage.postgres import WRITER_ROLE_KEY
+
+    url = hosts_env["GEOLOC_DATABASE_URL"]
+    log = tmp_path / "worker.log"
+    env = {**os.environ, **hosts_env, "PYTHONUNBUFFERED": "1", "GEOLOC_ORT_THREADS": "1"}
+    worker = subprocess.Popen(
+        [sys.executable, "-m", "app.cli", "worker", "--data-dir", str(tmp_path / "worker"),
+         "--models-dir", str(fitted_models), "--config", CONFIG, "--batch", "4"],
+        stdout=log.open("a"), stderr=subprocess.STDOUT, env=env,
+    )  # fmt: skip
+    api = Server(tmp_path / "api", fitted_models, extra_env=hosts_env, worker="none")
+    other = None
+    try:
+        api.wait_ready()
+        _wait_for("the worker holds the role", lambda: "pending" in log.read_text(), log, 120)
+        (held,) = _writer_sessions(url)
+        job_id, ref_id = _upload(api, NEW_PHOTOS[0])  # encoded by the worker: it works while it holds the role
+        assert wait_job(api.client, job_id, 60)["status"] == "done"
+
+        with psycopg.connect(url, autocommit=True) as con:
+            assert con.execute("SELECT pg_terminate_backend(%s)", (held,)).fetchone()[0]
+        _wait_for("the worker notices", lambda: "lost the worker lock" in log.read_text(), log)
+        other = psycopg.connect(url, autocommit=True)  # another holder takes the role
+        _wait_for(
+            "another session takes the role",
+            lambda: other.execute("SELECT pg_try_advisory_lock(%s)", (WRITER_ROLE_KEY,)).fetchone()[0],
+            log,
+        )
+        assert worker.poll() is None  # the worker waits for the role; it did not exit
+        job_id, ref_id = _upload(api, NEW_PHOTOS[1])
+        time.sleep(4)  # the worker checks every second: it would have encoded it by now if it still worked
+        assert api.client.get(f"/references/{ref_id}").json()["status"] == "pending"
+
+        other.close()  # the role is free again: the worker takes it and encodes what waits
+        other = None
+        assert wait_job(api.client, job_id, 60)["status"] == "done"
+        assert "took over the worker lock" in log.read_text() and len(_writer_sessions(url)) == 1
+        assert _locate(api, NEW_PHOTOS[1])[0]["reference_id"] == ref_id
+        worker.send_signal(signal.SIGTERM)
+        assert worker.wait(60) == 0, log.read_text()[-3000:]
+        assert "Traceback" not in log.read_text()
+    finally:
+        if other is not None:
+            other.close()
+        api.stop()
+        if worker.poll() is None:
+            worker.kill()
+            worker.wait()
