@@ -123,8 +123,18 @@ def test_pages_by_id_read_the_same_rows_as_pages_by_offset(tmp_path, fitted):
     first = store.page(before=5, limit=3)
     assert [r.id for r in first.items] == [1, 2, 3] and first.prev_before is None and first.next_after == 3
     assert store.page(after=9).items == [] and store.count_in() == 8
+    # A page emptied under a client (its rows deleted) still points at its neighbours, never at nothing.
+    store.delete(8)
+    store.delete(9)
+    emptied = store.page(after=7, limit=3)
+    assert emptied.items == [] and emptied.next_after is None and emptied.prev_before == 8
+    assert [r.id for r in store.page(before=emptied.prev_before, limit=3).items] == [5, 6, 7]
+    head = store.page(before=1, limit=3)
+    assert head.items == [] and head.prev_before is None and head.next_after == 0
+    assert [r.id for r in store.page(after=head.next_after, limit=3).items] == [1, 2, 3]
+    assert store.page(after=2**63 - 1).prev_before == 2**63 - 1
     lats = sorted(r.lat for r in rows[:9])
-    box = (-180.0, lats[0], 180.0, lats[3])
+    box = (-180.0, lats[0], 180.0, lats[3])  # 8 and 9 deleted: the box may hold fewer than 4 rows
     assert [r.id for r in store.page(after=0, limit=100, bbox=box).items] == [r.id for r in store.list(0, 100, box)[0]]
     assert store.count_in(box) == store.list(0, 1, box)[1]
 

@@ -166,7 +166,8 @@ class ReferenceOut(BaseModel):
 class ReferenceList(BaseModel):
     """A page of references. Paging by ``offset`` counts and skips rows (O(rows): fine for a few thousand);
     paging by id (``after`` / ``before``, the ids in ``next_after`` / ``prev_before``) costs the same on any
-    page of 10^6 references."""
+    page of 10^6 references (without a bbox; a bbox that holds few rows walks past the others). A page
+    emptied by deletes carries its neighbours' cursors."""
 
     items: list[ReferenceOut]
     total: int | None = Field(description="matching rows of any status; null on id pages unless total=true")

@@ -88,6 +88,9 @@ class Reference:
         return {k: getattr(self, k) for k in self.__dataclass_fields__}
 
 
+_MAX_ID = 2**63 - 1  # the largest id SQLite and PostgreSQL's BIGINT hold
+
+
 @dataclass(frozen=True)
 class KeysetPage:
     """References in id order, and the ids to ask for the next and previous pages (None: no more)."""
@@ -434,7 +437,8 @@ class ReferenceStore(Queue, Generations, Identity, Removals, Maintenance):
     ) -> KeysetPage:
         """A page by id (keyset): the rows just after ``after`` or just before ``before``, in id order. It
         reads ``limit`` + 1 rows by the primary key plus one probe for a row on the other side, so a page
-        deep in 10^6 references costs what the first does (OFFSET 999,000 took 357 ms on SQLite)."""
+        deep in 10^6 references costs what the first does (OFFSET 999,000 took 357 ms on SQLite). With a
+        bbox that holds few rows the reads walk the id order past the rows outside it, up to all of them."""
         where, args = _bbox_where(bbox)
         join = "AND" if where else "WHERE"
         if before is not None:
@@ -443,7 +447,10 @@ class ReferenceStore(Queue, Generations, Identity, Removals, Maintenance):
             ).fetchall()
             more_before = len(rows) > limit
             rows = rows[:limit][::-1]
-            more_after = bool(rows) and self._any_beyond(where, join, args, ">", rows[-1][0])
+            # An empty page (its last rows deleted) still points at the rows after it, so a client is not
+            # left on a page with no way out.
+            first, last = (rows[0][0], rows[-1][0]) if rows else (before, max(before - 1, 0))  # ids start at 1
+            more_after = self._any_beyond(where, join, args, ">", last)
         else:
             start = -1 if after is None else after
             rows = self.db.execute(
@@ -451,12 +458,12 @@ class ReferenceStore(Queue, Generations, Identity, Removals, Maintenance):
             ).fetchall()
             more_after = len(rows) > limit
             rows = rows[:limit]
-            more_before = bool(rows) and self._any_beyond(where, join, args, "<", rows[0][0])
-        refs = [Reference(*r) for r in rows]
+            first, last = (rows[0][0], rows[-1][0]) if rows else (min(start + 1, _MAX_ID), start)
+            more_before = self._any_beyond(where, join, args, "<", first)
         return KeysetPage(
-            refs,
-            next_after=refs[-1].id if refs and more_after else None,
-            prev_before=refs[0].id if refs and more_before else None,
+            [Reference(*r) for r in rows],
+            next_after=last if more_after else None,
+            prev_before=first if more_before else None,
         )
 
     def _any_beyond(self, where: str, join: str, args: list, op: str, ref_id: int) -> bool:

@@ -739,13 +739,32 @@ def test_add_shows_the_new_reference_and_clears_the_form(browser, server, tile_p
     # The list moved to the last page by id (before=the largest id), which ends with the new reference.
     assert page.inner_text("#refs-count").endswith(f"–#{new_id} (by id), of {total + 1}")
     assert page.locator("#next").is_disabled() and not page.locator("#prev").is_disabled()
+    assert 21 <= total + 1 <= 40, total  # two pages of 20: the last one full, the first one the rest
+    listed: list[str] = []
+    page.on("request", lambda r: listed.append(r.url) if "/references?" in r.url else None)
     page.click("#prev")  # before= the first id shown: the lowest ids, the first page
     page.wait_for_function("() => document.getElementById('prev').disabled")
     first_ids = [int(i) for i in page.locator("#refs li").evaluate_all("els => els.map(e => e.dataset.id)")]
     assert first_ids == sorted(first_ids) and len(first_ids) == total + 1 - 20
     assert page.inner_text("#refs-count").startswith(f"References #{first_ids[0]}–")
     assert page.inner_text("#refs-count").endswith(f"of {total + 1}")  # the count kept, not read again
+    assert listed and not any("total=true" in u for u in listed), listed
     assert not page.locator("#next").is_disabled()
+    # Every reference of the page shown deleted (the last from the page itself): the emptied page steps to
+    # the next one instead of leaving both buttons disabled on nothing.
+    for ref_id in first_ids[:-1]:
+        assert server.client.delete(f"/references/{ref_id}", headers={"X-API-Key": "web-key"}).status_code == 200
+    page.once("dialog", lambda d: d.accept())
+    page.click(f'#refs li[data-id="{first_ids[-1]}"] button')
+    page.wait_for_function(
+        "(gone) => !document.querySelector(`#refs li[data-id='${gone}']`)"
+        " && document.querySelectorAll('#refs li').length",
+        arg=str(first_ids[-1]),
+    )
+    assert page.inner_text("#refs-count").endswith(f"of {total + 1 - len(first_ids)}")
+    assert page.locator("#prev").is_disabled()
+    for ref_id in first_ids:  # the rest of the test reads the form, not the list
+        assert server.client.get(f"/references/{ref_id}").status_code == 404
     form = page.evaluate(
         "() => [document.getElementById('add-file').files.length, ...['add-lat', 'add-lon', 'add-label']"
         ".map((id) => document.getElementById(id).value)]"

@@ -461,11 +461,17 @@ function drawLocate(res) {
 // -- references -------------------------------------------------------------------------------------
 // The count of every reference (total=true) reads every row (0.3 s at 10^6 on PostgreSQL): asked for when the
 // view opens and after an add or a delete, not for every Next / Previous.
-async function loadRefs(recount = true) {
+async function loadRefs(recount = true, stepped = false) {
   try {
     const count = recount || !lastPage ? "&total=true" : "";
     const page = await api(`/references?${refsCursor}&limit=${PAGE}${count}`, { headers: keyHeaders() });
     if (!count) page.total = lastPage.total;
+    // A page emptied by deletes (here or elsewhere) steps once to its neighbour, the earlier one first.
+    if (!page.items.length && !stepped && (page.prev_before !== null || page.next_after !== null)) {
+      refsCursor = page.prev_before !== null ? `before=${page.prev_before}` : `after=${page.next_after}`;
+      lastPage = page;
+      return loadRefs(recount, true);
+    }
     lastPage = page;
     renderRefs(page);
   } catch (e) {
