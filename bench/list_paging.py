@@ -79,11 +79,12 @@ def measure(store: ReferenceStore, refs: int, reps: int) -> dict[str, float]:
 
 def _one_engine(data: Path, refs: int, reps: int) -> dict:
     store = ReferenceStore(data)
-    seed_s = _seed(store, refs)
-    print(f"[{store.engine}] {refs:,d} rows written in {seed_s:.0f} s", flush=True)
-    out = measure(store, refs, reps)
-    store.close()
-    return out
+    try:
+        seed_s = _seed(store, refs)
+        print(f"[{store.engine}] {refs:,d} rows written in {seed_s:.0f} s", flush=True)
+        return measure(store, refs, reps)
+    finally:
+        store.close()
 
 
 def main() -> None:

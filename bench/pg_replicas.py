@@ -19,6 +19,7 @@ share. A gain needs replicas on hosts of their own.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import secrets
 import statistics
@@ -106,9 +107,10 @@ def main() -> None:
                         flush=True,
                     )
         finally:
-            for replica in servers:
-                replica.stop()
-            server.stop()
+            with contextlib.ExitStack() as stops:  # every stop runs, the database server's last
+                stops.callback(server.stop)
+                for replica in servers:
+                    stops.callback(replica.stop)
     one, two = _setting(runs[1]), _setting(runs[2])
     print(f"{args.clients} clients, /locate only, {args.rounds} x {args.seconds:.0f} s per setting, interleaved:")
     for n, s in ((1, one), (2, two)):

@@ -61,9 +61,13 @@ def remove_stale_servers(bin_dir: Path, as_user: list[str], tmp: Path | None = N
     ``stop`` left behind: those whose recorded owner process is gone. Returns the folders removed."""
     removed = []
     for root in sorted(Path(tmp or tempfile.gettempdir()).glob(PREFIX + "*")):
-        if not (root / OWNER).is_file() or _owner_alive(root):
+        try:  # another user's folder (a root run's is postgres's, mode 700) is not ours to judge
+            if not (root / OWNER).is_file() or _owner_alive(root):
+                continue
+            running = (root / "data" / "postmaster.pid").exists()
+        except OSError:
             continue
-        if (root / "data" / "postmaster.pid").exists():
+        if running:
             with contextlib.suppress(subprocess.TimeoutExpired):
                 subprocess.run(
                     [*as_user, str(bin_dir / "pg_ctl"), "-D", str(root / "data"), "-m", "immediate", "-w", "stop"],

@@ -284,15 +284,16 @@ def test_standalone_worker_gives_the_role_up_when_its_session_is_cut(tmp_path, f
         job_id, ref_id = _upload(api, NEW_PHOTOS[0])  # encoded by the worker: it works while it holds the role
         assert wait_job(api.client, job_id, 60)["status"] == "done"
 
+        # Another holder, connected beforehand, asks for the role as soon as the session is cut: the worker
+        # needs a check period and a retry period (2 s) to ask again, so on a loaded machine it cannot win.
+        other = psycopg.connect(url, autocommit=True)
         with psycopg.connect(url, autocommit=True) as con:
             assert con.execute("SELECT pg_terminate_backend(%s)", (held,)).fetchone()[0]
+        deadline = time.monotonic() + TAKEOVER_S
+        while not other.execute("SELECT pg_try_advisory_lock(%s)", (WRITER_ROLE_KEY,)).fetchone()[0]:
+            assert time.monotonic() < deadline, f"another session takes the role: {log.read_text()[-3000:]}"
+            time.sleep(0.02)
         _wait_for("the worker notices", lambda: "lost the worker lock" in log.read_text(), log)
-        other = psycopg.connect(url, autocommit=True)  # another holder takes the role
-        _wait_for(
-            "another session takes the role",
-            lambda: other.execute("SELECT pg_try_advisory_lock(%s)", (WRITER_ROLE_KEY,)).fetchone()[0],
-            log,
-        )
         assert worker.poll() is None  # the worker waits for the role; it did not exit
         job_id, ref_id = _upload(api, NEW_PHOTOS[1])
         time.sleep(4)  # the worker checks every second: it would have encoded it by now if it still worked
