@@ -96,10 +96,17 @@ def main() -> None:
         help="another checkout (e.g. `git worktree add ../base <commit>`, beside this one so ../shared "
         "resolves): its server runs beside this one's, each request and workload pass interleaved",
     )
+    ap.add_argument(
+        "--baseline-config",
+        help="the configuration the baseline tree serves (default: --config), fitted in the same models dir",
+    )
     args = ap.parse_args()
+    baseline_config = args.baseline_config or args.config
 
     rows = penn_rows()
     models = fitted_models(args.models_dir, args.config, rows)
+    if args.baseline_tree is not None and fitted_models(args.models_dir, baseline_config, rows) != models:
+        raise SystemExit(f"fit {args.config} and {baseline_config} in one models dir (geoloc fit --config ...)")
     queries = [r for r in rows if is_photo(r) and r.split == "query"]
     groups = {r.group for r in queries}
     refs = [r for r in rows if r.split == "db" and r.group not in groups][: args.references]
@@ -117,7 +124,7 @@ def main() -> None:
         times |= {f"{tree}1600 px": [], f"{tree}12 MP": []}
     with tempfile.TemporaryDirectory(prefix="locate-normalised-") as tmp:
         servers = {
-            tree: ServerProcess(Path(tmp) / f"data{n}", models, args.config, code=code)
+            tree: ServerProcess(Path(tmp) / f"data{n}", models, baseline_config if code else args.config, code=code)
             for n, (tree, code) in enumerate(trees.items())
         }
         try:
@@ -165,7 +172,8 @@ def main() -> None:
     lines += ["", f"- /locate 1600 px p50 / workload p50: **{ratio:.2f}**; 12 MP p50 / 1600 px p50: **{large:.2f}**."]
     if args.baseline_tree is not None:
         lines.append(
-            f"- Against the baseline tree ({args.baseline_tree.name}), interleaved request by request: 1600 px "
+            f"- Against the baseline tree ({args.baseline_tree.name}, serving {baseline_config}), interleaved request "
+            "by request: 1600 px "
             f"p50 **{p['1600 px']['p50'] / p['baseline 1600 px']['p50']:.2f}x**, 12 MP p50 "
             f"**{p['12 MP']['p50'] / p['baseline 12 MP']['p50']:.2f}x** the baseline's."
         )

@@ -87,6 +87,34 @@ def test_build_fit_ingest_locate(workdir, mini_manifest):
     assert "EXIF GPS" in brief.stdout and not brief.stdout.lstrip().startswith("{")
 
 
+def test_the_fast_configurations_fit_ingest_and_locate_at_their_sizes(workdir, mini_manifest):
+    """hybrid-fast and hybrid-faster (issue 21) are the default on fewer pixels and nothing else: the same
+    stages end to end, with a db photo found first by its own code."""
+    from app.engine.configs import get_config
+    from app.engine.pipeline import Pipeline
+
+    base = get_config("hybrid").model_dump()
+    for name, sizes in (("hybrid-fast", (512, 448)), ("hybrid-faster", (512, 336))):
+        c = get_config(name)
+        assert {k for k, v in c.model_dump().items() if base[k] != v} <= {
+            "name", "description", "local_long_side", "cnn_short_side",
+        }  # fmt: skip
+        assert Pipeline(c, models_dir=workdir / "models").decode_sides == sizes
+    m, data, models = str(mini_manifest), str(workdir / "index-faster"), str(workdir / "models")
+    geoloc(
+        "fit", "--manifest", m, "--config", "hybrid-faster", "--models-dir", models, "--svm-bank", "none",
+        "--calibration-sample", "20",
+    )  # fmt: skip
+    geoloc(
+        "ingest", "--manifest", m, "--split", "db", "--config", "hybrid-faster", "--data-dir", data,
+        "--models-dir", models,
+    )  # fmt: skip
+    photo = PENN / "photos" / "img_00000.jpg"  # a db photo
+    res = json.loads(geoloc("locate", str(photo), "--top-k", "3", "--data-dir", data, "--models-dir", models).stdout)
+    assert res["config"] == "hybrid-faster" and res["index"]["size"] == 30
+    assert res["candidates"][0]["label"] == "img_00000.jpg" and res["candidates"][0]["score"] > 0.95
+
+
 def test_eval_writes_the_report(workdir, mini_manifest):
     out_json = workdir / "eval" / "hybrid.json"
     p = geoloc(
