@@ -201,6 +201,7 @@ CONFIGS: dict[str, PipelineConfig] = {
 # the RootSIFT MBVLAD (image-level hybrid: the 1280/720-d maps are too wide to sample at every keypoint).
 # Figures: docs/RESULTS.md, "EfficientNet-Lite2".
 _LITE2 = dict(global_model="efficientnet-lite2", cnn_short_side=448)
+_LITE2_HYBRID = {**_HYBRID, **_LITE2, "global_model": "efficientnet-lite2-mid"}
 for _config in [
     PipelineConfig(
         name="lite2-gem",
@@ -230,6 +231,24 @@ for _config in [
         pca_dim=256,
         cnn_global_weight=1.0,
         **_LITE2,
+    ),
+    PipelineConfig(
+        name="lite2-hybrid",
+        description="Feature-level hybrid with EfficientNet-Lite2's stride-16 map (720 channels) in place of "
+        "SqueezeNet's fire9: RootSIFT joined with the map sampled at each keypoint, MBVLAD, joined with the "
+        "map's GeM, PCA-whitened floats",
+        **_LITE2_HYBRID,
+    ),
+    PipelineConfig(
+        name="lite2-hybrid-fast",
+        description="lite2-hybrid on fewer pixels: RootSIFT at 512 px (long side), EfficientNet-Lite2 at 384 px "
+        "(short side)",
+        **{**_LITE2_HYBRID, "local_long_side": 512, "cnn_short_side": 384},
+    ),
+    PipelineConfig(
+        name="lite2-hybrid-faster",
+        description="lite2-hybrid-fast with EfficientNet-Lite2 at 336 px (short side)",
+        **{**_LITE2_HYBRID, "local_long_side": 512, "cnn_short_side": 336},
     ),
     PipelineConfig(
         name="hybrid-lite2-mid",

@@ -175,3 +175,31 @@ def test_geoloc_models_build_only_lite2(lite2_wheel, tmp_path):
     assert out.returncode == 0, out.stderr
     assert "efficientnet_lite2.onnx" in out.stdout and (tmp_path / "efficientnet_lite2.onnx").exists()
     assert not (tmp_path / "squeezenet1_1.onnx").exists()  # --only builds that one alone
+
+
+@pytest.mark.parametrize("name", ["lite2-hybrid", "lite2-hybrid-fast"])
+def test_the_lite2_feature_level_hybrid_finds_a_reencoded_photo(name, lite2, models_dir, mini_manifest):
+    """The Lite2 stride-16 map sampled at each RootSIFT keypoint (issue 21's best recall): 128 + 720
+    dimensions per feature, fitted, saved and found again from a smaller, re-compressed copy of a photo."""
+    from PIL import Image
+
+    from app.domain import LocateOptions
+    from app.engine.index.references import ReferenceIndex
+    from app.engine.pipeline import Pipeline
+    from app.evaluation.datasets import read_manifest
+    from app.evaluation.evaluate import RowReferences
+    from app.locate import locate_features
+
+    rows = [r for r in read_manifest(mini_manifest) if r.split != "query"]
+    pipe = Pipeline(get_config(name), models_dir=models_dir)
+    feats = [pipe.extract(pipe.decode(r.image.read_bytes()).rgb) for r in rows]
+    assert {f.local.shape[1] for f in feats if f.n_local} == {128 + 720} and feats[0].global_.shape == (720,)
+    pipe.fit(feats, seed=0)
+    index = ReferenceIndex(pipe.config, pipe.float_dim, pipe.bits)
+    index.add(np.arange(len(rows)), np.stack([pipe.encode_features(f).float_ for f in feats]), None)
+    photo = next(i for i, r in enumerate(rows) if "photos" in str(r.image))
+    buf = io.BytesIO()
+    Image.open(rows[photo].image).convert("RGB").reduce(2).save(buf, "JPEG", quality=70)
+    query = pipe.extract(pipe.decode(buf.getvalue()).rgb)
+    res = locate_features(pipe, index, RowReferences(rows, list(range(len(rows)))), query, LocateOptions(top_k=5))
+    assert res.candidates[0].reference_id == photo and res.candidates[0].score > 0.8
