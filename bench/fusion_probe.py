@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
+from app.engine.artifacts import atomic_write_bytes
 from app.engine.configs import PipelineConfig, get_config
 from app.engine.geo import haversine_m
 from app.engine.pipeline import Pipeline
@@ -34,15 +35,18 @@ from app.evaluation.evaluate import RECALL_AT, assign_folds, extract_cached
 
 def fold_codes(config: PipelineConfig, rows, cache: Path | None, models_dir: Path, query_sets, seed: int):
     """Per fold: (query codes, db codes, query indices, db indices) of one configuration; kept in the cache
-    folder (keyed by the features' cache file and the folds), since fitting is most of a probe's time."""
+    folder, keyed by the definition, the folds, the seed, the images (path, size, mtime) and the built
+    models, since fitting is most of a probe's time."""
     if cache is not None:
-        folds = hashlib.sha256(json.dumps(query_sets).encode()).hexdigest()[:12]
-        key = hashlib.sha256(f"{config.model_dump_json()}-{seed}-{folds}".encode()).hexdigest()[:16]
-        path = cache / f"fold-codes-{key}.pkl"
+        key = hashlib.sha256(f"{config.model_dump_json()}-{seed}-{json.dumps(query_sets)}".encode())
+        for p in [r.image for r in rows] + sorted(models_dir.glob("*.onnx")):
+            st = p.stat()
+            key.update(f"{p}:{st.st_size}:{st.st_mtime_ns}".encode())
+        path = cache / f"fold-codes-{key.hexdigest()[:20]}.pkl"
         if path.exists():
             return pickle.loads(path.read_bytes())
         out = _fold_codes(config, rows, cache, models_dir, query_sets, seed)
-        path.write_bytes(pickle.dumps(out))
+        atomic_write_bytes(path, pickle.dumps(out, protocol=pickle.HIGHEST_PROTOCOL))
         return out
     return _fold_codes(config, rows, cache, models_dir, query_sets, seed)
 
@@ -111,6 +115,9 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--set-b", action="append", default=[], metavar="FIELD=VALUE", help="override B's settings")
     args = ap.parse_args(argv)
 
+    weights = [float(x) for x in args.weights.split(",")]
+    if not all(0 <= w <= 1 for w in weights):
+        ap.error(f"--weights are shares of configuration A, between 0 and 1: {args.weights}")
     rows = read_manifest(args.manifest)
     query_sets = assign_folds(rows, args.folds, args.seed)
     config_a = get_config(args.a).with_overrides(dict(kv.split("=", 1) for kv in args.set_a))
@@ -120,7 +127,7 @@ def main(argv: list[str] | None = None) -> None:
     report = {"a": config_a.name, "b": config_b.name, "folds": args.folds, "qe": args.qe, "dba": args.dba, "rows": []}
     print(f"w * {config_a.name} + (1 - w) * {config_b.name}, {args.folds} folds (mean), qe {args.qe}, dba {args.dba}")
     print("w     " + "  ".join(f"R@{n:<4}" for n in RECALL_AT))
-    for w in [float(x) for x in args.weights.split(",")]:
+    for w in weights:
         per_fold = []
         for (qa, da, q_idx, db_idx), (qb, db, q_idx_b, db_idx_b) in zip(a, b, strict=True):
             assert q_idx == q_idx_b and db_idx == db_idx_b

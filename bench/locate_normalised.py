@@ -104,9 +104,11 @@ def main() -> None:
     baseline_config = args.baseline_config or args.config
 
     rows = penn_rows()
+    if args.baseline_tree is not None and baseline_config != args.config:
+        missing = [c for c in (args.config, baseline_config) if not pipeline_dir(args.models_dir, c).exists()]
+        if missing:  # both servers read one models dir: fitted there, not on 40 images in out/bench-models
+            raise SystemExit(f"fit {' and '.join(missing)} in {args.models_dir} first (geoloc fit --config ...)")
     models = fitted_models(args.models_dir, args.config, rows)
-    if args.baseline_tree is not None and fitted_models(args.models_dir, baseline_config, rows) != models:
-        raise SystemExit(f"fit {args.config} and {baseline_config} in one models dir (geoloc fit --config ...)")
     queries = [r for r in rows if is_photo(r) and r.split == "query"]
     groups = {r.group for r in queries}
     refs = [r for r in rows if r.split == "db" and r.group not in groups][: args.references]

@@ -151,7 +151,7 @@ CONFIGS: dict[str, PipelineConfig] = {
         PipelineConfig(
             name="hybrid-fast",
             description="The default hybrid with RootSIFT on fewer pixels (512 px long side instead of 640): the "
-            "same recall on penn-campus-gps for less time",
+            "same recall on penn-campus-gps; no faster per /locate (SIFT runs beside the CNN, the longer branch)",
             **{**_HYBRID, "local_long_side": 512},
         ),
         PipelineConfig(
@@ -198,8 +198,9 @@ CONFIGS: dict[str, PipelineConfig] = {
 
 # EfficientNet-Lite2 (ImageNet, from the pinned wheel; app/engine/models/efficientnet_lite.py) as the global
 # model: its head map (1280, stride 32) or its richest stride-16 map (720) GeM-pooled, alone or joined with
-# the RootSIFT MBVLAD (image-level hybrid: the 1280/720-d maps are too wide to sample at every keypoint).
-# Figures: docs/RESULTS.md, "EfficientNet-Lite2".
+# the RootSIFT MBVLAD (image-level hybrid), and the stride-16 map sampled at every keypoint (the lite2-hybrid
+# family: the feature-level hybrid of the default with Lite2 in place of fire9, the best recall measured).
+# Figures: docs/RESULTS.md, "EfficientNet-Lite2" and "The Lite2 map at each keypoint".
 _LITE2 = dict(global_model="efficientnet-lite2", cnn_short_side=448)
 _LITE2_HYBRID = {**_HYBRID, **_LITE2, "global_model": "efficientnet-lite2-mid"}
 for _config in [

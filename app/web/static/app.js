@@ -469,8 +469,8 @@ async function loadRefs(recount = true, stepped = false) {
     // A page emptied by deletes (here or elsewhere) steps once to its neighbour, the earlier one first.
     if (!page.items.length && !stepped && (page.prev_before !== null || page.next_after !== null)) {
       refsCursor = page.prev_before !== null ? `before=${page.prev_before}` : `after=${page.next_after}`;
-      lastPage = page;
-      return loadRefs(recount, true);
+      lastPage = page; // holds the total when this load counted: the step need not count again
+      return loadRefs(false, true);
     }
     lastPage = page;
     renderRefs(page);
