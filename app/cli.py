@@ -512,7 +512,9 @@ def worker_cmd(
     import logging
 
     from app.jobs.writer import WriterBusy, run_worker
+    from app.runtime import serving_blas_threads
 
+    serving_blas_threads()  # encoding one photo at a time: see app.runtime
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
 
     def ready(service) -> None:

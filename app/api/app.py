@@ -19,6 +19,7 @@ from app.api.metrics import Metrics, MetricsMiddleware
 from app.api.routes import ROUTERS, ROUTES
 from app.jobs.worker import IngestWorker
 from app.jobs.writer import Writer
+from app.runtime import serving_blas_threads
 from app.service import GeolocService
 from app.settings import Settings, usable_cpus
 
@@ -111,6 +112,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     @asynccontextmanager
     async def lifespan(app: FastAPI):
+        serving_blas_threads()
         stop = threading.Event()
         loader = threading.Thread(target=_load, args=(app, stop), name="geoloc-load", daemon=True)
         loader.start()

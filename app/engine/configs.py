@@ -252,6 +252,12 @@ for _config in [
         **{**_LITE2_HYBRID, "local_long_side": 512, "cnn_short_side": 336},
     ),
     PipelineConfig(
+        name="lite2-hybrid-384",
+        description="lite2-hybrid on the fewest pixels that still win: RootSIFT at 384 px (long side), "
+        "EfficientNet-Lite2 at 336 px (short side)",
+        **{**_LITE2_HYBRID, "local_long_side": 384, "cnn_short_side": 336},
+    ),
+    PipelineConfig(
         name="hybrid-lite2-mid",
         description="RootSIFT MBVLAD joined with the EfficientNet-Lite2 stride-16 map GeM (image-level hybrid), "
         "PCA-whitened floats",

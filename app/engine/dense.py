@@ -21,18 +21,21 @@ def resize_short_side(rgb: np.ndarray, short_side: int) -> np.ndarray:
 
 def gem_pool(fire9: np.ndarray, p: float = 3.0) -> np.ndarray:
     """Generalised-mean pooling of an (H, W, C) ReLU map, L2-normalised: the global CNN descriptor."""
-    x = np.clip(fire9.reshape(-1, fire9.shape[-1]).astype(np.float64), 1e-6, None)
-    g = np.power(np.mean(np.power(x, p), axis=0), 1.0 / p)
+    x = np.maximum(fire9.reshape(-1, fire9.shape[-1]), np.float32(1e-6), dtype=np.float32)
+    # The default p = 3 as two float32 products summed in float64: np.power over a float64 copy of a
+    # 720-channel map took 6 ms of each query, this 1 ms, and the descriptor moves by float32 rounding only.
+    powered = x * x * x if p == 3 else np.power(x.astype(np.float64), p)
+    g = np.power(powered.sum(axis=0, dtype=np.float64) / len(x), 1.0 / p)
     return (g / max(np.linalg.norm(g), 1e-12)).astype(np.float32)
 
 
-def sample_at(fire9: np.ndarray, xy_norm: np.ndarray) -> np.ndarray:
+def sample_at(fire9: np.ndarray, xy_norm: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
     """Bilinear sample of the (H, W, C) map at positions ``xy_norm`` (N, 2), given as fractions of the
     image width and height (0..1), so the local-feature and CNN image sizes need not agree.
-    Returns (N, C) float32; map cells are taken to cover the image evenly."""
+    Returns (N, C) float32, written into ``out`` when given; map cells are taken to cover the image evenly."""
     fh, fw, c = fire9.shape
     if len(xy_norm) == 0:
-        return np.zeros((0, c), np.float32)
+        return np.zeros((0, c), np.float32) if out is None else out
     gx = np.clip(xy_norm[:, 0] * fw - 0.5, 0, fw - 1)
     gy = np.clip(xy_norm[:, 1] * fh - 0.5, 0, fh - 1)
     x0 = np.floor(gx).astype(np.intp)
@@ -46,8 +49,26 @@ def sample_at(fire9: np.ndarray, xy_norm: np.ndarray) -> np.ndarray:
     flat = fire9.reshape(fh * fw, c)
     if flat.dtype != np.float32:
         flat = flat.astype(np.float32)
-    out = flat[y0 * fw + x0] * ((1 - ax) * (1 - ay))
+    if out is None:
+        out = np.empty((len(xy_norm), c), np.float32)
+    np.multiply(flat[y0 * fw + x0], (1 - ax) * (1 - ay), out=out)
     out += flat[y0 * fw + x1] * (ax * (1 - ay))
     out += flat[y1 * fw + x0] * ((1 - ax) * ay)
     out += flat[y1 * fw + x1] * (ax * ay)
+    return out
+
+
+def join_sampled(local: np.ndarray, dense: np.ndarray, xy_norm: np.ndarray, weight: float) -> np.ndarray:
+    """The feature-level hybrid's descriptors: each unit local descriptor followed by ``weight`` times the unit
+    map vector sampled at its keypoint, (N, D + C) float32.
+
+    Written into one array in place: normalising and stacking copies took half of this stage's time with a
+    720-channel map."""
+    n, d = local.shape
+    out = np.empty((n, d + dense.shape[-1]), np.float32)
+    out[:, :d] = local
+    sample_at(dense, xy_norm, out=out[:, d:])
+    for part, scale in ((out[:, :d], 1.0), (out[:, d:], weight)):
+        norms = np.sqrt(np.einsum("ij,ij->i", part, part))
+        part *= np.divide(scale, norms, out=np.zeros_like(norms), where=norms > 0)[:, None]
     return out

@@ -22,7 +22,7 @@ from app.engine.artifacts import atomic_write_bytes, library_versions
 from app.engine.calibration import Calibration
 from app.engine.codes import Binariser
 from app.engine.configs import PipelineConfig, get_config
-from app.engine.dense import gem_pool, sample_at
+from app.engine.dense import gem_pool, join_sampled
 from app.engine.errors import IncompatibleArtifact, ModelNotReady
 from app.engine.extractors import build_extractor
 from app.engine.imageio import ImageLimits, LoadedImage, load_image
@@ -187,8 +187,7 @@ class Pipeline:
                 gem = gem_pool(dense, c.gem_p)
             if c.cnn_local_weight > 0 and local is not None:
                 with _Timer(t, "hybrid"):
-                    sampled = sample_at(dense, xy)
-                    local = np.hstack([_unit(local), c.cnn_local_weight * _unit(sampled)]).astype(np.float32)
+                    local = join_sampled(local, dense, xy, c.cnn_local_weight)
         return Features(local=local, xy=xy, global_=gem, timings_ms=t, orb_raw=orb_raw, config=c.name)
 
     def _dense(self, rgb: np.ndarray) -> tuple[np.ndarray, float]:

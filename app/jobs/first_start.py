@@ -36,6 +36,7 @@ from app.errors import FitRefused, ServiceError
 from app.jobs.ingest.progress import Progress
 from app.jobs.ingest.sources import Source, SourceItem, open_source
 from app.permissions import private_dir
+from app.runtime import all_blas_threads
 from app.storage.database import DB_NAME
 from app.storage.store import ReferenceStore
 
@@ -238,7 +239,8 @@ def _fit(
     refs = {i: Geotagged(p.features, p.lat, p.lon, p.group) for i, p in enumerate(photos)}
     source_name = bank_source(cfg, None)
     try:
-        fit_pipeline(pipe, [p.features for p in photos], refs, [], source_name, seed=seed)
+        with all_blas_threads():  # the server serves with one BLAS thread (app.runtime)
+            fit_pipeline(pipe, [p.features for p in photos], refs, [], source_name, seed=seed)
     except (FitRefused, NothingToTrainOn) as e:  # too small or too uniform for a bank: serve without one, say so
         log.warning("first start: no SVM bank (%s); the pipeline is fitted without one", e)
         pipe.bank = None

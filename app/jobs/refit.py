@@ -37,6 +37,7 @@ from app.engine.pipeline import Features, Pipeline, PipelineSource
 from app.errors import FitRefused, RefitError, StorageUnavailable
 from app.fitting import bank_source, calibrate_collection, check_bank_kind, train_bank
 from app.jobs.writer import write_snapshot_if_free
+from app.runtime import all_blas_threads
 from app.storage.generations import ReindexTarget
 from app.storage.store import ReferenceStore
 
@@ -278,7 +279,8 @@ def refit(
         summary = RefitSummary(target.generation, target.pipeline, target.config, resumed=True)
         log.info("continuing the interrupted re-index into generation %d", target.generation)
     else:
-        target, summary = fit_generation(store, models_dir, options, limits)
+        with all_blas_threads():  # a server serves with one BLAS thread (app.runtime)
+            target, summary = fit_generation(store, models_dir, options, limits)
     already = store.start_reindex(target)
     t0 = time.perf_counter()
     pipeline = target.source(data_dir, models_dir).load()

@@ -47,3 +47,30 @@ def test_a_crop_is_closer_to_its_photo_than_other_places_are(squeezenet, penn_in
     far = [r for r in rows if haversine_m(float(a["lat"]), float(a["lon"]), float(r["lat"]), float(r["lon"])) > 100]
     others = [g(r["crops"].split(";")[0]) for r in far[:5]]
     assert all(ga @ own > ga @ o for o in others)
+
+
+def test_gem_matches_the_float64_formula_for_every_p():
+    """The p = 3 fast path (float32 cubes summed in float64) and the general path agree with the textbook
+    formula in float64."""
+    rng = np.random.default_rng(1)
+    x = rng.random((7, 9, 40)).astype(np.float32)
+    for p in (3.0, 2.0, 4.5):
+        flat = x.reshape(-1, 40).astype(np.float64)
+        want = np.power(np.mean(np.power(flat, p), 0), 1 / p)
+        assert np.allclose(gem_pool(x, p), want / np.linalg.norm(want), atol=1e-6)
+
+
+def test_joined_descriptors_are_the_unit_parts_side_by_side():
+    from app.engine.dense import join_sampled
+
+    rng = np.random.default_rng(2)
+    fmap = rng.random((4, 5, 6)).astype(np.float32)
+    local = rng.random((9, 3)).astype(np.float32)
+    local[0] = 0  # a zero descriptor stays zero, it is not divided by its norm
+    xy = rng.random((9, 2)).astype(np.float32)
+    out = join_sampled(local, fmap, xy, 0.5)
+    sampled = sample_at(fmap, xy)
+    unit = lambda a: a / np.maximum(np.linalg.norm(a, axis=1, keepdims=True), 1e-30)  # noqa: E731
+    assert out.shape == (9, 9) and out.dtype == np.float32
+    assert np.allclose(out[:, :3], unit(local)) and not out[0, :3].any()
+    assert np.allclose(out[:, 3:], 0.5 * unit(sampled), atol=1e-6)

@@ -177,7 +177,7 @@ def test_geoloc_models_build_only_lite2(lite2_wheel, tmp_path):
     assert not (tmp_path / "squeezenet1_1.onnx").exists()  # --only builds that one alone
 
 
-@pytest.mark.parametrize("name", ["lite2-hybrid", "lite2-hybrid-fast"])
+@pytest.mark.parametrize("name", ["lite2-hybrid", "lite2-hybrid-384"])
 def test_the_lite2_feature_level_hybrid_finds_a_reencoded_photo(name, lite2, models_dir, mini_manifest):
     """The Lite2 stride-16 map sampled at each RootSIFT keypoint (issue 21's best recall): 128 + 720
     dimensions per feature, fitted, saved and found again from a smaller, re-compressed copy of a photo."""
