@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from app.engine.configs import DEFAULT_CONFIG
 from app.engine.index.references import ReferenceIndex
 from app.engine.pipeline import Pipeline, PipelineSource
 from app.storage.changes import Change
@@ -155,7 +156,7 @@ class Collection:
         store = ReferenceStore(data_dir)
         for _ in range(3):  # a re-fit switching between the read and the load: read again
             generation, ref, name = store.generation_state()
-            name = name or config or "hybrid"
+            name = name or config or DEFAULT_CONFIG
             pipeline = pipeline_source(data_dir, models_dir, ref, name).load()
             if store.generation_state()[0] == generation:
                 break

@@ -19,6 +19,7 @@ import numpy as np
 
 from app.apikey import KEY_FILE, key_path
 from app.collection import pipeline_source
+from app.engine.configs import DEFAULT_CONFIG
 from app.errors import OperationRefused
 from app.storage.database import DB_NAME, database_url
 from app.storage.files import IMAGES
@@ -75,7 +76,7 @@ def check_data_dir(data_dir: Path, models_dir: Path, config: str | None) -> Chec
     if orphans:
         r.problems.append(f"image files no row names: {_sample(orphans)} (`geoloc check --repair` removes them)")
     _check_leftovers(store, data_dir, r)
-    name = store.get_meta("config") or config or "hybrid"
+    name = store.get_meta("config") or config or DEFAULT_CONFIG
     pipeline = pipeline_source(data_dir, models_dir, store.get_meta("pipeline"), name).load()
     r.lines.append(f"pipeline: {store.get_meta('pipeline') or 'models:' + name}, generation {store.head()[1]}")
     fsize = 4 * (pipeline.float_dim or 0)

@@ -8,6 +8,8 @@ from pathlib import Path
 from pydantic import Field
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from app.engine.configs import DEFAULT_CONFIG
+
 REPO_ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -25,7 +27,7 @@ class Settings(BaseSettings):
     data_dir: Path = Field(REPO_ROOT / "index", description="FAISS snapshots, SQLite metadata, stored images")
     models_dir: Path = Field(REPO_ROOT / "models", description="the built ONNX model and fitted pipelines")
     shared_dir: Path = Field(REPO_ROOT.parent / "shared", description="read-only data and weights")
-    config: str = Field("hybrid", description="named pipeline configuration")
+    config: str = Field(DEFAULT_CONFIG, description="named pipeline configuration")
     initial_photos: Path | None = Field(
         None,
         description="a folder (or CSV) of geotagged photos: a data dir with no references and no pipeline is "

@@ -23,6 +23,7 @@ from pathlib import Path
 import httpx
 import pytest
 
+from app.engine.configs import DEFAULT_CONFIG
 from app.engine.geo import haversine_m
 from app.engine.imageio import load_image
 from tests.conftest import PENN, REPO, SQUEEZENET_IR
@@ -164,7 +165,7 @@ def test_container_first_start_then_locate(container, tmp_path):
                         said.append(r.json()["message"])
                     time.sleep(0.5)
             assert ready is not None, f"not ready; /ready said {said[-3:]}"
-            assert ready["index_size"] == len(PHOTOS) and ready["config"] == "hybrid", ready
+            assert ready["index_size"] == len(PHOTOS) and ready["config"] == DEFAULT_CONFIG, ready
             assert any(m.startswith("first start: fitting the pipeline: step 2 of 3") for m in said), said
             query = photos / PHOTOS[5]
             r = client.post("/locate", files={"image": query.read_bytes()}, data={"top_k": "3"})
@@ -172,7 +173,7 @@ def test_container_first_start_then_locate(container, tmp_path):
             best = r.json()["candidates"][0]
             lat, lon = load_image(query.read_bytes()).gps
             assert haversine_m(lat, lon, best["lat"], best["lon"]) < 1.0
-        assert (data / "pipelines" / "hybrid-g0" / "pipeline.json").is_file()  # in the volume, not the image
+        assert (data / "pipelines" / f"{DEFAULT_CONFIG}-g0" / "pipeline.json").is_file()  # in the volume, not the image
     finally:
         os.killpg(proc.pid, signal.SIGTERM)
         try:

@@ -30,7 +30,7 @@ from tqdm import tqdm
 from app.collection import Collection, pipeline_source
 from app.encoding import EncodeItem, batched, make_engine
 from app.encoding.items import Encoded
-from app.engine.configs import get_config
+from app.engine.configs import DEFAULT_CONFIG, get_config
 from app.engine.errors import GeolocError
 from app.engine.imageio import ImageLimits
 from app.engine.pipeline import Features, Pipeline, PipelineSource
@@ -111,7 +111,7 @@ def fit_generation(
 
     limits = limits or ImageLimits()
     generation, _, current = store.generation_state()
-    name = options.config or current or "hybrid"
+    name = options.config or current or DEFAULT_CONFIG
     cfg = get_config(name)
     try:
         source = bank_source(cfg, options.svm_bank, train_photos_given=options.train_manifest is not None)

@@ -45,8 +45,8 @@ def test_registered_next_to_sift_mnn_with_its_files():
     assert files_for(get_config("hybrid-lg")) == ["squeezenet1_1.onnx", "xfeat.onnx", "xfeat-lighterglue.onnx"]
 
 
-def test_hybrid_lg_is_the_default_with_the_learned_matcher_and_the_default_is_unchanged():
-    assert DEFAULT_CONFIG == "hybrid" and get_config("hybrid").matcher == "sift-mnn"
+def test_hybrid_lg_is_hybrid_with_the_learned_matcher_and_the_default_verifies_with_sift():
+    assert get_config(DEFAULT_CONFIG).matcher == "sift-mnn" and get_config("hybrid").matcher == "sift-mnn"
     a, b = get_config("hybrid").model_dump(), get_config("hybrid-lg").model_dump()
     assert {k for k in a if a[k] != b[k]} == {"name", "description", "matcher"}
     assert b["matcher"] == "xfeat-lighterglue"

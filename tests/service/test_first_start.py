@@ -12,12 +12,13 @@ from pathlib import Path
 import httpx
 import pytest
 
+from app.engine.configs import DEFAULT_CONFIG
 from app.engine.geo import haversine_m
 from app.engine.imageio import load_image
 from tests.conftest import PENN
 from tools.server_process import ServerProcess
 
-CONFIG = "hybrid"  # the default, what `docker compose up` fits
+CONFIG = DEFAULT_CONFIG  # what `docker compose up` fits
 
 PHOTOS = [f"img_{n:05d}.jpg" for n in range(8)]
 
@@ -33,7 +34,7 @@ def photo_folder(tmp_path):
 
 
 @pytest.fixture()
-def bare_models(tmp_path, models_dir):
+def bare_models(tmp_path, models_dir, lite2):
     """A models dir with the built models and no fitted pipeline (what the image holds)."""
     d = tmp_path / "models"
     d.mkdir()
