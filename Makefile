@@ -96,7 +96,7 @@ $(MANIFEST): | setup
 	@$(STEP) manifests -- $(GEOLOC) datasets --shared $(SHARED)/data --out data/manifests
 
 # The default configuration trains its SVM bank from the demo collection (the db rows as training photos,
-# plus the train rows); CONFIG=hybrid-nobank turns it off by name, SVM_BANK=collection|train|none overrides.
+# plus the train rows); SVM_BANK=none turns it off (as does CONFIG=hybrid-nobank for hybrid), SVM_BANK=collection|train overrides.
 # An existing fitted pipeline is kept as it is (delete models/pipelines/$(CONFIG) to refit).
 SVM_BANK ?=
 fit: models/pipelines/$(CONFIG)/pipeline.json

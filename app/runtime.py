@@ -77,14 +77,28 @@ def serving_blas_threads() -> int | None:
     import numpy  # noqa: F401  (threadpoolctl limits the BLAS libraries already loaded: numpy's)
     from threadpoolctl import threadpool_limits
 
-    n = int(os.environ.get("GEOLOC_BLAS_THREADS", SERVING_BLAS_THREADS))
+    raw = os.environ.get("GEOLOC_BLAS_THREADS", "")
+    n = int(raw) if raw.isdigit() and int(raw) > 0 else SERVING_BLAS_THREADS
     limited = threadpool_limits(limits=n, user_api="blas")
+    # A process-wide OpenBLAS pool answers (threadpoolctl >= 3.6) only to the thread that set it first;
+    # hand that back, so that a fit on another thread (the first start's loader) can raise the limit.
+    clear = getattr(_openblas_controller(), "clear_controlling_thread", None)
+    if clear is not None:
+        clear(force=True)
     return n if limited.get_original_num_threads().get("blas") is not None else None
 
 
+def _openblas_controller():
+    import threadpoolctl
+
+    return getattr(threadpoolctl, "OpenBLASController", None)
+
+
 def all_blas_threads():
-    """A context in which BLAS may use every core again (a fit inside a serving process: PCA and k-means
-    are large matrix products), restoring the serving limit after it."""
+    """A context in which BLAS may use every usable core again (a fit inside a serving process: PCA and
+    k-means are large matrix products), restoring the serving limit after it."""
     from threadpoolctl import threadpool_limits
 
-    return threadpool_limits(limits=os.cpu_count() or 1, user_api="blas")
+    from app.settings import usable_cpus
+
+    return threadpool_limits(limits=usable_cpus(), user_api="blas")

@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from app.domain import LocateOptions
+from app.engine.configs import DEFAULT_CONFIG
 from app.service import GeolocService
 
 REPO = Path(__file__).resolve().parents[1]
@@ -36,7 +37,7 @@ def main() -> None:
     ap.add_argument("photos", nargs="*")
     ap.add_argument("--data-dir", type=Path, default=REPO / "index")
     ap.add_argument("--models-dir", type=Path, default=REPO / "models")
-    ap.add_argument("--config", default="hybrid")
+    ap.add_argument("--config", default=DEFAULT_CONFIG)
     args = ap.parse_args()
     service = GeolocService.open(args.data_dir, args.models_dir, args.config)
     confident, best = [], []

@@ -18,6 +18,7 @@ import tempfile
 import time
 from pathlib import Path
 
+from app.engine.configs import DEFAULT_CONFIG
 from app.jobs.ingest.progress import Progress
 from app.jobs.ingest.run import IngestOptions, IngestRun
 from app.jobs.ingest.sources import open_source
@@ -38,7 +39,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--photos", type=Path, default=REPO.parent / "shared" / "data" / "penn-campus-gps" / "photos")
     ap.add_argument("--models-dir", type=Path, default=REPO / "models")
-    ap.add_argument("--config", default="hybrid")
+    ap.add_argument("--config", default=DEFAULT_CONFIG)
     ap.add_argument("--limit", type=int, default=0, help="first N photos (0: all)")
     ap.add_argument("--repeat", type=int, default=3, help="timed re-runs of each kind")
     args = ap.parse_args()

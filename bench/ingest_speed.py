@@ -37,6 +37,7 @@ import cv2  # noqa: E402
 from app.domain import Upload  # noqa: E402
 from app.encoding import EncodeItem, LocalEngine, encode_and_complete  # noqa: E402
 from app.encoding.items import Encoded  # noqa: E402
+from app.engine.configs import DEFAULT_CONFIG  # noqa: E402
 from app.engine.imageio import load_image  # noqa: E402
 from app.service import GeolocService  # noqa: E402
 from bench.common import REPO, write_section  # noqa: E402
@@ -244,7 +245,7 @@ def write_docs(text: str) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--models-dir", type=Path, default=REPO / "models")
-    ap.add_argument("--config", default="hybrid")
+    ap.add_argument("--config", default=DEFAULT_CONFIG)
     ap.add_argument("--photos", type=int, default=24, help="1600 px photos per run (0: skip)")
     ap.add_argument("--crops", type=int, default=64, help="224 px crops per run (0: skip)")
     ap.add_argument("--repeat", type=int, default=3)

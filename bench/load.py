@@ -25,6 +25,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 
+from app.engine.configs import DEFAULT_CONFIG
 from app.engine.imageio import load_image
 from bench.common import (
     REPO,
@@ -219,7 +220,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--url", help="a loopback server to load; default: start one on a temporary data dir")
     ap.add_argument("--api-key")
-    ap.add_argument("--config", default="hybrid", help="configuration of the server this script starts")
+    ap.add_argument("--config", default=DEFAULT_CONFIG, help="configuration of the server this script starts")
     ap.add_argument("--clients", type=int, default=4)
     ap.add_argument("--seconds", type=float, default=60)
     ap.add_argument("--locate-share", type=float, default=0.8, help="fraction of requests that are /locate")

@@ -26,6 +26,7 @@ import statistics
 import tempfile
 from pathlib import Path
 
+from app.engine.configs import DEFAULT_CONFIG
 from bench.common import REPO, is_photo, machine, penn_rows, percentiles, post_references
 from bench.load import LoadReport, run_load
 from tools.postgres_server import PostgresServer
@@ -74,7 +75,7 @@ def _setting(reports: list[LoadReport]) -> dict:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--config", default="hybrid", help="the fitted configuration in models/")
+    ap.add_argument("--config", default=DEFAULT_CONFIG, help="the fitted configuration in models/")
     ap.add_argument("--clients", type=int, default=4)
     ap.add_argument("--seconds", type=float, default=30, help="per run")
     ap.add_argument("--rounds", type=int, default=2, help="pairs of runs (one replica, then two)")

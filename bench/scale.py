@@ -1,6 +1,6 @@
 """The service at collection sizes users have: /ready, memory, /locate and uploads at 1k / 100k / 1M.
 
-    .venv/bin/python -m bench.scale [--sizes 1000,100000,1000000] [--config hybrid] [--out out/bench/scale]
+    .venv/bin/python -m bench.scale [--sizes 1000,100000,1000000] [--config lite2-hybrid-384] [--out out/bench/scale]
 
 For each size: a data dir seeded with synthetic codes (bench.seed, kept between runs), then a real
 `geoloc serve`: /ready after a restart with the snapshot and with the snapshot deleted, resident memory,
@@ -21,6 +21,7 @@ from pathlib import Path
 
 import httpx
 
+from app.engine.configs import DEFAULT_CONFIG
 from bench.common import write_section
 from bench.seed import placeholder, seed
 from tools.server_process import ServerProcess, wait_job
@@ -192,7 +193,7 @@ def write_doc(text: str, command: str) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--sizes", default="1000,100000,1000000")
-    ap.add_argument("--config", default="hybrid")
+    ap.add_argument("--config", default=DEFAULT_CONFIG)
     ap.add_argument("--models-dir", type=Path, default=REPO / "models")
     ap.add_argument("--root", type=Path, default=REPO / "out" / "bench" / "scale")
     ap.add_argument("--queries", type=int, default=20)

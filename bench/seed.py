@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
+from app.engine.configs import DEFAULT_CONFIG
 from app.engine.pipeline import load_pipeline
 from app.storage.store import NewReference, ReferenceStore
 
@@ -88,7 +89,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data-dir", type=Path, required=True)
     ap.add_argument("--references", type=int, required=True, help="total references the data dir should hold")
-    ap.add_argument("--config", default="hybrid")
+    ap.add_argument("--config", default=DEFAULT_CONFIG)
     ap.add_argument("--models-dir", type=Path, default=Path("models"))
     ap.add_argument("--batch", type=int, default=10_000)
     args = ap.parse_args()

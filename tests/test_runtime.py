@@ -1,6 +1,5 @@
 """Allocator tuning: applied on glibc (this machine, the Docker image), skippable by environment."""
 
-import os
 import platform
 
 import pytest
@@ -21,7 +20,13 @@ def test_can_be_turned_off(monkeypatch):
 def _blas_threads() -> set[int]:
     from threadpoolctl import threadpool_info
 
-    return {i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"}
+    # The process-wide pools only (numpy's OpenBLAS): an OpenMP-built BLAS (faiss ships one) keeps a limit
+    # per thread, so another thread reads its own default there whatever the main thread set.
+    return {
+        i["num_threads"]
+        for i in threadpool_info()
+        if i["user_api"] == "blas" and i.get("threading_layer") != "openmp"
+    }
 
 
 @pytest.fixture
@@ -39,12 +44,13 @@ def test_serving_uses_one_blas_thread_and_a_fit_gets_every_core(restored_blas):
     from threadpoolctl import threadpool_limits
 
     from app.runtime import all_blas_threads, serving_blas_threads
+    from app.settings import usable_cpus
 
     with threadpool_limits(limits=None):  # undone at the end, as the fixture checks
         assert serving_blas_threads() == 1
         assert _blas_threads() == {1}
         with all_blas_threads():
-            assert _blas_threads() == {os.cpu_count()}
+            assert _blas_threads() == {usable_cpus()}
         assert _blas_threads() == {1}, "the serving limit is back after the fit"
 
 
@@ -56,3 +62,28 @@ def test_blas_threads_can_be_set(monkeypatch, restored_blas):
     monkeypatch.setenv("GEOLOC_BLAS_THREADS", "2")
     with threadpool_limits(limits=None):
         assert serving_blas_threads() == 2 and _blas_threads() == {2}
+
+
+def test_a_fit_on_another_thread_gets_every_core(restored_blas):
+    """The server sets the limit on its main thread and fits on its loader thread (the first start): the
+    fit's threads must rise there too (threadpoolctl lets only one thread drive OpenBLAS's shared pool)."""
+    import threading
+
+    from threadpoolctl import threadpool_limits
+
+    from app.runtime import all_blas_threads, serving_blas_threads
+    from app.settings import usable_cpus
+
+    seen: list[set[int]] = []
+
+    def fit() -> None:
+        with all_blas_threads():
+            seen.append(_blas_threads())
+        seen.append(_blas_threads())
+
+    with threadpool_limits(limits=None):
+        serving_blas_threads()
+        t = threading.Thread(target=fit)
+        t.start()
+        t.join()
+        assert seen == [{usable_cpus()}, {1}], seen

@@ -279,7 +279,7 @@ def refit(
         summary = RefitSummary(target.generation, target.pipeline, target.config, resumed=True)
         log.info("continuing the interrupted re-index into generation %d", target.generation)
     else:
-        with all_blas_threads():  # a server serves with one BLAS thread (app.runtime)
+        with all_blas_threads():  # every core, also where a serving process (one BLAS thread) runs this
             target, summary = fit_generation(store, models_dir, options, limits)
     already = store.start_reindex(target)
     t0 = time.perf_counter()

@@ -149,7 +149,7 @@ def test_answers_round_metres_and_scores(server):
 
 
 def test_unsupported_mode_names_the_configurations_that_serve_it():
-    index = ReferenceIndex(get_config("hybrid"), float_dim=8, bits=None)  # the default: float codes only
+    index = ReferenceIndex(get_config("hybrid"), float_dim=8, bits=None)  # float codes only, as the default
     with pytest.raises(UnsupportedMode) as refused:
         index.check_mode("binary")
     message = str(refused.value)
