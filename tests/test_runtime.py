@@ -23,9 +23,7 @@ def _blas_threads() -> set[int]:
     # The process-wide pools only (numpy's OpenBLAS): an OpenMP-built BLAS (faiss ships one) keeps a limit
     # per thread, so another thread reads its own default there whatever the main thread set.
     return {
-        i["num_threads"]
-        for i in threadpool_info()
-        if i["user_api"] == "blas" and i.get("threading_layer") != "openmp"
+        i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas" and i.get("threading_layer") != "openmp"
     }
 
 

@@ -233,13 +233,15 @@ def test_the_readme_example_answer_has_the_fields_of_a_real_one(shell):
     assert status == 200, body
     # The stages timed differ by configuration (the README's is the default's, this server's hybrid-bin).
     assert "total" in example["timings_ms"] and "total" in real["timings_ms"]
-    # The README's answer is not confident (estimate null): the fields of a confident one are in the text.
-    assert example["estimate"] is None and example["reason_code"] == "ambiguous"
+    from app.api.schemas import EstimateOut
+
+    # The README's answer is confident (the easy demo case): its estimate has exactly an estimate's fields,
+    # and no reason; this server's answer may be either, so the rest is compared without the estimate.
+    assert set(example["estimate"]) == set(EstimateOut.model_fields), example["estimate"]
+    assert example["reason"] is None and example["reason_code"] is None
     assert _shape({**example, "timings_ms": {}, "estimate": None}) == _shape(
         {**real, "timings_ms": {}, "estimate": None}
     ), (example, real)
-    from app.api.schemas import EstimateOut
-
     for field in EstimateOut.model_fields:
         assert f"`{field}`" in section, field
     # Every field is defined in the table under the example.
