@@ -75,17 +75,19 @@ def serving_blas_threads() -> int | None:
     service in-process): 234 ms of CPU and 118 ms of wall time per /locate with the default threads, 110 ms
     and 70 ms with one. Fitting keeps every thread (``all_blas_threads``)."""
     import numpy  # noqa: F401  (threadpoolctl limits the BLAS libraries already loaded: numpy's)
-    from threadpoolctl import threadpool_limits
+    from threadpoolctl import threadpool_info, threadpool_limits
 
     raw = os.environ.get("GEOLOC_BLAS_THREADS", "")
     n = int(raw) if raw.isdigit() and int(raw) > 0 else SERVING_BLAS_THREADS
-    limited = threadpool_limits(limits=n, user_api="blas")
+    threadpool_limits(limits=n, user_api="blas")
     # A process-wide OpenBLAS pool answers (threadpoolctl >= 3.6) only to the thread that set it first;
     # hand that back, so that a fit on another thread (the first start's loader) can raise the limit.
     clear = getattr(_openblas_controller(), "clear_controlling_thread", None)
     if clear is not None:
         clear(force=True)
-    return n if limited.get_original_num_threads().get("blas") is not None else None
+    # threadpool_info, not the limiter's original counts: those warn when the BLAS libraries loaded (numpy's,
+    # scipy's, faiss's) started with different thread counts, on every start of the server.
+    return n if any(i["user_api"] == "blas" for i in threadpool_info()) else None
 
 
 def _openblas_controller():
