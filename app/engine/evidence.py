@@ -113,7 +113,7 @@ def gather(
         v = [verification.get(int(i)) for i in ids]
         inl = np.array([getattr(x, "inliers", 0) or 0 for x in v], np.float64)
         matches = np.array([getattr(x, "n_matches", 0) or 0 for x in v], np.float64)
-        conf = np.array([getattr(x, "confidence", 0.0) or 0.0 for x in v], np.float64)
+        conf = np.array([getattr(x, "mean_confidence", 0.0) or 0.0 for x in v], np.float64)
         cols += [np.log1p(inl), inl / np.maximum(matches, 1.0), np.log1p(matches), conf]
         names = GLOBAL_NAMES + VERIFIED_NAMES
     return Evidence(names, np.column_stack(cols))

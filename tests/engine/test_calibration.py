@@ -87,11 +87,12 @@ def test_a_collection_too_small_to_calibrate_says_so_and_gives_no_probabilities(
 def test_verification_evidence_is_more_columns_of_the_same_vector():
     lats, lons, scores = _answer(np.random.default_rng(4), True)
     ids = list(range(100, 110))
-    verified = {100: Verification(80, 40, "F"), 101: None, 102: Verification(10, 0, None)}
+    verified = {100: Verification(80, 40, "F", mean_confidence=0.75), 101: None, 102: Verification(10, 0, None)}
     ev = gather(lats, lons, scores, verified, ids)
     assert ev.names == GLOBAL_NAMES + VERIFIED_NAMES and ev.verified
     row = dict(zip(ev.names, ev.values[0], strict=True))
     assert row["log_inliers"] == np.log1p(40) and row["inlier_ratio"] == 0.5
+    assert row["match_confidence"] == 0.75  # a learned matcher's mean match probability is read, not lost
     assert ev.values[1, len(GLOBAL_NAMES) :].tolist() == [0, 0, 0, 0]  # unverifiable: reads as no evidence
     # A rule fitted without verification reads only its own columns from verified evidence.
     plain = gather(lats, lons, scores)
