@@ -144,6 +144,7 @@ def test_eval_writes_the_report(workdir, mini_manifest):
     a = r["answers"]  # answer quality: pooled, per fold, and on the simulated absent places
     assert len(r["answers_per_fold"]) == 2 and len(r["calibration_per_fold"]) == 2
     assert 0 <= a["coverage"] <= 1 and a["absent_radius_m"] == 100 and 0 <= a["absent_confident"] <= 1
+    assert "precision_at_2x_radius" in a and "within twice the radius" in p.stdout
     assert sum(a["reason_codes"].values()) == 39 == sum(a["absent_reason_codes"].values())
 
 

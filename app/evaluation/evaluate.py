@@ -70,6 +70,9 @@ class AnswerQuality(BaseModel):
 
     coverage: float
     precision: float | None
+    #: The confident estimates within twice the radius: how far off the "wrong" ones are (on penn they are
+    #: mostly the same facade photographed from across a street or quad, 29-47 m away).
+    precision_at_2x_radius: float | None = None
     brier: float | None
     reliability: list[dict]
     reason_codes: dict[str, int]
@@ -430,9 +433,11 @@ def _answer_record(res, row: Row, radius_m: float) -> dict:
     e = res.estimate
     cands = [c for c in res.candidates[:ESTIMATE_CANDIDATES] if c.p_within_25m is not None]
     d = haversine_m(row.lat, row.lon, np.array([c.lat for c in cands]), np.array([c.lon for c in cands]))
+    error = float(haversine_m(row.lat, row.lon, e.lat, e.lon)) if e.lat is not None else float("inf")
     return {
         "confident": res.reason is None,
-        "right": e.lat is not None and bool(haversine_m(row.lat, row.lon, e.lat, e.lon) <= radius_m),
+        "right": error <= radius_m,
+        "right_2x": error <= 2 * radius_m,
         "code": res.reason_code or "confident",
         "p": [c.p_within_25m for c in cands],
         "within": [bool(x) for x in np.atleast_1d(d <= radius_m)] if cands else [],
@@ -452,10 +457,12 @@ def answer_quality(present: list[dict], absent: list[dict], absent_radius_m: flo
         return (float(np.mean((p - y) ** 2)) if len(p) else None), p, y
 
     conf = [r["right"] for r in present if r["confident"]]
+    near = [r.get("right_2x", False) for r in present if r["confident"]]
     b, p, y = brier(present)
     out = {
         "coverage": len(conf) / max(len(present), 1),
         "precision": float(np.mean(conf)) if conf else None,
+        "precision_at_2x_radius": float(np.mean(near)) if near else None,
         "brier": b,
         "reliability": reliability(p, y),
         "reason_codes": codes(present),
@@ -556,7 +563,10 @@ def _quality_lines(result: dict) -> list[str]:
         + "):"
     ]
     for name, q in [*((f"  fold {k + 1}", q) for k, q in enumerate(result.get("answers_per_fold", []))), ("  all", a)]:
-        line = f"{name}: {_pct(q['precision'])} / {_pct(q['coverage'])}, Brier {_num(q['brier'])}"
+        line = (
+            f"{name}: {_pct(q['precision'])} / {_pct(q['coverage'])} (within twice the radius "
+            f"{_pct(q.get('precision_at_2x_radius'))}), Brier {_num(q['brier'])}"
+        )
         if q.get("absent_radius_m"):
             line += (
                 f"; absent {_pct(q['absent_confident'])} confident, mean best p {_num(q['absent_mean_best_p'])}, "
