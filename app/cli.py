@@ -125,6 +125,14 @@ def fit(
     calibration_sample: Annotated[
         int, typer.Option("--calibration-sample", help="db rows located against the others to calibrate")
     ] = 600,
+    calibrate_rerank: Annotated[
+        bool,
+        typer.Option(
+            "--calibrate-rerank",
+            help="also fit the rule for verified answers (rerank=true): up to 300 db rows located again with "
+            "verification, so its evidence counts in p_within_25m and the confidence (about 0.2 s per row)",
+        ),
+    ] = False,
 ) -> None:
     """Fit codebook, PCA-whitening and binariser on the manifest's db and train rows, then the SVM bank, then
     the confidence rule and p_within_25m on the db rows (the collection) themselves."""
@@ -145,7 +153,7 @@ def fit(
     pipe = Pipeline(cfg, models_dir=models_dir)
     feats = [e.features for e in extract_all(pipe, rows, desc="extract")]
     typer.echo(f"fitting {cfg.name} on {len(feats)} images ...")
-    _fit_with_bank(pipe, rows, feats, svm_bank_kind, seed, source, calibration_sample)
+    _fit_with_bank(pipe, rows, feats, svm_bank_kind, seed, source, calibration_sample, calibrate_rerank)
     cal = pipe.calibration
     typer.echo(f"calibration ({cal.source}): {cal.note}; " + ", ".join(f"{k} {v}" for k, v in cal.report.items()))
     pipe.save(pipeline_dir(models_dir, cfg.name), {"manifest": str(manifest.resolve())})
@@ -156,7 +164,9 @@ def fit(
     )
 
 
-def _fit_with_bank(pipe, rows, feats, kind: str, seed: int, source: str, calibration_sample: int = 600) -> None:
+def _fit_with_bank(
+    pipe, rows, feats, kind: str, seed: int, source: str, calibration_sample: int = 600, verify: bool = False
+) -> None:
     """``app.fitting.fit_pipeline``: the pipeline on every row, then the bank from the db rows (the collection
     rule, plus train rows) or from the train rows alone, retrieved against an in-memory index of the db rows
     encoded by the pipeline just fitted."""
@@ -175,7 +185,8 @@ def _fit_with_bank(pipe, rows, feats, kind: str, seed: int, source: str, calibra
         _fail("the manifest has no db rows: the SVM bank needs references to retrieve against")
     refs = {i: Geotagged(feats[i], rows[i].lat, rows[i].lon, rows[i].group) for i in db}
     try:
-        fit_pipeline(pipe, feats, refs, train, source, kind, seed, calibration_sample)
+        images = {i: rows[i].image for i in db} if verify else None
+        fit_pipeline(pipe, feats, refs, train, source, kind, seed, calibration_sample, images)
     except FitRefused as e:
         _fail(str(e))
     if pipe.bank is None:
@@ -614,6 +625,14 @@ def refit(
         int,
         typer.Option("--calibration-sample", help="of the sample, references located against the others to calibrate"),
     ] = 600,
+    calibrate_rerank: Annotated[
+        bool,
+        typer.Option(
+            "--calibrate-rerank",
+            help="also fit the rule for verified answers (rerank=true): up to 300 of those located again with "
+            "verification (about 0.2 s each)",
+        ),
+    ] = False,
     ray: Annotated[
         str | None, typer.Option("--ray", help="re-encode on Ray: local, auto or a cluster address (ray://head:10001)")
     ] = None,
@@ -651,6 +670,7 @@ def refit(
         batch=batch,
         fresh=fresh,
         calibration_sample=calibration_sample,
+        calibrate_rerank=calibrate_rerank,
     )
     s = run_refit(data_dir, models_dir, options, ray=ray, limits=_S.image_limits())
     secs = ", ".join(f"{k} {v:.1f} s" for k, v in s.seconds.items())

@@ -9,7 +9,8 @@ the evaluation measured was not what `fit` built.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
@@ -83,12 +84,14 @@ def fit_pipeline(
     kind: str = "contrastive",
     seed: int = 0,
     calibration_sample: int | None = None,
+    images: Mapping[int, Path] | None = None,
 ) -> Pipeline:
     """Fit ``pipe`` (codebook, PCA-whitening, binariser) on ``features`` (every photo it learns from), then,
     unless ``source`` is ``none``, its SVM bank from ``refs`` (the references, by id) and ``train`` (geotagged
     photos that are not references), then its confidence rule and ``p_within_25m`` on ``refs``
-    (``calibrate_collection``, at most ``calibration_sample`` of them located): what `geoloc fit` and the
-    first start of an empty data dir both run."""
+    (``calibrate_collection``, at most ``calibration_sample`` of them located; with ``images``, the references'
+    photos, also the rule for verified answers): what `geoloc fit` and the first start of an empty data dir
+    both run."""
     check_bank_kind(kind)
     pipe.fit(list(features), seed=seed)
     if source != "none":
@@ -99,6 +102,7 @@ def fit_pipeline(
         [t.features for t in train],
         CALIBRATION_SAMPLE if calibration_sample is None else calibration_sample,
         seed=seed,
+        images=images,
     )
     return pipe
 
@@ -107,6 +111,10 @@ def fit_pipeline(
 #: References located against the others to calibrate (like the SVM bank's sample: the cost of a fit or a
 #: refit does not grow with the collection past it).
 CALIBRATION_SAMPLE = 600
+#: Of those, how many are located once more with verification (``--calibrate-rerank``) for the rule that
+#: judges verified answers: each costs its own photo's matcher features and up to 20 verified pairs (the
+#: candidates' features are computed once per reference), about 0.2 s with RootSIFT on 2 cores.
+VERIFY_CALIBRATION_SAMPLE = 300
 #: A place counts as absent when no reference lies within this many metres of it.
 ABSENT_RADIUS_M = 100.0
 #: The collection is dealt into this many parts; each auxiliary fit leaves one out (calibrate_collection).
@@ -189,6 +197,8 @@ def calibrate_collection(
     sample: int = CALIBRATION_SAMPLE,
     absent_radius_m: float = ABSENT_RADIUS_M,
     seed: int = 0,
+    images: Mapping[int, Path] | None = None,
+    verify_sample: int = VERIFY_CALIBRATION_SAMPLE,
 ) -> Calibration:
     """The confidence rule and ``p_within_25m`` for ``pipe`` (fitted, with its bank), fitted on the collection
     ``refs`` itself.
@@ -203,7 +213,12 @@ def calibrate_collection(
     ``app.locate.locate_features`` (the path /locate serves) with its own capture left out (the place is
     present, when another capture shows it) and with every reference within ``absent_radius_m`` removed
     (the place is absent). Cost: one more fit and one encoding of ``refs`` (the refit's sample, bounded),
-    plus two searches per held-out reference (at most ``sample``)."""
+    plus two searches per held-out reference (at most ``sample``).
+
+    ``images`` (reference id -> its photo): the first ``verify_sample`` held-out references are located
+    twice more with verification by the configuration's matcher (their place present and absent), and a
+    second rule is fitted on those verified answers (``Calibration.verified``), which /locate applies to
+    answers with ``rerank``: verification's evidence then counts in ``p_within_25m`` and the confidence."""
     from app.locate import ESTIMATE_CANDIDATES, MIN_LOCAL_FEATURES, Excluding, locate_features
 
     ids = sorted(refs)
@@ -217,9 +232,13 @@ def calibrate_collection(
     by_group: dict[str, list[int]] = {}
     for i in ids:
         by_group.setdefault(refs[i].group, []).append(i)
-    source = GeotaggedReferences(refs)
+    source = GeotaggedReferences(refs, dict(images) if images else None)
     options = LocateOptions(top_k=ESTIMATE_CANDIDATES)
-    samples = []
+    verified_options = LocateOptions(top_k=ESTIMATE_CANDIDATES, rerank=True)
+    to_verify = {i for i in held if images and i in images}
+    to_verify = set(sorted(to_verify, key=held.index)[: max(0, verify_sample)])
+    features_cache: dict[int, object] = {}
+    samples, verified_samples = [], []
     for k, part in enumerate(parts):
         out = {g for i in part for g in [refs[i].group]}
         fit_on = [refs[i].features for i in ids if refs[i].group not in out] + list(extra)
@@ -228,6 +247,8 @@ def calibrate_collection(
         aux = Pipeline(pipe.config, pipe.global_model, models_dir=pipe.models_dir)
         aux.fit(fit_on, seed=seed + 1 + k, codebook=pipe.codebook)
         aux.bank, aux.bank_select = pipe.bank, pipe.bank_select
+        if to_verify:
+            aux._matcher = pipe.matcher  # one matcher (a learned one loads its networks once) for every part
         # Only the references it was fitted on are searched, as every reference is for a real query.
         rest = [i for i in ids if refs[i].group not in out]
         index = index_of(aux, rest, (refs[i].features for i in rest))
@@ -237,13 +258,45 @@ def calibrate_collection(
                 continue
             codes = aux.encode_features(r.features, aux.select(r.features))  # once for both searches
             own = by_group[r.group]
+            rgb = _photo(aux, images[i]) if i in to_verify else None
             for absent, excluded in ((False, own), (True, own + near_ids(refs, r.lat, r.lon, absent_radius_m))):
-                answer = locate_features(aux, Excluding(index, excluded), source, r.features, options, codes=codes)
+                searched = Excluding(index, excluded)
+                answer = locate_features(aux, searched, source, r.features, options, codes=codes)
                 s = calibration_sample(answer, r.lat, r.lon, absent)
                 if s is not None:
                     samples.append(s)
+                if rgb is None:
+                    continue
+                answer = locate_features(
+                    aux, searched, source, r.features, verified_options, rgb, codes=codes, features_cache=features_cache
+                )
+                s = calibration_sample(answer, r.lat, r.lon, absent)
+                if s is not None:
+                    verified_samples.append(s)
     cal = fit_calibration(samples, seed)
     cal.report["absent_radius_m"] = absent_radius_m
     cal.report["sampled"] = len(held)
     cal.report["auxiliary_fits"] = len(parts)
+    if to_verify:
+        verified = fit_calibration(verified_samples, seed)
+        cal.report["verified_sampled"] = len(to_verify)
+        if verified.calibrated:
+            verified.note = f"fitted on {len(to_verify)} references of this collection, located with verification"
+            cal.verified = asdict(verified)
+            cal.note += f"; verified answers (rerank) by their own rule, {len(to_verify)} located with verification"
+            cal.report["verified_confident_p"] = verified.report.get("confident_p")
+            cal.report["verified_brier"] = verified.report.get("brier")
+        else:
+            cal.report["verified"] = verified.note
     return cal
+
+
+def _photo(pipe: Pipeline, path: Path) -> np.ndarray | None:
+    """A reference's photo for verification, decoded as /locate decodes an upload (None when unreadable:
+    that reference is then located without verification only)."""
+    from app.engine.errors import GeolocError
+
+    try:
+        return pipe.decode(Path(path).read_bytes()).rgb
+    except (OSError, GeolocError):
+        return None

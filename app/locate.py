@@ -129,6 +129,7 @@ def verify_candidate_pairs(
     refs: ReferenceSource,
     limits: ImageLimits,
     matcher: Matcher | None = None,
+    features_cache: dict[int, object] | None = None,
 ) -> dict[int, rerank_mod.Verification | None]:
     """``verify_candidates`` with the whole outcome per pair (matches, both models' inliers), for the
     evaluation's analysis; None where the pair could not be verified.
@@ -136,20 +137,29 @@ def verify_candidate_pairs(
     The query's features are computed once; each candidate's are recomputed from its stored image (about
     0.1 s each, most of what rerank costs). Storing the strongest 480 keypoints at ingest (62 KB per
     reference; all 1,500 would take 193 KB) verified as well on penn and is the measured next step; this
-    is the one place that would read them (docs/RESULTS.md, "Verification that works")."""
+    is the one place that would read them (docs/RESULTS.md, "Verification that works").
+
+    ``features_cache`` (reference id -> its matcher features) keeps each candidate's features across calls:
+    the calibration verifies hundreds of answers whose candidates recur, /locate never passes one."""
     matcher = matcher or build_matcher(DEFAULT_MATCHER)
     q = matcher.features(query_rgb)
     out: dict[int, rerank_mod.Verification | None] = {}
     feats: dict[int, object] = {}
     for i in ids:
-        data = refs.image_bytes(int(i))
         out[int(i)] = None
+        if features_cache is not None and int(i) in features_cache:
+            feats[int(i)] = features_cache[int(i)]
+            continue
+        data = refs.image_bytes(int(i))
         if data is None:
             continue
         try:
             feats[int(i)] = matcher.features(load_image(data, limits).rgb)
         except (cv2.error, GeolocError) as e:
             log.debug("verification of reference %s skipped: %s", i, e)
+            continue
+        if features_cache is not None:
+            features_cache[int(i)] = feats[int(i)]
     # A matcher that takes the candidates together (a learned one may batch its network runs) gets them so.
     match_many = getattr(matcher, "match_many", None)
     outcomes: dict[int, rerank_mod.Verification] = {}
@@ -188,10 +198,12 @@ def locate_features(
     limits: ImageLimits | None = None,
     cluster_radius_m: float = 25.0,
     codes: Codes | None = None,
+    features_cache: dict[int, object] | None = None,
 ) -> LocateAnswer:
     """Search, verify, fuse, shape. ``query_rgb`` is needed only for verification (``options.rerank``).
     ``codes``: the features already encoded by ``pipeline`` (calibration and the evaluation locate one photo
-    twice, its place present and absent: the second search reuses the first's codes)."""
+    twice, its place present and absent: the second search reuses the first's codes). ``features_cache``:
+    the references' matcher features kept across calls (``verify_candidate_pairs``)."""
     mode = index.check_mode(options.mode)
     t: dict[str, float] = {}
     allowed = None
@@ -222,7 +234,9 @@ def locate_features(
             raise ValueError("verification needs the query image")
         t0 = time.perf_counter()
         head = [i for i, _ in ranked[:RERANK_CANDIDATES]]
-        verification = verify_candidate_pairs(query_rgb, head, refs, limits or ImageLimits(), pipeline.matcher)
+        verification = verify_candidate_pairs(
+            query_rgb, head, refs, limits or ImageLimits(), pipeline.matcher, features_cache
+        )
         inliers = {i: None if v is None else v.inliers for i, v in verification.items()}
         ranked = order_by_verification(ranked, inliers)
         t["rerank"] = (time.perf_counter() - t0) * 1000
@@ -242,7 +256,8 @@ def locate_features(
         verification if options.rerank else None,
         fused_ids,
     )
-    calibration = pipeline.calibration
+    # A verified answer is judged by the rule fitted on verified answers, when the collection has one.
+    calibration = pipeline.calibration.for_answer(bool(options.rerank))
     if mode != index.check_mode(None) and calibration.calibrated:
         # The calibration located its sample in the default mode: another mode's scores (Hamming similarities
         # in binary mode) are on another scale, and reading them through it would invent probabilities.

@@ -33,9 +33,11 @@ def test_build_fit_ingest_locate(workdir, mini_manifest):
     # No bank here: this test checks exact self-retrieval (a db photo's own code, all its features).
     out = geoloc(
         "fit", "--manifest", m, "--config", "hybrid-bin", "--models-dir", models, "--svm-bank", "none",
-        "--calibration-sample", "20",
+        "--calibration-sample", "20", "--calibrate-rerank",
     )  # fmt: skip
     assert "saved" in out.stdout and "no SVM bank" in out.stdout
+    # --calibrate-rerank: the 20 are located again with verification, for the rule of verified answers.
+    assert "verified_sampled 20" in out.stdout, out.stdout
     # The 10 db captures of the mini manifest (20 sampled of their 30 images): calibrated or, too few right
     # answers, the conservative rule; either way it says which, and how many references it sampled.
     assert re.search(r"calibration \((collection|conservative)\): .*sampled 20", out.stdout), out.stdout

@@ -98,6 +98,10 @@ class Calibration:
     source: str = "conservative"  # "collection": fitted on the collection; "conservative": too small
     note: str = ""
     report: dict = field(default_factory=dict)
+    #: The rule for verified answers (``rerank``), fitted on the same sample located with verification, as a
+    #: nested ``Calibration``'s fields; None when the fit did not verify (``--calibrate-rerank``): verified
+    #: answers then read this rule's global columns only.
+    verified: dict | None = None
 
     @classmethod
     def conservative(cls, note: str, report: dict | None = None) -> Calibration:
@@ -106,6 +110,13 @@ class Calibration:
     @property
     def calibrated(self) -> bool:
         return self.source == "collection"
+
+    def for_answer(self, verified: bool) -> Calibration:
+        """The rule that reads this answer's evidence: the verified one for a verified answer, when the
+        collection was calibrated with verification; else this one."""
+        if not verified or not self.verified:
+            return self
+        return Calibration(**{**self.verified, "names": tuple(self.verified["names"])})
 
     # -- applying -------------------------------------------------------------------------------------
     def probabilities(self, evidence: Evidence) -> np.ndarray | None:

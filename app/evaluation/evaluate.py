@@ -284,7 +284,9 @@ def evaluate(
         # `geoloc fit` calibrates on the collection.
         geotagged = {i: Geotagged(extracted[i].features, rows[i].lat, rows[i].lon, rows[i].group) for i in db_idx}
         train_features = [extracted[i].features for i, r in enumerate(rows) if r.split == "train"]
-        pipe.calibration = calibrate_collection(pipe, geotagged, train_features, seed=seed + f)
+        # With rerank, the rule for verified answers too, as `geoloc fit --calibrate-rerank` fits it.
+        images = {i: rows[i].image for i in db_idx} if rerank else None
+        pipe.calibration = calibrate_collection(pipe, geotagged, train_features, seed=seed + f, images=images)
         calibration_reports.append({"source": pipe.calibration.source, **pipe.calibration.report})
         refs = RowReferences(rows, db_idx)
         hits, hits_plain = [], []
@@ -325,10 +327,9 @@ def evaluate(
             fold_present.append(_answer_record(res, rows[i], radius_m))
             if absent_radius_m:
                 gone = near_ids(geotagged, rows[i].lat, rows[i].lon, absent_radius_m)
-                plain = LocateOptions(top_k=top_n, mode=mode, region=region)
                 res_absent = locate_features(
-                    pipe, Excluding(index, gone), refs, f_i, plain, cluster_radius_m=radius_m, codes=codes
-                )
+                    pipe, Excluding(index, gone), refs, f_i, options, rgb, cluster_radius_m=radius_m, codes=codes
+                )  # as the present answer is located: verified with rerank
                 fold_absent.append(_answer_record(res_absent, rows[i], radius_m))
             e = res.estimate
             if e.lat is not None:

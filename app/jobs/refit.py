@@ -53,6 +53,7 @@ class RefitOptions:
     train_manifest: Path | None = None
     sample: int = 2000  # references the codebook, PCA and binariser are fitted on
     calibration_sample: int = 600  # of those, references located against the others to calibrate
+    calibrate_rerank: bool = False  # also the rule for verified answers (some of those located with verification)
     svm_bank: str | None = None  # collection | train | none; None: train with a manifest, else collection
     bank_kind: str = "contrastive"
     seed: int = 0
@@ -155,8 +156,11 @@ def fit_generation(
             raise RefitError(str(e)) from None
         seconds["bank"] = time.perf_counter() - t1
     t1 = time.perf_counter()
+    images = None
+    if options.calibrate_rerank:
+        images = {int(i): p for i, p in zip(picked, paths, strict=True) if p is not None}
     pipe.calibration = calibrate_collection(
-        pipe, refs, [t.features for t in train], options.calibration_sample, seed=options.seed
+        pipe, refs, [t.features for t in train], options.calibration_sample, seed=options.seed, images=images
     )
     seconds["calibration"] = time.perf_counter() - t1
     extra = {"refit_sample": len(kept), "svm_bank_source": source}

@@ -3,6 +3,8 @@ it (app.engine.evidence): fitted on present and absent answers, it says "no_matc
 is confident for a clear present one, round-trips through the pipeline folder, and a sample too small to
 calibrate falls back to the conservative rule with no probabilities."""
 
+from dataclasses import asdict
+
 import numpy as np
 
 from app.engine.calibration import AMBIGUOUS, NO_MATCH, Calibration, Sample, fit_calibration
@@ -150,3 +152,30 @@ def test_a_match_above_anything_the_calibration_saw_is_never_not_in_this_collect
     # The same look-alikes without the photo itself: not in this collection.
     lats, lons, scores = _answer(np.random.default_rng(9), False)
     assert cal.decide(gather(lats, lons, scores), fuse_position(lats, lons, scores)).code == NO_MATCH
+
+
+def test_a_verified_answer_is_judged_by_the_verified_rule_which_survives_a_restart(tmp_path):
+    rng = np.random.default_rng(7)
+    plain, verified = [], []
+    for k in range(40):
+        right = k % 2 == 0
+        lats, lons, scores = _answer(rng, right)
+        ids = list(range(10))
+        # Verification that says what the truth is: many inliers for the right place, none elsewhere.
+        outcome = {i: Verification(100, 60 if right and i < 3 else 0, "F" if right and i < 3 else None) for i in ids}
+        within = np.zeros(10, bool)
+        within[:3] = right
+        members = np.zeros(10, bool)
+        members[:3] = True
+        plain.append(Sample(gather(lats, lons, scores), within, members, right, False))
+        verified.append(Sample(gather(lats, lons, scores, outcome, ids), within, members, right, False))
+    cal = fit_calibration(plain)
+    cal.verified = asdict(fit_calibration(verified))
+    assert cal.for_answer(False) is cal
+    rule = cal.for_answer(True)
+    assert rule.names == GLOBAL_NAMES + VERIFIED_NAMES and rule.calibrated
+    cal.save(tmp_path)
+    back = Calibration.load(tmp_path)
+    assert back.for_answer(True).names == rule.names and back.for_answer(True).coef == rule.coef
+    # Without a verified rule a verified answer reads the plain rule's global columns.
+    assert fit_calibration(plain).for_answer(True).names == GLOBAL_NAMES

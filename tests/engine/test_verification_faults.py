@@ -54,3 +54,32 @@ def test_missing_and_undecodable_images_are_unverified_and_keep_their_place():
     assert out[7] is None  # no image
     ranked = [(7, 0.9), (0, 0.8), (1, 0.5)]
     assert [i for i, _ in order_by_verification(ranked, out)] == [1, 7, 0]  # only the verified one moves
+
+
+class CountingPhotos(Photos):
+    def __init__(self, images: list[bytes]):
+        super().__init__(images)
+        self.reads = 0
+
+    def image_bytes(self, ref_id: int) -> bytes | None:
+        self.reads += 1
+        return super().image_bytes(ref_id)
+
+
+def test_a_features_cache_reads_each_reference_once_and_verifies_the_same():
+    """The calibration verifies hundreds of answers whose candidates recur: with a cache each reference's
+    photo is read and its features computed once, and the outcomes are those of a fresh computation."""
+    from app.locate import verify_candidate_pairs
+
+    paths = sorted((PENN / "photos").glob("*.jpg"))[:4]
+    query = load_image(paths[0].read_bytes()).rgb
+    source = CountingPhotos([p.read_bytes() for p in paths])
+    cache: dict[int, object] = {}
+    first = verify_candidate_pairs(query, [1, 2, 3], source, ImageLimits(), features_cache=cache)
+    again = verify_candidate_pairs(query, [3, 2, 1], source, ImageLimits(), features_cache=cache)
+    assert source.reads == 3 and sorted(cache) == [1, 2, 3]
+    fresh = verify_candidate_pairs(query, [1, 2, 3], source, ImageLimits())
+    assert source.reads == 6
+    for i in (1, 2, 3):
+        assert (again[i].n_matches, again[i].inliers) == (first[i].n_matches, first[i].inliers)
+        assert (fresh[i].n_matches, fresh[i].n_matches > 0) == (first[i].n_matches, True)

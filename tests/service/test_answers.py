@@ -1,9 +1,9 @@
 """Knowing when it does not know (issue 20), on a real server and real photos: a refit of a 21-photo
-collection calibrates the confidence rule and p_within_25m on that collection (an uncalibrated pipeline
-gives none; a second refit once 6 are deleted finds it too small and drops them again), a query whose place was
-removed gets no confident estimate, a San Francisco street gets none against Penn, and a plain blue image
-gets no candidates and no probabilities, with its own reason code. Every answer carries the collection's
-extent."""
+collection calibrates the confidence rule and p_within_25m on that collection, and with --calibrate-rerank a
+second rule for verified answers (an uncalibrated pipeline gives none; a second refit once 6 are deleted
+finds it too small and drops them again), a query whose place was removed gets no confident estimate, a San
+Francisco street gets none against Penn, and a plain blue image gets no candidates and no probabilities,
+with its own reason code. Every answer carries the collection's extent."""
 
 import csv
 import time
@@ -44,17 +44,18 @@ def collection(tmp_path_factory, fitted_models):
     return data, rows, common, fitted_models
 
 
-def _locate(server, path=None, data=None):
+def _locate(server, path=None, data=None, rerank=False):
     data = data if data is not None else path.read_bytes()
-    r = server.client.post("/locate", files=[("image", ("q.jpg", data, "image/jpeg"))], data={"top_k": 10})
+    form = {"top_k": 10, **({"rerank": "true"} if rerank else {})}
+    r = server.client.post("/locate", files=[("image", ("q.jpg", data, "image/jpeg"))], data=form)
     assert r.status_code == 200, r.text
     out = r.json()
     assert out["reason_code"] in CODES and (out["reason_code"] is None) == (out["estimate"] is not None)
     return out
 
 
-def _refit(server, common, generation):
-    out = geoloc("refit", "--calibration-sample", "600", *common)
+def _refit(server, common, generation, *extra):
+    out = geoloc("refit", "--calibration-sample", "600", *extra, *common)
     assert f"generation {generation}" in out.stdout, out.stdout
     _wait(server, generation)
     return out.stdout
@@ -80,11 +81,20 @@ def test_a_refit_calibrates_on_the_collection_and_a_removed_place_is_not_confide
         assert extent["min_lat"] == pytest.approx(min(r.lat for r in rows), abs=1e-6)
         assert extent["max_lon"] == pytest.approx(max(r.lon for r in rows), abs=1e-6)
 
-        stdout = _refit(s, common, 1)
+        stdout = _refit(s, common, 1, "--calibrate-rerank")
         assert f"calibration: fitted on {len(rows)} references of this collection" in stdout, stdout
+        assert f"verified answers (rerank) by their own rule, {len(rows)} located with verification" in stdout
         here = _locate(s, QUERY)
         p_here = [c["p_within_25m"] for c in here["candidates"]]
         assert all(p is not None and 0 <= p <= 1 for p in p_here)
+        # A verified answer is judged by the rule fitted on verified answers: its inliers count, so the same
+        # references get other probabilities than in the plain answer.
+        verified = _locate(s, QUERY, rerank=True)
+        assert any(c["inliers"] is not None for c in verified["candidates"])  # verification ran
+        plain_p = {c["reference_id"]: c["p_within_25m"] for c in here["candidates"]}
+        both = [(plain_p[c["reference_id"]], c["p_within_25m"]) for c in verified["candidates"][:10]]
+        both = [(a, b) for a, b in both if a is not None and b is not None]
+        assert len(both) >= 5 and any(abs(a - b) > 1e-3 for a, b in both), both
         sf = _locate(s, SF)
         assert sf["estimate"] is None and sf["reason_code"] in ("no_match", "ambiguous")
         assert all(c["p_within_25m"] is not None for c in sf["candidates"])
