@@ -115,6 +115,25 @@ CALIBRATION_SAMPLE = 600
 #: judges verified answers: each costs its own photo's matcher features and up to 20 verified pairs (the
 #: candidates' features are computed once per reference), about 0.2 s with RootSIFT on 2 cores.
 VERIFY_CALIBRATION_SAMPLE = 300
+#: At most this many references' matcher features are kept while calibrating (RootSIFT's 1,500 keypoints
+#: take about 0.8 MB each, so about 320 MB), the oldest dropped first: a large collection's candidates then
+#: recur less, but memory stays bounded whatever its size.
+FEATURES_KEPT = 400
+
+
+class BoundedCache(dict):
+    """A dict that forgets its oldest entries beyond ``size`` (what ``verify_candidate_pairs`` keeps)."""
+
+    def __init__(self, size: int):
+        super().__init__()
+        self.size = size
+
+    def __setitem__(self, key, value) -> None:
+        super().__setitem__(key, value)
+        while len(self) > self.size:
+            del self[next(iter(self))]
+
+
 #: A place counts as absent when no reference lies within this many metres of it.
 ABSENT_RADIUS_M = 100.0
 #: The collection is dealt into this many parts; each auxiliary fit leaves one out (calibrate_collection).
@@ -237,8 +256,8 @@ def calibrate_collection(
     verified_options = LocateOptions(top_k=ESTIMATE_CANDIDATES, rerank=True)
     to_verify = {i for i in held if images and i in images}
     to_verify = set(sorted(to_verify, key=held.index)[: max(0, verify_sample)])
-    features_cache: dict[int, object] = {}
-    samples, verified_samples = [], []
+    features_cache = BoundedCache(FEATURES_KEPT)
+    samples, verified_samples, verified_refs = [], [], 0
     for k, part in enumerate(parts):
         out = {g for i in part for g in [refs[i].group]}
         fit_on = [refs[i].features for i in ids if refs[i].group not in out] + list(extra)
@@ -259,6 +278,7 @@ def calibrate_collection(
             codes = aux.encode_features(r.features, aux.select(r.features))  # once for both searches
             own = by_group[r.group]
             rgb = _photo(aux, images[i]) if i in to_verify else None
+            verified_refs += rgb is not None
             for absent, excluded in ((False, own), (True, own + near_ids(refs, r.lat, r.lon, absent_radius_m))):
                 searched = Excluding(index, excluded)
                 answer = locate_features(aux, searched, source, r.features, options, codes=codes)
@@ -279,11 +299,11 @@ def calibrate_collection(
     cal.report["auxiliary_fits"] = len(parts)
     if to_verify:
         verified = fit_calibration(verified_samples, seed)
-        cal.report["verified_sampled"] = len(to_verify)
+        cal.report["verified_sampled"] = verified_refs  # those whose photo could be read
         if verified.calibrated:
-            verified.note = f"fitted on {len(to_verify)} references of this collection, located with verification"
+            verified.note = f"fitted on {verified_refs} references of this collection, located with verification"
             cal.verified = asdict(verified)
-            cal.note += f"; verified answers (rerank) by their own rule, {len(to_verify)} located with verification"
+            cal.note += f"; verified answers (rerank) by their own rule, {verified_refs} located with verification"
             cal.report["verified_confident_p"] = verified.report.get("confident_p")
             cal.report["verified_brier"] = verified.report.get("brier")
         else:

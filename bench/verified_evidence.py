@@ -40,7 +40,8 @@ from app.fitting import calibration_sample, near_ids
 
 class CachingMatcher:
     """The matcher with each image's features and each pair's outcome computed once: every query is
-    verified twice (place present and absent) against candidates that recur across queries."""
+    verified twice (place present and absent) against candidates that recur across queries. It has
+    ``match_many`` only: ``verify_candidate_pairs`` calls that whenever a matcher has it."""
 
     def __init__(self, inner):
         self.inner, self.features_of, self.pairs, self.computed = inner, {}, {}, 0

@@ -211,6 +211,8 @@ class Calibration:
         if data.pop("format", None) != FORMAT:
             return cls.conservative(f"{path} has another format: run `geoloc refit`")
         data["names"] = tuple(data["names"])
+        if data.get("verified"):
+            data["verified"]["names"] = tuple(data["verified"]["names"])
         return cls(**data)
 
 

@@ -285,7 +285,8 @@ def evaluate(
         geotagged = {i: Geotagged(extracted[i].features, rows[i].lat, rows[i].lon, rows[i].group) for i in db_idx}
         train_features = [extracted[i].features for i, r in enumerate(rows) if r.split == "train"]
         # With rerank, the rule for verified answers too, as `geoloc fit --calibrate-rerank` fits it.
-        images = {i: rows[i].image for i in db_idx} if rerank else None
+        # (Only in the default search mode: /locate reads no calibration in another.)
+        images = {i: rows[i].image for i in db_idx} if rerank and mode in (None, config.modes[0]) else None
         pipe.calibration = calibrate_collection(pipe, geotagged, train_features, seed=seed + f, images=images)
         calibration_reports.append({"source": pipe.calibration.source, **pipe.calibration.report})
         refs = RowReferences(rows, db_idx)

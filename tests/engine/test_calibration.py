@@ -177,5 +177,6 @@ def test_a_verified_answer_is_judged_by_the_verified_rule_which_survives_a_resta
     cal.save(tmp_path)
     back = Calibration.load(tmp_path)
     assert back.for_answer(True).names == rule.names and back.for_answer(True).coef == rule.coef
+    assert back.verified["names"] == cal.verified["names"]  # a tuple again, as it was saved
     # Without a verified rule a verified answer reads the plain rule's global columns.
     assert fit_calibration(plain).for_answer(True).names == GLOBAL_NAMES

@@ -83,3 +83,9 @@ def test_a_features_cache_reads_each_reference_once_and_verifies_the_same():
     for i in (1, 2, 3):
         assert (again[i].n_matches, again[i].inliers) == (first[i].n_matches, first[i].inliers)
         assert (fresh[i].n_matches, fresh[i].n_matches > 0) == (first[i].n_matches, True)
+    # The calibration's cache is bounded: it forgets the oldest reference's features first.
+    from app.fitting import BoundedCache
+
+    bounded = BoundedCache(2)
+    verify_candidate_pairs(query, [1, 2, 3], source, ImageLimits(), features_cache=bounded)
+    assert sorted(bounded) == [2, 3]

@@ -155,3 +155,34 @@ def test_locate_compare_exif_says_how_far_the_answer_is(ingested, fitted_models)
                "--models-dir", str(fitted_models))  # fmt: skip
     check = json.loads(p.stdout)["exif_check"]
     assert check["best_candidate_m"] < 1 and "The best candidate is 0 m from there." in p.stderr
+
+
+def test_a_verified_answer_is_judged_by_the_verified_rule(ingested, fitted_models):
+    """/locate's core applies ``Calibration.for_answer``: two rules that disagree on purpose (every candidate
+    at a 5 % chance unverified, 95 % verified) show which one judged each answer."""
+    from dataclasses import asdict
+
+    from app.engine.calibration import Calibration
+    from app.engine.evidence import GLOBAL_NAMES, VERIFIED_NAMES
+
+    def rule(names, intercept):
+        n = len(names)
+        return Calibration(
+            names=tuple(names), mean=[0.0] * n, scale=[1.0] * n, coef=[0.0] * n, intercept=intercept,
+            source="collection",
+        )  # fmt: skip
+
+    pipe = load_pipeline(fitted_models, CONFIG)
+    pipe.calibration = rule(GLOBAL_NAMES, -3.0)
+    pipe.calibration.verified = asdict(rule(GLOBAL_NAMES + VERIFIED_NAMES, 3.0))
+    store = ReferenceStore(ingested)
+    _, ids, f, b = store.all_codes()
+    index = index_from_codes(pipe, ids, f, b)
+    rgb = pipe.decode((PENN / "photos" / "img_00006.jpg").read_bytes()).rgb
+    features = pipe.extract(rgb)
+    refs = StoreReferences(store)
+    plain = locate_features(pipe, index, refs, features, LocateOptions(top_k=10))
+    verified = locate_features(pipe, index, refs, features, LocateOptions(top_k=10, rerank=True), rgb)
+    assert {c.p_within_25m for c in plain.candidates} == {round(1 / (1 + np.exp(3.0)), 4)}
+    assert {c.p_within_25m for c in verified.candidates} == {round(1 / (1 + np.exp(-3.0)), 4)}
+    assert any(c.inliers is not None for c in verified.candidates)
