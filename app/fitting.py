@@ -254,8 +254,7 @@ def calibrate_collection(
     source = GeotaggedReferences(refs, dict(images) if images else None)
     options = LocateOptions(top_k=ESTIMATE_CANDIDATES)
     verified_options = LocateOptions(top_k=ESTIMATE_CANDIDATES, rerank=True)
-    to_verify = {i for i in held if images and i in images}
-    to_verify = set(sorted(to_verify, key=held.index)[: max(0, verify_sample)])
+    to_verify = set([i for i in held if i in images][: max(0, verify_sample)] if images else [])
     features_cache = BoundedCache(FEATURES_KEPT)
     samples, verified_samples, verified_refs = [], [], 0
     for k, part in enumerate(parts):
