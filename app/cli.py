@@ -476,6 +476,7 @@ def serve(
     import uvicorn
 
     from app.api.app import create_app
+    from app.api.http import bounded_headers
     from app.apikey import ApiKeyError
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
@@ -491,7 +492,7 @@ def serve(
         api = create_app(settings)
     except ApiKeyError as e:
         _fail(str(e))
-    uvicorn.run(api, host=host, port=port, log_level="info")
+    uvicorn.run(api, host=host, port=port, log_level="info", http=bounded_headers(settings.header_timeout_seconds))
 
 
 @app.command("api-key")
@@ -532,7 +533,15 @@ def worker_cmd(
         typer.echo(f"worker: {data_dir} ({service.pipeline.config.name}), {service.store.count('pending')} pending")
 
     try:
-        run_worker(data_dir, models_dir, config, batch, on_ready=ready, retry_seconds=_S.worker_retry_seconds)
+        run_worker(
+            data_dir,
+            models_dir,
+            config,
+            batch,
+            on_ready=ready,
+            retry_seconds=_S.worker_retry_seconds,
+            max_attempts=_S.encode_attempts,
+        )
     except WriterBusy as e:
         _fail(str(e), code=4)
 

@@ -72,6 +72,7 @@ class FitRefused(ServiceError):
 ENGINE_CODES: dict[type[Exception], str] = {
     engine.UnreadableImage: "unreadable_image",
     engine.ImageTooSmall: "image_too_small",
+    engine.ImageBadShape: "image_shape",
     engine.ImageTooLarge: "too_large",
     engine.UnsupportedImageFormat: "unsupported_image_format",
     engine.NoGpsInImage: "no_gps_in_image",

@@ -21,6 +21,7 @@ from app.apikey import KEY_FILE, key_path
 from app.collection import pipeline_source
 from app.engine.configs import DEFAULT_CONFIG
 from app.errors import OperationRefused
+from app.permissions import private_dir, private_tree
 from app.storage.database import DB_NAME, database_url
 from app.storage.files import IMAGES
 from app.storage.maintenance import copy_database, image_names
@@ -65,6 +66,12 @@ def check_data_dir(data_dir: Path, models_dir: Path, config: str | None) -> Chec
         return r
     counts = {s: store.count(s) for s in ("indexed", "pending", "failed")}
     r.lines.append(f"rows: {counts['indexed']} indexed, {counts['pending']} pending, {counts['failed']} failed")
+    quarantined = store.quarantined()
+    if quarantined:
+        r.problems.append(
+            f"quarantined references (their encoding never finished, the process stopped each time): "
+            f"{_sample([i for i, _ in quarantined])}; delete them (DELETE /references/ID) or upload a fixed image"
+        )
     rows = store.stored_rows()
     named = {row.image for row in rows}
     on_disk = {p.name for p in store.images_dir.iterdir() if not p.name.startswith(".")}
@@ -158,6 +165,7 @@ def backup_data_dir(data_dir: Path, dest: Path) -> dict:
     re-fitted pipelines, its newest snapshot and its API key file."""
     if dest.exists() and any(dest.iterdir()):
         raise OperationRefused(f"{dest} is not empty: back up into a new or empty folder")
+    private_dir(dest, parents=True)  # 0700 from the start: nothing under it is reachable while it is written
     (dest / IMAGES).mkdir(parents=True, exist_ok=True)
     url = database_url()
     if url is not None:
@@ -198,6 +206,7 @@ def backup_data_dir(data_dir: Path, dest: Path) -> dict:
         "written_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
     }
     (dest / BACKUP_MANIFEST).write_text(json.dumps(summary, indent=1))
+    private_tree(dest)
     return summary
 
 
@@ -217,7 +226,7 @@ def restore_data_dir(source: Path, data_dir: Path) -> dict:
         )
     if data_dir.exists() and any(p for p in data_dir.iterdir() if p.name != "README.md"):
         raise OperationRefused(f"{data_dir} is not empty: restore into a new or empty data dir")
-    data_dir.mkdir(parents=True, exist_ok=True)
+    private_dir(data_dir, parents=True)
     if url is not None:
         from app.storage.postgres import restore_database
 
@@ -234,6 +243,7 @@ def restore_data_dir(source: Path, data_dir: Path) -> dict:
     if (source / MANIFEST).exists():
         shutil.copy2(source / MANIFEST, snapshots / MANIFEST)
     _copy_key(source, data_dir)
+    private_tree(data_dir)  # PostgreSQL's shared images folder keeps the mode its operator gave it
     return json.loads((source / BACKUP_MANIFEST).read_text())
 
 

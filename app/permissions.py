@@ -36,3 +36,19 @@ def create_private_file(path: Path) -> None:
         os.fchmod(fd, PRIVATE_FILE)
     finally:
         os.close(fd)
+
+
+def private_tree(root: Path) -> None:
+    """Make ``root`` and every folder under it 0700 and every file 0600 (links are left alone). For what a
+    backup or a restore writes: ``shutil`` and SQLite's backup create files with the umask's mode (0644 under
+    the usual 022), and a backup holds every photo, position and the API key (issue 30)."""
+    os.chmod(root, PRIVATE_DIR)
+    for folder, dirs, files in os.walk(root):
+        for name in dirs:
+            path = os.path.join(folder, name)
+            if not os.path.islink(path):
+                os.chmod(path, PRIVATE_DIR)
+        for name in files:
+            path = os.path.join(folder, name)
+            if not os.path.islink(path):
+                os.chmod(path, PRIVATE_FILE)

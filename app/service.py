@@ -28,6 +28,7 @@ from app.locate import StoreReferences, locate_features
 from app.runtime import release_free_memory
 from app.storage.queue import Job
 from app.storage.store import KeysetPage, NewReference, Reference, ReferenceStore
+from app.thumbnails import thumbnail
 from app.uploads import _differences, prepare_upload
 
 log = logging.getLogger("geoloc.core")
@@ -119,19 +120,21 @@ class GeolocService:
 
     def locate(self, image: bytes | Callable[[], bytes], options: LocateOptions) -> LocateAnswer:
         """The locate use case, whole: a bad mode is refused before the expensive part; the photo is read,
-        decoded and extracted holding an extraction slot; the search runs with one generation's pipeline and
-        index; the query is kept when asked; freed memory goes back to the kernel, once the request holds
-        nothing large. ``image``: the photo's bytes, or a function that reads them (a request body, read
-        only once a slot is free; the wait for it is timed as ``queue``)."""
+        decoded, extracted, searched and verified holding an extraction slot; the search runs with one
+        generation's pipeline and index; the query is kept when asked; freed memory goes back to the kernel,
+        once the request holds nothing large. ``image``: the photo's bytes, or a function that reads them (a
+        request body, read only once a slot is free; the wait for it is timed as ``queue``)."""
         t0 = time.perf_counter()
         self.collection.check_mode(options.mode)
+        # Everything the request does holds its slot: verification (``rerank``) decodes and extracts each
+        # candidate's photo, and outside the slot 16 such requests at once held 1.7 GB (issue 30).
         with self.extract_slots:
             t_slot = time.perf_counter()
             data = image() if callable(image) else image
             img, features, decode_ms = self._extract(data)
-        answer = self._locate_extracted(img, features, options)
-        self.keep_query(data, img)
-        self.release_memory(img)  # what the search freed too
+            answer = self._locate_extracted(img, features, options)
+            self.keep_query(data, img)
+            self.release_memory(img)  # what the search freed too
         queue = {"queue": (t_slot - t0) * 1000} if callable(image) else {}
         timings = {**queue, "decode": decode_ms, **answer.timings_ms}
         timings["total"] = (time.perf_counter() - t0) * 1000
@@ -245,3 +248,9 @@ class GeolocService:
 
     def image_path(self, ref_id: int) -> Path | None:
         return self.store.image_path(ref_id)
+
+    def thumbnail(self, ref_id: int, size: int) -> bytes | None:
+        """The reference's JPEG thumbnail (``app.thumbnails``); None when there is no such reference.
+        FileNotFoundError when its stored image is gone."""
+        path = self.store.image_path(ref_id)
+        return None if path is None else thumbnail(path, size, self.limits)

@@ -64,6 +64,18 @@ class Settings(BaseSettings):
         "CPU; 0: no limit). Each one holds a decoded photo and its feature maps: the limit bounds memory",
     )
     thumbnail_px: int = 320
+    header_timeout_seconds: float = Field(
+        10.0,
+        gt=0,
+        description="a connection whose request line and headers are not all in within this long is closed "
+        "(uvicorn has no such bound: 200 sockets with unfinished headers were held for good)",
+    )
+    encode_attempts: int = Field(
+        3,
+        ge=1,
+        description="a pending reference whose encoding was started this many times without finishing (the "
+        "process died meanwhile) is quarantined: failed with its reason, never tried again",
+    )
     snapshot_every_changes: int = Field(
         5_000, ge=1, description="write an index snapshot after this many index changes (the worker's process)"
     )

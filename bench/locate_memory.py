@@ -93,7 +93,7 @@ def ensure_models(models_dir: Path, config: str, rows, work: Path = REPO / "out"
     )
     cnn = SqueezeNet(out / MODEL_FILENAME)
     cnn.load()
-    pipe = Pipeline(get_config(config), cnn=cnn)
+    pipe = Pipeline(get_config(config), global_model=cnn)
     train = [r for r in rows if r.split in ("db", "train")][:40]
     pipe.fit([pipe.extract(load_image(r.image.read_bytes()).rgb) for r in train])
     pipe.save(pipeline_dir(out, config))

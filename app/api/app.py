@@ -44,7 +44,7 @@ def _run_writer(app: FastAPI, service: GeolocService) -> None:
     def started(worker: IngestWorker) -> None:
         state.worker = worker  # /ready says in-process once everything runs
 
-    writer = Writer(s.data_dir, s.worker_batch, on_batch=count, logger=log)
+    writer = Writer(s.data_dir, s.worker_batch, on_batch=count, logger=log, max_attempts=s.encode_attempts)
     state.writer = writer
     if not writer.start(service, retry_seconds=s.worker_retry_seconds, on_started=started):
         log.warning(
@@ -145,11 +145,12 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.writer = None  # the writer role (worker=inprocess), held or waiting for the worker lock
     app.state.worker = None  # its ingestion worker, once this process holds the role
     app.state.load_error = None
-    # Outermost first: metrics see every answer; body limits and keys come before any body is read; a bug
-    # still answers JSON and keeps the connection.
+    # Each add wraps the ones before (the last is outermost): a bug still answers JSON and keeps the
+    # connection; body limits and keys come before any body is read; metrics see every answer.
     app.add_middleware(errors.LastResort)
     app.add_middleware(BodyLimits, settings=settings, routes=ROUTES)
     app.add_middleware(MetricsMiddleware, metrics=app.state.metrics)
+    app.add_middleware(security.HtmlPolicy)  # outermost: every answer, refusals included, gets its headers
     errors.install(app)
     for router in ROUTERS:
         app.include_router(router)

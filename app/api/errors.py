@@ -49,6 +49,7 @@ ERRORS: dict[str, ErrorCode] = {
     "unsupported_image_format": ErrorCode(415, "a real image in a format we do not accept (e.g. GIF, HEIC)"),
     "invalid_request": ErrorCode(422, "a parameter or field is missing, malformed or out of range"),
     "image_too_small": ErrorCode(422, "too few pixels to describe a place"),
+    "image_shape": ErrorCode(422, "too long and thin to describe a place: one side over 10 times the other"),
     "no_gps_in_image": ErrorCode(422, "no position was given and the photo has no EXIF GPS position"),
     "invalid_position": ErrorCode(
         422, "latitude/longitude out of range or not finite (an upload's, an edit's or a search region's)"

@@ -196,6 +196,10 @@ class JobItem(BaseModel):
     duplicate: bool
     status: str
     error: str | None
+    quarantined: bool = Field(
+        description="failed because its encoding never finished GEOLOC_ENCODE_ATTEMPTS times (the process "
+        "encoding it stopped each time); `geoloc check` lists these too"
+    )
 
 
 class JobOut(BaseModel):
@@ -207,6 +211,7 @@ class JobOut(BaseModel):
     indexed: int
     failed: int
     deleted: int
+    quarantined: int = Field(description="of the failed items, those quarantined")
     items: list[JobItem]
 
 

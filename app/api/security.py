@@ -8,6 +8,9 @@ text, and gets only the framing and sniffing rules."""
 
 from __future__ import annotations
 
+from starlette.datastructures import MutableHeaders
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
 #: Map tiles are the only other host the page uses, for images only (see makeMap in app.js). ``blob:`` is
 #: the preview of the photo being located; ``data:`` is the empty GIF Leaflet puts in a tile it drops (an
 #: image never runs script).
@@ -33,3 +36,29 @@ _NOT_FRAMED = {"X-Content-Type-Options": "nosniff", "X-Frame-Options": "DENY"}
 PAGE_HEADERS = {"Content-Security-Policy": PAGE_POLICY, **_NOT_FRAMED}
 #: For ``/docs``.
 DOCS_HEADERS = {"Content-Security-Policy": "frame-ancestors 'none'", **_NOT_FRAMED}
+
+
+class HtmlPolicy:
+    """Every HTML answer gets the page's policy unless it set its own (``/docs``), and every answer the
+    framing and sniffing rules. Why a middleware and not headers per route: ``/static/index.html`` served the
+    working page (where the key is typed) through StaticFiles with none of them, so it could be framed
+    (issue 30); any route or mount that serves HTML now gets them."""
+
+    def __init__(self, app: ASGIApp):
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+
+        async def with_policy(message: Message) -> None:
+            if message["type"] == "http.response.start":
+                headers = MutableHeaders(scope=message)
+                for name, value in _NOT_FRAMED.items():
+                    headers.setdefault(name, value)
+                if headers.get("content-type", "").startswith("text/html"):
+                    headers.setdefault("Content-Security-Policy", PAGE_POLICY)
+            await send(message)
+
+        await self.app(scope, receive, with_policy)

@@ -55,11 +55,18 @@ def read_item(item: EncodeItem) -> EncodeItem | Encoded:
 
 
 def encode_data(pipeline: Pipeline, limits: ImageLimits, ref_id: int, data: bytes) -> Encoded:
-    """Image bytes to codes; a bad image is a permanent failure of that row, never an exception."""
+    """Image bytes to codes; a bad image is a permanent failure of that row, never an exception. So is any
+    other failure while encoding it (a library's assertion on an odd image, a bug): it fails that row alone,
+    with its reason, and the rest of its batch goes on (issue 30: one row's ``cv2.error`` failed its whole
+    batch, which was retried whole, for ever)."""
     try:
         codes = pipeline.encode_image(pipeline.decode(data, limits).rgb)
     except GeolocError as e:
         return Encoded(ref_id, None, None, str(e), fingerprint=pipeline.fingerprint)
+    except Exception as e:
+        log.exception("reference %d: encoding failed", ref_id)
+        reason = f"encoding failed: {type(e).__name__}: {str(e)[:300]}"
+        return Encoded(ref_id, None, None, reason, fingerprint=pipeline.fingerprint)
     return Encoded(ref_id, codes.float_, codes.binary, fingerprint=pipeline.fingerprint)
 
 

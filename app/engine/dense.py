@@ -10,10 +10,13 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from app.engine.imageio import MAX_INPUT_ASPECT
+
 
 def resize_short_side(rgb: np.ndarray, short_side: int) -> np.ndarray:
+    """Scale so the short side is ``short_side``, within ``MAX_INPUT_ASPECT`` x ``short_side`` on the long."""
     h, w = rgb.shape[:2]
-    s = short_side / min(h, w)
+    s = min(short_side / min(h, w), MAX_INPUT_ASPECT * short_side / max(h, w))
     size = (max(1, round(w * s)), max(1, round(h * s)))
     interp = cv2.INTER_AREA if s < 1 else cv2.INTER_LINEAR
     return cv2.resize(rgb, size, interpolation=interp)

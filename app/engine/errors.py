@@ -21,6 +21,10 @@ class ImageTooSmall(GeolocError):
     """Too few pixels to describe a place."""
 
 
+class ImageBadShape(GeolocError):
+    """Too long and thin to describe a place (a strip, a banner): its long side is many times its short side."""
+
+
 class NoGpsInImage(GeolocError):
     """A position was needed from EXIF and the photo has none."""
 

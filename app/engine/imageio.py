@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 from PIL import Image, ImageOps, UnidentifiedImageError
 
-from app.engine.errors import ImageTooLarge, ImageTooSmall, UnreadableImage, UnsupportedImageFormat
+from app.engine.errors import ImageBadShape, ImageTooLarge, ImageTooSmall, UnreadableImage, UnsupportedImageFormat
 
 ACCEPTED_FORMATS = {"JPEG", "PNG", "WEBP", "TIFF", "MPO"}  # MPO: multi-picture JPEG some phones write
 try:  # HEIC only when the optional plugin is installed
@@ -33,6 +33,12 @@ try:  # HEIC only when the optional plugin is installed
     ACCEPTED_FORMATS |= {"HEIF", "HEIC"}
 except ImportError:  # pragma: no cover - depends on the environment
     pass
+
+#: The most a network's input may be long, in multiples of its short side: a panorama wider than 4:1 is
+#: scaled so that its long side is 4 x the short side asked for (its short side is then smaller than asked;
+#: ``app.engine.dense.resize_short_side``). Photos of 4:3, 16:9 and 3:1 are scaled as before; what one image
+#: asks of a network is bounded (issue 30: a 49000 x 32 strip was scaled to 514,500 x 336).
+MAX_INPUT_ASPECT = 4
 
 GPS_IFD = 0x8825
 EXIF_IFD = 0x8769
@@ -48,6 +54,10 @@ class ImageLimits:
     max_bytes: int = 30 * 1024 * 1024
     max_pixels: int = 50_000_000
     min_side: int = 32
+    #: The most the long side may be of the short side. A strip of 49000 x 32 pixels (a 5 KB PNG) describes
+    #: no place, and a network that scales its short side up would be asked for 173 MP of work (issue 30).
+    #: Phone panoramas are up to about 6:1; 360-degree ones 2:1.
+    max_aspect: float = 10.0
     #: Decode-time downscale target: the long side after decoding is at least this and at most ~2x it.
     decode_long_side: int = 1600
 
@@ -116,9 +126,10 @@ def sniff_format(data: bytes) -> str | None:
 
 def decode_target(width: int, height: int, long_side: int, short_side: int = 0) -> int:
     """The long side a decode must keep so that the image's long side is at least ``long_side`` and its
-    short side at least ``short_side`` (orientation does not matter: both are about the stored sides)."""
+    short side at least ``short_side``, or its long side ``MAX_INPUT_ASPECT`` x ``short_side`` for a
+    panorama, as a network gets it (orientation does not matter: both are about the stored sides)."""
     long_, short = max(width, height), min(width, height)
-    return max(long_side, math.ceil(short_side * long_ / max(short, 1)))
+    return max(long_side, min(math.ceil(short_side * long_ / max(short, 1)), MAX_INPUT_ASPECT * short_side))
 
 
 def load_image(
@@ -156,7 +167,15 @@ def load_image(
         raise ImageTooLarge(f"the image declares {w} x {h} = {w * h} pixels; the limit is {limits.max_pixels}")
     if min(w, h) < limits.min_side:
         raise ImageTooSmall(f"the image is {w} x {h}; each side must be at least {limits.min_side} pixels")
-    if getattr(img, "n_frames", 1) > 1 and img.format not in ("MPO", "TIFF"):
+    if max(w, h) > limits.max_aspect * min(w, h):
+        raise ImageBadShape(
+            f"the image is {w} x {h}: one side is {max(w, h) / min(w, h):.0f} times the other, the limit is "
+            f"{limits.max_aspect:g}; crop it to the part that shows the place"
+        )
+    # ``is_animated``, never ``n_frames``: counting a TIFF's frames walks its whole IFD chain (250,000 IFDs
+    # of one shared strip took 244 s); whether a second frame exists is known from the first IFD. A TIFF or
+    # MPO is read as its first frame, the photo.
+    if img.format not in ("MPO", "TIFF") and getattr(img, "is_animated", False):
         raise UnsupportedImageFormat("animated images are not supported; send a single photo")
     gps, captured_at = read_exif_gps(img)
     heading = read_exif_heading(img)

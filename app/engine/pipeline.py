@@ -12,7 +12,7 @@ import os
 import threading
 import time
 from collections.abc import Iterable
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor, wait
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -87,6 +87,14 @@ def _branches() -> ThreadPoolExecutor:
         if _BRANCHES is None or _BRANCHES[0] != os.getpid():
             _BRANCHES = (os.getpid(), ThreadPoolExecutor(max_workers=4, thread_name_prefix="geoloc-cnn"))
         return _BRANCHES[1]
+
+
+def _settle(job: Future | None) -> None:
+    """Cancel a branch's job that has not started, or wait for one that has (its outcome is not wanted).
+    Why wait: a thread cannot be stopped, and a job left running after its request failed held memory that
+    no extraction slot accounted for (issue 30: the CNN branch of a failed request grew to 19 GB)."""
+    if job is not None and not job.cancel():
+        wait([job])
 
 
 def _unit(x: np.ndarray) -> np.ndarray:
@@ -178,8 +186,12 @@ class Pipeline:
         if self.global_model is not None and self._local is not None:  # both branches at once
             cnn = _branches().submit(self._dense, rgb)
         if self._local is not None:
-            with _Timer(t, "local_features"):
-                lf = self._local(rgb)
+            try:
+                with _Timer(t, "local_features"):
+                    lf = self._local(rgb)
+            except BaseException:
+                _settle(cnn)  # no work of this request may outlive its answer (issue 30)
+                raise
             local, xy, orb_raw = lf.descriptors, lf.xy, lf.raw
         if self.global_model is not None:
             dense, t["cnn"] = cnn.result() if cnn is not None else self._dense(rgb)

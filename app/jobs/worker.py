@@ -80,9 +80,11 @@ class IngestWorker:
         poll_seconds: float = 0.3,
         on_batch: Callable[[int, int], None] | None = None,
         workers: int = 1,
+        max_attempts: int = 3,
     ):
         self.service = service
         self.batch_size = batch_size
+        self.max_attempts = max_attempts  # started this often and never finished: quarantined
         self.poll_seconds = poll_seconds
         self.on_batch = on_batch  # (indexed, failed) -> None, for metrics and progress
         self.workers = workers
@@ -93,18 +95,31 @@ class IngestWorker:
 
     def run_once(self) -> int:
         """Encode one batch of pending references; returns how many rows it completed (0: idle or retrying)."""
-        batch = self.service.store.pending(self.batch_size)
+        store = self.service.store
+        batch = store.pending(self.batch_size)
         if not batch:
             return 0
+        # A row whose last encoding never finished (the process died meanwhile) goes alone: should it take the
+        # process down again, it takes no other row with it, and after max_attempts it is quarantined.
+        suspects = store.attempts([i for i, _ in batch])
+        if suspects:
+            batch = [next(b for b in batch if b[0] in suspects)]
+            log.warning("reference %d: its last encoding never finished; encoding it alone", batch[0][0])
+        quarantined = store.start_attempts([i for i, _ in batch], self.max_attempts)
+        if quarantined:
+            log.error(
+                "quarantined references %s: their encoding never finished %d times", quarantined, self.max_attempts
+            )
+            batch = [b for b in batch if b[0] not in quarantined]
         results = self.service.encode(batch, self.workers)
         done = self.service.complete(results)
-        failed = sum(1 for r in results if r.error is not None)
+        failed = sum(1 for r in results if r.error is not None) + len(quarantined)
         retry = sum(1 for r in results if r.retry)
         if self.on_batch:
             self.on_batch(len(done), failed)
         log.info("encoded %d references (%d failed, %d left queued for a storage retry)", len(done), failed, retry)
-        self.retrying = retry == len(results)
-        return len(results) - retry
+        self.retrying = bool(results) and retry == len(results)
+        return len(results) - retry + len(quarantined)
 
     def run_forever(self) -> None:
         """Encode until stopped. The rest of the writer role (snapshots, housekeeping) runs beside it in

@@ -43,9 +43,11 @@ class Writer:
         workers: int = 1,
         on_batch: Callable[[int, int], None] | None = None,
         logger: logging.Logger = log,
+        max_attempts: int = 3,
     ):
         self.lock = writer_lock(data_dir)
         self.batch = batch
+        self.max_attempts = max_attempts  # GEOLOC_ENCODE_ATTEMPTS: see IngestWorker
         self.workers = workers
         self.on_batch = on_batch  # (indexed, failed) -> None, for metrics
         self.log = logger  # the messages of the role's owner (an API server logs them as geoloc.api)
@@ -71,7 +73,9 @@ class Writer:
         self.collection = service.collection
 
     def _worker(self, service: GeolocService) -> IngestWorker:
-        return IngestWorker(service, self.batch, on_batch=self.on_batch, workers=self.workers)
+        return IngestWorker(
+            service, self.batch, on_batch=self.on_batch, workers=self.workers, max_attempts=self.max_attempts
+        )
 
     # -- in threads: an API server ----------------------------------------------------------------------
     def start(
@@ -303,6 +307,7 @@ def run_worker(
     batch: int,
     on_ready: Callable[[GeolocService], None],
     retry_seconds: float | None = None,
+    max_attempts: int = 3,
 ) -> None:
     """``geoloc worker``: take the lock (``WriterBusy`` when another process holds it; nothing is opened),
     open the service, call ``on_ready`` and run the role in this (the main) thread until SIGTERM or Ctrl-C;
@@ -310,7 +315,7 @@ def run_worker(
     is checked (and, once lost, the lock retried): see ``Writer.run``."""
     import signal
 
-    writer = Writer(data_dir, batch)
+    writer = Writer(data_dir, batch, max_attempts=max_attempts)
     if not writer.acquire():
         raise WriterBusy(f"another worker already holds {writer.lock.where}")
     service = GeolocService.open(data_dir, models_dir, config)

@@ -19,9 +19,11 @@ from pathlib import Path
 
 import numpy as np
 
+from app.errors import StorageUnavailable
 from app.permissions import create_private_file, private_dir
 from app.storage.errors import storage_guard
 from app.storage.files import IMAGES
+from app.storage.integrity import DatabaseFiles
 
 DB_NAME = "references.sqlite"
 META_SCHEMA = """
@@ -73,6 +75,8 @@ class Database:
         self._images_dir = Path(shared) if shared else self.data_dir / IMAGES
         shared = os.environ.get(SNAPSHOTS_DIR_ENV, "").strip() if self.database_url else ""
         self._snapshots_dir = Path(shared) if shared else self.data_dir
+        #: The SQLite files this process writes through (None: read-only, or PostgreSQL's server owns them).
+        self.files: DatabaseFiles | None = None
         with storage_guard("opening the data dir"):
             if self.database_url:
                 self._open_postgres(read_only)
@@ -94,6 +98,7 @@ class Database:
             if not read_only:
                 for schema in self.SCHEMAS:
                     self.db.executescript(schema)
+                self.files = DatabaseFiles(self.data_dir / DB_NAME)
 
     def _open_postgres(self, read_only: bool) -> None:
         """The rows on PostgreSQL; the data dir still holds this host's snapshots and locks, and the images
@@ -134,6 +139,7 @@ class Database:
         """One write transaction (BEGIN IMMEDIATE: the write lock is taken up front, so two processes never
         both read-then-write on stale data); storage failures come out as ``StorageUnavailable``."""
         with self._lock, storage_guard("writing the database"):
+            self.check_files()
             self.db.execute("BEGIN IMMEDIATE")
             try:
                 yield self.db
@@ -142,6 +148,27 @@ class Database:
                 if self.db.in_transaction:
                     self.db.execute("ROLLBACK")
                 raise
+
+    @property
+    def write_refusal(self) -> str | None:
+        """Why this process refuses every write (its database files changed under it), or None."""
+        return self.files.refusal if self.files is not None else None
+
+    def check_files(self) -> None:
+        """Before a write: refuse it (``StorageUnavailable``) once the database files are not the ones this
+        process opened (``app.storage.integrity``)."""
+        if self.files is None:
+            return
+        if self.files.refusal is None and (why := self.files.changed()) is not None:
+            self.refuse_writes(why)
+        if self.files.refusal is not None:
+            raise StorageUnavailable(self.files.refusal)
+
+    def refuse_writes(self, why: str) -> None:
+        """From now on every write is refused, saying ``why``; what this connection sees is copied aside."""
+        if self.files is not None:
+            with self._lock:
+                self.files.refuse(why, self.db)
 
     def fetch_bulk(self, db, sql: str) -> list[tuple]:
         """Every row of a bulk read (all the codes: a cold start, a new generation). On PostgreSQL in the
@@ -168,6 +195,7 @@ class Database:
 
     def set_meta(self, key: str, value: str) -> None:
         with storage_guard("writing the database"):
+            self.check_files()
             self.db.execute(
                 "INSERT INTO meta(key, value) VALUES(?, ?) ON CONFLICT(key) DO UPDATE SET value=excluded.value",
                 (key, value),

@@ -63,6 +63,13 @@ class Identity(Database):
                 con.close()
         except sqlite3.Error as e:
             log.warning("checkpoint %s of %s failed: %s", mode, self.data_dir, e)
+            # Not a reader in the way but the files themselves: a removed -wal gives "disk I/O error". (A full
+            # disk is "database or disk is full": it passes, and writes work again once there is room.)
+            why = self.files.changed() if self.files is not None else None
+            if why is None and "i/o error" in str(e).lower():
+                why = f"a checkpoint of the database failed ({e})"
+            if why is not None:
+                self.refuse_writes(why)
             return None
         if row[0]:
             log.info(

@@ -37,6 +37,17 @@ CREATE TABLE IF NOT EXISTS claims (
 );
 CREATE INDEX IF NOT EXISTS claims_owner ON claims(owner);
 """
+#: Encoding attempts of pending rows, counted (and committed) before each attempt starts: a row whose encoding
+#: takes the process down (out of memory, a crash in a native library) can never report its own failure, and
+#: it was retried forever, on every host in turn (issue 30). Its count tells the next worker.
+ATTEMPTS_SCHEMA = """
+CREATE TABLE IF NOT EXISTS encode_attempts (
+    ref_id INTEGER PRIMARY KEY,
+    attempts INTEGER NOT NULL
+);
+"""
+#: How a quarantined row's error starts (``Queue.start_attempts``): ``geoloc check`` and the jobs API list them.
+QUARANTINED = "quarantined"
 
 
 @dataclass(frozen=True)
@@ -45,6 +56,10 @@ class JobItem:
     duplicate: bool
     status: str  # pending, indexed, failed, or deleted (no row any more)
     error: str | None
+
+    @property
+    def quarantined(self) -> bool:
+        return self.status == "failed" and (self.error or "").startswith(f"{QUARANTINED}:")
 
 
 @dataclass(frozen=True)
@@ -60,6 +75,10 @@ class Job:
     failed: int
     deleted: int
     items: list[JobItem]
+
+    @property
+    def quarantined(self) -> int:
+        return sum(1 for it in self.items if it.quarantined)
 
 
 def _job_status(items: Sequence[JobItem], counts: dict[str, int]) -> str:
@@ -102,6 +121,52 @@ class Queue(ChangeLog):
                     (owner, ids_json(ids)),
                 )
 
+    def attempts(self, ids: Sequence[int]) -> dict[int, int]:
+        """How many encodings of ``ids`` were started and never completed (rows with none are left out)."""
+        rows = self.db.execute(
+            "SELECT ref_id, attempts FROM encode_attempts WHERE ref_id IN (SELECT value FROM json_each(?))",
+            (ids_json(ids),),
+        ).fetchall()
+        return {int(i): int(n) for i, n in rows}
+
+    def start_attempts(self, ids: Sequence[int], limit: int) -> list[int]:
+        """Count one more attempt of each of ``ids``, committed before the encoding starts. A row already
+        attempted ``limit`` times is quarantined instead (failed, its error saying so: never tried again) and
+        returned."""
+        with self.transaction() as db:
+            spent = [
+                int(r[0])
+                for r in db.execute(
+                    "SELECT ref_id FROM encode_attempts WHERE ref_id IN (SELECT value FROM json_each(?)) "
+                    "AND attempts >= ?",
+                    (ids_json(ids), limit),
+                ).fetchall()
+            ]
+            if spent:
+                db.execute(
+                    "UPDATE refs SET status='failed', error=? WHERE status='pending' "
+                    "AND id IN (SELECT value FROM json_each(?))",
+                    (
+                        f"{QUARANTINED}: its encoding was started {limit} times and never finished (the process "
+                        "encoding it stopped each time); delete it, or fix the image and upload it again",
+                        ids_json(spent),
+                    ),
+                )
+            db.execute(
+                "INSERT INTO encode_attempts(ref_id, attempts) SELECT value, 1 FROM json_each(?) WHERE true "
+                "ON CONFLICT(ref_id) DO UPDATE SET attempts = encode_attempts.attempts + 1",
+                (ids_json([i for i in ids if i not in set(spent)]),),
+            )
+        return spent
+
+    def quarantined(self, limit: int = 100) -> list[tuple[int, str]]:
+        """Quarantined rows (id, error), oldest first, at most ``limit``."""
+        rows = self.db.execute(
+            "SELECT id, error FROM refs WHERE status='failed' AND error LIKE ? ORDER BY id LIMIT ?",
+            (f"{QUARANTINED}:%", limit),
+        ).fetchall()
+        return [(int(i), str(e)) for i, e in rows]
+
     def complete(
         self,
         results: Sequence[tuple[int, np.ndarray | None, np.ndarray | None, str | None]],
@@ -116,6 +181,10 @@ class Queue(ChangeLog):
         with self.transaction() as db:
             if fingerprint is not None and not self._fingerprint_is(db, fingerprint):
                 return []
+            db.execute(
+                "DELETE FROM encode_attempts WHERE ref_id IN (SELECT value FROM json_each(?))",
+                (ids_json([r[0] for r in results]),),
+            )
             for ref_id, fcode, bcode, error in results:
                 if error is not None:
                     db.execute(

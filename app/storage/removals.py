@@ -16,6 +16,7 @@ import time
 from collections.abc import Sequence
 
 from app.storage.database import Database
+from app.storage.files import THUMBNAILS
 
 log = logging.getLogger("geoloc.store")
 
@@ -84,11 +85,20 @@ class Removals(Database):
                 continue
             try:
                 (self.images_dir / name).unlink(missing_ok=True)
+                self._unlink_thumbnails(name)
                 removed.append(name)
             except OSError as e:
                 log.warning("cannot remove %s now: %s", self.images_dir / name, e)
                 failed.append(name)
         return removed, failed
+
+    def _unlink_thumbnails(self, name: str) -> None:
+        """The image's thumbnails, one per size ever served (a handful of folders: no scan of the files)."""
+        folder = self.images_dir / THUMBNAILS
+        if folder.is_dir():
+            sha = name.split(".", 1)[0]
+            for size in folder.iterdir():
+                (size / f"{sha}.jpg").unlink(missing_ok=True)
 
     def named_files(self, names: Sequence[str], db: sqlite3.Connection | None = None) -> set[str]:
         """Those of ``names`` (image file names) that a row names: one lookup of the sha256 index each."""

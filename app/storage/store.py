@@ -42,7 +42,7 @@ from app.storage.files import SYNC_EACH_UP_TO, fsync_dir, sha256_of, syncfs, wri
 from app.storage.generations import GENERATIONS_SCHEMA, Generations
 from app.storage.identity import Identity
 from app.storage.maintenance import Maintenance
-from app.storage.queue import CLAIMS_SCHEMA, JOBS_SCHEMA, Queue
+from app.storage.queue import ATTEMPTS_SCHEMA, CLAIMS_SCHEMA, JOBS_SCHEMA, Queue
 from app.storage.removals import REMOVALS_SCHEMA, Removals
 
 log = logging.getLogger("geoloc.store")
@@ -160,6 +160,7 @@ class ReferenceStore(Queue, Generations, Identity, Removals, Maintenance):
         JOBS_SCHEMA,
         CHANGES_SCHEMA,
         CLAIMS_SCHEMA,
+        ATTEMPTS_SCHEMA,
         GENERATIONS_SCHEMA,
         REMOVALS_SCHEMA,
     )

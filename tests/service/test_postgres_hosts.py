@@ -314,3 +314,27 @@ def test_standalone_worker_gives_the_role_up_when_its_session_is_cut(tmp_path, f
         if worker.poll() is None:
             worker.kill()
             worker.wait()
+
+
+def test_a_poison_reference_leaves_both_replicas_serving(tmp_path, fitted_models, hosts_env, monkeypatch):
+    """Issue 30: a strip of 49000 x 32 pixels stored pending (as an older version accepted it) killed the
+    writer, then the next host to take the role, 19 s later. Now it fails alone with its reason: both hosts
+    keep serving and the rest of its batch is indexed."""
+    from tests.service.test_hardening_shapes import STRIPS, _add_pending
+
+    for name, value in hosts_env.items():
+        monkeypatch.setenv(name, value)
+    ids, job_id = _add_pending(
+        tmp_path / "seed",
+        [(NEW_PHOTOS[0].read_bytes(), "jpg"), (STRIPS["49000x32 png"](), "png"), (NEW_PHOTOS[1].read_bytes(), "jpg")],
+    )
+    a = Server(tmp_path / "host-a", fitted_models, extra_env=hosts_env)
+    b = Server(tmp_path / "host-b", fitted_models, extra_env=hosts_env)
+    with a, b:
+        job = wait_job(b.client, job_id, 120)
+        status = {it["reference_id"]: it["status"] for it in job["items"]}
+        assert [status[i] for i in ids] == ["indexed", "failed", "indexed"], job
+        for host in (a, b):
+            assert host.client.get("/health").status_code == 200
+            assert host.proc.poll() is None
+            assert _locate(host, NEW_PHOTOS[1])[0]["reference_id"] == ids[2]

@@ -3,13 +3,11 @@ service, shape."""
 
 from __future__ import annotations
 
-import io
 from typing import Annotated
 
 from fastapi import APIRouter, Depends, File, Form, Query, Request, UploadFile
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, Response
-from PIL import Image, ImageOps
 from pydantic import TypeAdapter, ValidationError
 
 from app.api.deps import Core, RefId, parse_bbox, read_access, read_upload, write_access
@@ -200,25 +198,15 @@ def get_reference(ref_id: RefId, core: Core) -> ReferenceOut:
     summary="A thumbnail of the reference image (pixels only: no EXIF, XMP, ICC or comment)",
 )
 def reference_image(request: Request, ref_id: RefId, core: Core) -> Response:
-    path = core.image_path(ref_id)
-    if path is None:
-        raise ApiError(404, "not_found", f"no reference {ref_id}")
-    if not path.exists():
+    try:
+        data = core.thumbnail(ref_id, request.app.state.settings.thumbnail_px)
+    except FileNotFoundError:
         raise ApiError(
             404, "image_missing", f"reference {ref_id} exists but its stored image is missing (see `geoloc check`)"
-        )
-    size = request.app.state.settings.thumbnail_px
-    with Image.open(path) as im:
-        im.draft("RGB", (size * 2, size * 2))
-        im = ImageOps.exif_transpose(im).convert("RGB")
-        im.thumbnail((size, size))
-        # Pillow's JPEG writer copies a source's comment (COM) from ``im.info``, and a comment may say
-        # anything ("home address: ..."): a new image holds the pixels and none of the photo's metadata.
-        pixels = Image.new("RGB", im.size)
-        pixels.paste(im)
-        buf = io.BytesIO()
-        pixels.save(buf, "JPEG", quality=85)  # JFIF only: no EXIF/GPS, XMP, ICC, IPTC or comment
-    return Response(buf.getvalue(), media_type="image/jpeg", headers={"Cache-Control": "max-age=3600"})
+        ) from None
+    if data is None:
+        raise ApiError(404, "not_found", f"no reference {ref_id}")
+    return Response(data, media_type="image/jpeg", headers={"Cache-Control": "max-age=3600"})
 
 
 @router.patch(
