@@ -154,7 +154,7 @@ def verify_candidate_pairs(
         if data is None:
             continue
         try:
-            feats[int(i)] = matcher.features(load_image(data, limits).rgb)
+            feats[int(i)] = matcher.features(load_image(data, limits.stored()).rgb)
         except (cv2.error, GeolocError) as e:
             log.debug("verification of reference %s skipped: %s", i, e)
             continue

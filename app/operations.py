@@ -165,7 +165,8 @@ def backup_data_dir(data_dir: Path, dest: Path) -> dict:
     re-fitted pipelines, its newest snapshot and its API key file."""
     if dest.exists() and any(dest.iterdir()):
         raise OperationRefused(f"{dest} is not empty: back up into a new or empty folder")
-    private_dir(dest, parents=True)  # 0700 from the start: nothing under it is reachable while it is written
+    private_dir(dest, parents=True)
+    os.chmod(dest, 0o700)  # from the start (an existing empty folder too): nothing under it is reachable meanwhile
     (dest / IMAGES).mkdir(parents=True, exist_ok=True)
     url = database_url()
     if url is not None:

@@ -11,6 +11,7 @@ decode, full-size decodes sharing the process's pixel budget), once; the JPEG is
 from __future__ import annotations
 
 import io
+import logging
 import threading
 from pathlib import Path
 
@@ -21,6 +22,7 @@ from app.permissions import private_dir
 from app.runtime import release_free_memory
 from app.storage.files import THUMBNAILS, write_image_file
 
+log = logging.getLogger("geoloc.thumbnails")
 #: One maker per thumbnail file at a time: concurrent first requests for the same reference wait for the
 #: first one's file instead of each decoding the image.
 _MAKING: dict[Path, threading.Lock] = {}
@@ -33,7 +35,8 @@ def thumbnail_path(image: Path, size: int) -> Path:
 
 def thumbnail(image: Path, size: int, limits: ImageLimits) -> bytes:
     """The JPEG thumbnail (long side ``size``) of a stored image: pixels only, no EXIF, XMP, ICC or comment.
-    Raises FileNotFoundError when the image is gone, and the decode's errors for one that cannot be read."""
+    Raises FileNotFoundError when the image is gone, and the decode's errors for one that cannot be read.
+    The shape rule of uploads does not apply: the reference is already stored (``ImageLimits.stored``)."""
     path = thumbnail_path(image, size)
     try:
         return path.read_bytes()
@@ -47,17 +50,21 @@ def thumbnail(image: Path, size: int, limits: ImageLimits) -> bytes:
                 return path.read_bytes()  # made by the request this one waited for
             except FileNotFoundError:
                 data = _make(image.read_bytes(), size, limits)
-            private_dir(path.parent.parent)
-            private_dir(path.parent)
-            write_image_file(path, data, sync=False)  # a cache: a lost one is made again
+            try:
+                private_dir(path.parent.parent)
+                private_dir(path.parent)
+                write_image_file(path, data, sync=False)  # a cache: a lost one is made again
+            except OSError as e:  # a full or read-only disk costs the cache, not the answer
+                log.warning("thumbnail not kept in %s: %s", path.parent, e)
             return data
     finally:
         with _MAKING_LOCK:
-            _MAKING.pop(path, None)
+            if _MAKING.get(path) is lock:
+                del _MAKING[path]
 
 
 def _make(data: bytes, size: int, limits: ImageLimits) -> bytes:
-    img = load_image(data, limits, decode_long_side=size)
+    img = load_image(data, limits.stored(), decode_long_side=size)
     large = max(img.original_size) > 2 * size
     pixels = Image.fromarray(img.rgb)  # a new image: none of the photo's metadata comes along
     del img

@@ -38,8 +38,8 @@ ANSWER_LIMIT_S = 5.0
 @dataclass
 class Shape:
     name: str
-    #: (server) -> one request's answer status; runs in a client thread.
-    request: Callable[[ServerProcess], int]
+    #: (server, k) -> the k-th request's answer status (k counts over the bursts); runs in a client thread.
+    request: Callable[[ServerProcess, int], int]
     #: What to do on the fresh server before the idle sample (add a reference, say).
     prepare: Callable[[ServerProcess], None] = lambda server: None
 
@@ -53,7 +53,7 @@ class Burst:
 
 
 def locate(data: bytes, name: str, **form) -> Callable[[ServerProcess], int]:
-    def one(server: ServerProcess) -> int:
+    def one(server: ServerProcess, k: int) -> int:
         with httpx.Client(base_url=server.url, timeout=600, headers=server.client.headers) as c:
             return c.post("/locate", files=[("image", (name, data))], data=form).status_code
 
@@ -66,27 +66,34 @@ def shapes(photo: Path, full: Path) -> list[Shape]:
     out.append(Shape("TIFF of 100,000 IFDs", locate(tiff_with_frames(first, 100_000), "chain.tif")))
     out.append(Shape("4000x400 noise PNG (10:1, accepted)", locate(encoded(noise(4000, 400), "PNG"), "pano.png")))
     out.append(Shape("12 MP photo, rerank=true", locate(full.read_bytes(), full.name, rerank="true", top_k="10")))
-    webp = encoded(Image.open(photo).convert("RGB").resize((7000, 7000)), "WEBP", quality=60)
-    ref: dict[str, int] = {}
+    big = Image.open(photo).convert("RGB").resize((7000, 7000))
+    refs: list[int] = []
 
-    def add_webp(server: ServerProcess) -> None:
-        r = server.client.post("/references", files=[("image", ("big.webp", webp))], data={"lat": 39.95, "lon": -75.19})
-        r.raise_for_status()
-        ref["id"] = r.json()["reference_ids"][0]
-        deadline = time.time() + 300
-        while server.client.get(f"/jobs/{r.json()['job_id']}").json()["status"] != "done":
-            assert time.time() < deadline, "the WebP reference was not indexed"
-            time.sleep(0.5)
+    def add_webps(server: ServerProcess) -> None:
+        """Nine distinct references (one for the single request, eight for the burst): no thumbnail is
+        served from the cache of another request."""
+        for k in range(9):
+            webp = encoded(big.rotate(k * 0.5), "WEBP", quality=60)
+            r = server.client.post(
+                "/references", files=[("image", (f"big{k}.webp", webp))], data={"lat": 39.95, "lon": -75.19}
+            )
+            r.raise_for_status()
+            refs.append(r.json()["reference_ids"][0])
+            deadline = time.time() + 300
+            while server.client.get(f"/jobs/{r.json()['job_id']}").json()["status"] != "done":
+                assert time.time() < deadline, "the WebP reference was not indexed"
+                time.sleep(0.5)
 
-    def thumbnail(server: ServerProcess) -> int:
+    def thumbnail(server: ServerProcess, k: int) -> int:
         with httpx.Client(base_url=server.url, timeout=600, headers=server.client.headers) as c:
-            return c.get(f"/references/{ref['id']}/image").status_code
+            return c.get(f"/references/{refs[k]}/image").status_code
 
-    out.append(Shape("thumbnail of a 7000x7000 WebP reference", thumbnail, add_webp))
+    out.append(Shape("thumbnails of 7000x7000 WebP references", thumbnail, add_webps))
     return out
 
 
-def burst(server: ServerProcess, shape: Shape, n: int) -> Burst:
+def burst(server: ServerProcess, shape: Shape, n: int, first: int) -> Burst:
+    """``n`` requests at once, numbered from ``first``."""
     pid = server.proc.pid
     time.sleep(1.0)
     idle = rss_bytes(pid)
@@ -102,13 +109,13 @@ def burst(server: ServerProcess, shape: Shape, n: int) -> Burst:
     sampler = threading.Thread(target=sample, daemon=True)
     sampler.start()
 
-    def one(_: int) -> tuple[int, float]:
+    def one(k: int) -> tuple[int, float]:
         t0 = time.perf_counter()
-        status = shape.request(server)
+        status = shape.request(server, k)
         return status, time.perf_counter() - t0
 
     with ThreadPoolExecutor(n) as pool:
-        answers = list(pool.map(one, range(n)))
+        answers = list(pool.map(one, range(first, first + n)))
     time.sleep(1.0)  # work left running after the answers would still grow the process here
     done.set()
     sampler.join()
@@ -137,7 +144,7 @@ def main() -> None:
                 for _ in range(2):  # the models loaded and warm: the idle state
                     server.client.post("/locate", files=[("image", ("w.jpg", warm))]).raise_for_status()
                 shape.prepare(server)
-                bursts = [burst(server, shape, n) for n in (1, 8)]
+                bursts = [burst(server, shape, 1, 0), burst(server, shape, 8, 1)]
                 assert server.proc.poll() is None, f"the server died on {shape.name}"
             results.append((shape.name, bursts))
             for b in bursts:

@@ -1,55 +1,127 @@
-"""uvicorn's HTTP/1.1 protocol with a bound on how long a request's line and headers may take to arrive.
+"""uvicorn's HTTP/1.1 protocols with a bound on how long a request's line and headers may take to arrive.
 
 Why: uvicorn bounds an idle keep-alive connection (``timeout_keep_alive``) but not a request whose headers
 never finish: 200 sockets that sent half a header line were held until the client went away (issue 30), a
-slow-loris that needs no key. Each connection here must deliver a request's line and headers within
-``GEOLOC_HEADER_TIMEOUT_SECONDS`` of the connection opening or of the previous response's end; it is
-closed otherwise. The body is bounded elsewhere (app/api/limits.py), and a proxy in front (nginx's
-``client_header_timeout``) may bound it again."""
+slow-loris that needs no key. Here a connection must deliver each request's line and headers within
+``GEOLOC_HEADER_TIMEOUT_SECONDS`` of the moment the server waits for them (the connection opened, or the
+previous request was read and answered); it is closed otherwise. A request being answered is never cut:
+the deadline runs only while the server waits for headers. The body is bounded elsewhere
+(app/api/limits.py), and a proxy in front (nginx's ``client_header_timeout``) may bound it again.
+
+Both of uvicorn's parsers get it, and ``bounded_headers`` picks the one uvicorn's ``http="auto"`` would
+(httptools when it is installed, as it is with uvicorn[standard]; h11 otherwise), so the parser in use does
+not change."""
 
 from __future__ import annotations
 
 import asyncio
+import functools
 
 import h11
 from uvicorn.protocols.http.h11_impl import H11Protocol
 
 
-class BoundedHeadersProtocol(H11Protocol):
-    """``H11Protocol`` plus the header deadline; ``header_timeout`` is set by ``bounded_headers``."""
+class HeaderDeadline:
+    """The deadline's state, mixed into a uvicorn protocol (which provides ``loop`` and ``transport``)."""
 
     header_timeout: float = 10.0
+    _deadline: asyncio.TimerHandle | None = None
+
+    def _arm(self) -> None:
+        """The server now waits for a request's headers: they must all be in within ``header_timeout``."""
+        self._disarm()
+        self._deadline = self.loop.call_later(self.header_timeout, self._expired)  # type: ignore[attr-defined]
+
+    def _disarm(self) -> None:
+        if self._deadline is not None:
+            self._deadline.cancel()
+            self._deadline = None
+
+    def _expired(self) -> None:
+        self._deadline = None
+        transport = self.transport  # type: ignore[attr-defined]
+        if not transport.is_closing():
+            transport.close()
+
+
+class BoundedH11(HeaderDeadline, H11Protocol):
+    """h11: it waits for headers exactly while the client's side is IDLE (h11 starts a new cycle only once
+    both sides of the previous one are done)."""
 
     def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
         super().connection_made(transport)
-        self._arm_header_deadline()
+        self._arm()
+
+    def handle_events(self) -> None:
+        super().handle_events()
+        self._follow()
 
     def on_response_complete(self) -> None:
         super().on_response_complete()
-        self._arm_header_deadline()
+        self._follow()
 
     def connection_lost(self, exc: Exception | None) -> None:
-        self._cancel_header_deadline()
+        self._disarm()
         super().connection_lost(exc)
 
-    def _arm_header_deadline(self) -> None:
-        self._cancel_header_deadline()
-        self._header_deadline = self.loop.call_later(self.header_timeout, self._header_deadline_passed)
-
-    def _cancel_header_deadline(self) -> None:
-        handle = getattr(self, "_header_deadline", None)
-        if handle is not None:
-            handle.cancel()
-            self._header_deadline = None
-
-    def _header_deadline_passed(self) -> None:
-        """Close the connection if the request's headers are still not all in (the client is still IDLE to
-        h11: its request line and headers have not completed)."""
-        self._header_deadline = None
-        if self.conn.their_state is h11.IDLE and not self.transport.is_closing():
-            self.transport.close()
+    def _follow(self) -> None:
+        if self.conn.their_state is not h11.IDLE:
+            self._disarm()  # its headers are in: the request is read or answered now
+        elif self._deadline is None and not self.transport.is_closing():
+            self._arm()
 
 
-def bounded_headers(timeout: float) -> type[BoundedHeadersProtocol]:
-    """The protocol class for ``uvicorn.run(http=...)`` with this deadline in seconds."""
-    return type("BoundedHeaders", (BoundedHeadersProtocol,), {"header_timeout": float(timeout)})
+@functools.cache
+def httptools_protocol() -> type | None:
+    """``HttpToolsProtocol`` with the deadline; None when httptools is not installed (made once)."""
+    try:
+        from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
+    except ImportError:  # httptools is not installed
+        return None
+
+    class BoundedHttpTools(HeaderDeadline, HttpToolsProtocol):
+        """httptools: it waits for headers from the connection's start, and again once a request has been
+        both read whole and answered; ``on_headers_complete`` ends the wait."""
+
+        _read = True  # the last request was read whole (none yet: as if so)
+        _answered = True
+
+        def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
+            super().connection_made(transport)
+            self._arm()
+
+        def on_message_begin(self) -> None:
+            self._read = False
+            super().on_message_begin()
+
+        def on_headers_complete(self) -> None:
+            self._disarm()
+            self._answered = False
+            super().on_headers_complete()
+
+        def on_message_complete(self) -> None:
+            self._read = True
+            super().on_message_complete()
+            self._follow()
+
+        def on_response_complete(self) -> None:
+            self._answered = True
+            super().on_response_complete()
+            self._follow()
+
+        def connection_lost(self, exc: Exception | None) -> None:
+            self._disarm()
+            super().connection_lost(exc)
+
+        def _follow(self) -> None:
+            if self._read and self._answered and self._deadline is None and not self.transport.is_closing():
+                self._arm()
+
+    return BoundedHttpTools
+
+
+def bounded_headers(timeout: float) -> type:
+    """The protocol class for ``uvicorn.run(http=...)`` with this deadline in seconds: httptools' when it
+    is installed (what ``http="auto"`` picks), else h11's."""
+    base = httptools_protocol() or BoundedH11
+    return type(f"{base.__name__}Deadline", (base,), {"header_timeout": float(timeout)})

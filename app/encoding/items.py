@@ -60,9 +60,11 @@ def encode_data(pipeline: Pipeline, limits: ImageLimits, ref_id: int, data: byte
     with its reason, and the rest of its batch goes on (issue 30: one row's ``cv2.error`` failed its whole
     batch, which was retried whole, for ever)."""
     try:
-        codes = pipeline.encode_image(pipeline.decode(data, limits).rgb)
+        codes = pipeline.encode_image(pipeline.decode(data, limits.stored()).rgb)
     except GeolocError as e:
         return Encoded(ref_id, None, None, str(e), fingerprint=pipeline.fingerprint)
+    except MemoryError:
+        raise  # the machine's state, not the image's: the row stays pending (app/jobs/worker.py counts it)
     except Exception as e:
         log.exception("reference %d: encoding failed", ref_id)
         reason = f"encoding failed: {type(e).__name__}: {str(e)[:300]}"

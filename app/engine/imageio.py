@@ -18,7 +18,7 @@ import io
 import math
 import threading
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from PIL import Image, ImageOps, UnidentifiedImageError
@@ -60,6 +60,13 @@ class ImageLimits:
     max_aspect: float = 10.0
     #: Decode-time downscale target: the long side after decoding is at least this and at most ~2x it.
     decode_long_side: int = 1600
+
+    def stored(self) -> ImageLimits:
+        """The limits of an image already stored (encoding it, its thumbnail, verifying against it): the
+        shape rule is an accept-time rule, and a reference an older version accepted and indexed must not
+        drop out of the index at a re-fit. What a network is asked of it is bounded all the same
+        (``MAX_INPUT_ASPECT``)."""
+        return replace(self, max_aspect=math.inf)
 
 
 class PixelBudget:

@@ -112,6 +112,7 @@ class IngestWorker:
             )
             batch = [b for b in batch if b[0] not in quarantined]
         results = self.service.encode(batch, self.workers)
+        store.end_attempts([i for i, _ in batch])  # they returned: only a death leaves a count behind
         done = self.service.complete(results)
         failed = sum(1 for r in results if r.error is not None) + len(quarantined)
         retry = sum(1 for r in results if r.retry)

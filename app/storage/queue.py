@@ -152,12 +152,21 @@ class Queue(ChangeLog):
                         ids_json(spent),
                     ),
                 )
+                db.execute(
+                    "DELETE FROM encode_attempts WHERE ref_id IN (SELECT value FROM json_each(?))", (ids_json(spent),)
+                )
             db.execute(
                 "INSERT INTO encode_attempts(ref_id, attempts) SELECT value, 1 FROM json_each(?) WHERE true "
                 "ON CONFLICT(ref_id) DO UPDATE SET attempts = encode_attempts.attempts + 1",
                 (ids_json([i for i in ids if i not in set(spent)]),),
             )
         return spent
+
+    def end_attempts(self, ids: Sequence[int]) -> None:
+        """The encoding of ``ids`` returned (whatever its outcome: codes, a failure, a storage retry): none of
+        them took the process down. Only a process that died leaves its count behind."""
+        with self.transaction() as db:
+            db.execute("DELETE FROM encode_attempts WHERE ref_id IN (SELECT value FROM json_each(?))", (ids_json(ids),))
 
     def quarantined(self, limit: int = 100) -> list[tuple[int, str]]:
         """Quarantined rows (id, error), oldest first, at most ``limit``."""
@@ -181,10 +190,6 @@ class Queue(ChangeLog):
         with self.transaction() as db:
             if fingerprint is not None and not self._fingerprint_is(db, fingerprint):
                 return []
-            db.execute(
-                "DELETE FROM encode_attempts WHERE ref_id IN (SELECT value FROM json_each(?))",
-                (ids_json([r[0] for r in results]),),
-            )
             for ref_id, fcode, bcode, error in results:
                 if error is not None:
                     db.execute(

@@ -367,6 +367,7 @@ class ReferenceStore(Queue, Generations, Identity, Removals, Maintenance):
             if row is None:
                 return None
             db.execute("DELETE FROM refs WHERE id=?", (ref_id,))
+            db.execute("DELETE FROM encode_attempts WHERE ref_id=?", (ref_id,))
             if row[2] == "indexed":
                 self._log_change(db, ref_id, "delete")
             name = self.image_path_for(row[0], row[1]).name
