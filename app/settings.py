@@ -64,6 +64,9 @@ class Settings(BaseSettings):
         "CPU; 0: no limit). Each one holds a decoded photo and its feature maps: the limit bounds memory",
     )
     thumbnail_px: int = 320
+    library_root: Path | None = Field(
+        None, description="the folder whose sub-folders POST /library/scans may read (unset: none; issue 36)"
+    )
     snapshot_every_changes: int = Field(
         5_000, ge=1, description="write an index snapshot after this many index changes (the worker's process)"
     )

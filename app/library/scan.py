@@ -1,0 +1,168 @@
+"""The library run (issue 36, point 1): `geoloc library scan DIR`, POST /library/scans and the page call
+``scan_library``.
+
+1. Every photo's header is read (``app.library.photos``, threads): GPS, capture time, camera.
+2. The photos with GPS go into the data dir through the ingest path (`geoloc ingest`'s run, its journal,
+   claims and report), so the collection is the library itself; an existing data dir is used as it is.
+   Photos this library located and wrote GPS into are never taken as references.
+3. The photos without GPS are located (``GeolocService.locate``, /locate's answer) on ``workers`` threads,
+   fused with the time prior (``app.library.suggest``) and journalled one by one: a second run, or a run
+   after a crash, skips what is done (same path, size and mtime).
+
+A file that cannot be read is journalled as a problem with its reason and the run goes on."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from app.domain import LocateOptions
+from app.engine.errors import GeolocError
+from app.jobs.ingest.progress import Progress
+from app.jobs.ingest.run import IngestOptions, ingest
+from app.jobs.ingest.sources import Source, SourceItem
+from app.library.journal import LOCATED, PROBLEM, LibraryJournal
+from app.library.photos import PhotoMeta, read_meta, same_stat, walk_photos
+from app.library.suggest import suggestion
+from app.library.timeprior import Anchor, time_prior
+from app.service import GeolocService
+from app.settings import usable_cpus
+
+log = logging.getLogger("geoloc.library")
+
+
+class LibraryError(ValueError):
+    """The library as a whole cannot be scanned (no such folder, nothing to locate against)."""
+
+
+@dataclass(frozen=True)
+class ScanOptions:
+    workers: int = field(default_factory=usable_cpus)  # threads reading and locating (one per usable CPU)
+    time_prior: bool = True
+    rerank: bool = False
+    ray: str | None = None  # the ingest step's engine (`geoloc ingest --ray`)
+
+
+@dataclass
+class ScanSummary:
+    scan_id: str
+    photos: int = 0
+    references: int = 0  # photos with GPS (in the collection)
+    added: int = 0  # of which new in the data dir
+    located: int = 0  # photos without GPS located by this run
+    unchanged: int = 0  # located by an earlier run, not read again
+    placed: int = 0
+    confident: int = 0
+    problems: list[tuple[str, str]] = field(default_factory=list)  # (file, reason)
+    workers: int = 1
+
+
+@dataclass(frozen=True)
+class PathsSource(Source):
+    """The ingest step's source: exactly the library's geotagged photos (a folder source would also read
+    the photos to locate and report each one as "no GPS")."""
+
+    paths: tuple[Path, ...] = ()
+
+    def items(self):
+        return (SourceItem(p) for p in self.paths)
+
+    def count(self) -> int:
+        return len(self.paths)
+
+
+def scan_library(
+    service: GeolocService,
+    folder: Path,
+    options: ScanOptions,
+    journal: LibraryJournal,
+    say: Callable[[str], None] = log.info,
+    progress: Callable[[int, str], Progress] | None = None,
+) -> ScanSummary:
+    """See the module docstring. ``progress(total, desc)`` makes the bar (default: ``Progress``)."""
+    folder = Path(folder).resolve()
+    if not folder.is_dir():
+        raise LibraryError(f"{folder} is not a folder")
+    paths = walk_photos(folder)
+    if not paths:
+        raise LibraryError(f"{folder} holds no photos (.jpg .jpeg .png .webp .tif .tiff .heic ...)")
+    workers = max(1, options.workers)
+    make_bar = progress or (lambda total, desc: Progress(total, desc=desc))
+    sid = journal.start_scan(folder, len(paths))
+    summary = ScanSummary(sid, photos=len(paths), workers=workers)
+    try:
+        with ThreadPoolExecutor(max_workers=workers) as pool:
+            metas = list(pool.map(read_meta, paths))
+            known = journal.known(sid)
+            ours = {p for p, r in known.items() if r.kind == LOCATED}  # GPS we may have written: not references
+            refs = [m for m in metas if m.gps is not None and m.problem is None and str(m.path) not in ours]
+            todo: list[PhotoMeta] = []
+            for m in metas:
+                if m.problem is not None:
+                    summary.problems.append((str(m.path), m.problem))
+                    journal.record(sid, m.path, m.size, m.mtime_ns, PROBLEM, {"file": str(m.path), "reason": m.problem})
+                elif m.gps is None or str(m.path) in ours:
+                    rec = known.get(str(m.path))
+                    if rec is not None and rec.kind == LOCATED and same_stat(m, rec.size, rec.mtime_ns):
+                        summary.unchanged += 1
+                    else:
+                        todo.append(m)
+            summary.references = len(refs)
+            if refs:
+                summary.added = _ingest(service, folder, refs, workers, options.ray, say)
+            if not todo:
+                journal.finish_scan(sid, "done", None)
+                return summary
+            if service.collection.size == 0:
+                raise LibraryError(
+                    f"{folder} has no photo with GPS and the data dir holds no references: nothing to locate "
+                    "the other photos against (add geotagged photos, or give a --data-dir with a collection)"
+                )
+            anchors = [Anchor(m.gps[0], m.gps[1], m.taken, m.camera) for m in refs if m.taken and m.gps]
+            bar = make_bar(len(todo), f"locate ({workers} threads)")
+            try:
+                for n, (meta, result) in enumerate(
+                    pool.map(lambda m: _locate(service, m, anchors, options), todo), start=1
+                ):
+                    kind = PROBLEM if "problem" in result else LOCATED
+                    journal.record(sid, meta.path, meta.size, meta.mtime_ns, kind, result)
+                    if kind == PROBLEM:
+                        summary.problems.append((str(meta.path), result["reason"]))
+                    else:
+                        summary.located += 1
+                        summary.placed += bool(result["placed"])
+                        summary.confident += bool(result["confident"])
+                    bar.update(1)
+                    journal.progress(sid, n)
+            finally:
+                bar.close()
+    except BaseException as e:
+        journal.finish_scan(sid, "failed", str(e) or type(e).__name__)
+        raise
+    journal.finish_scan(sid, "done", None)
+    return summary
+
+
+def _ingest(service: GeolocService, folder: Path, refs: list[PhotoMeta], workers: int, ray, say) -> int:
+    source = PathsSource("folder", folder, paths=tuple(m.path for m in refs))
+    summary, _ = ingest(service, source, IngestOptions(workers=workers, ray=ray), say=say)
+    say(
+        f"collection: {summary.added} new references from {len(refs)} photos with GPS "
+        f"({summary.present} already present); index size {service.collection.size}"
+    )
+    return summary.added
+
+
+def _locate(service: GeolocService, meta: PhotoMeta, anchors: list[Anchor], options: ScanOptions):
+    """One photo's suggestion, or ``{"problem": ...}`` when it cannot be located (never raises)."""
+    try:
+        data = meta.path.read_bytes()
+        answer = service.locate(data, LocateOptions(top_k=10, rerank=options.rerank))
+    except (OSError, GeolocError) as e:
+        reason = f"cannot read the file: {e.strerror or e}" if isinstance(e, OSError) else str(e)
+        return meta, {"file": str(meta.path), "problem": True, "reason": reason}
+    prior = time_prior(meta.taken, meta.camera, anchors) if options.time_prior else None
+    return meta, suggestion(meta, answer, prior)
