@@ -21,7 +21,7 @@ from app.library.journal import LOCATED, PhotoRecord
 FORMATS = ("geojson", "csv", "gpx")
 CSV_COLUMNS = (
     "file", "lat", "lon", "radius_m", "placed", "confident", "p", "basis", "decision", "reason_code", "reason",
-    "taken", "camera", "candidates",
+    "taken", "camera", "note", "candidates",
 )  # fmt: skip
 
 
@@ -53,6 +53,7 @@ def rows(records: list[PhotoRecord], everything: bool) -> list[dict]:
                 "reason": None if placed else r.get("reason"),
                 "taken": r.get("taken"),
                 "camera": r.get("camera"),
+                "note": r.get("note"),
                 "candidates": r.get("candidates") or [],
             }
         )

@@ -65,15 +65,31 @@ def read_meta(path: Path) -> PhotoMeta:
         return PhotoMeta(path, 0, 0, problem=f"cannot read the file: {e.strerror or e}")
     try:
         with Image.open(path) as img:
+            broken = _broken_exif(img)
+            if broken is not None:
+                note = f"EXIF unreadable ({broken}): located from its pixels alone, without the time prior"
+                return PhotoMeta(path, st.st_size, st.st_mtime_ns, note=note)
             gps, taken = read_exif_gps(img)
             camera = _camera(img)
-    except (UnidentifiedImageError, OSError, ValueError) as e:
-        reason = "not an image Pillow can read" if isinstance(e, UnidentifiedImageError) else f"unreadable: {e}"
-        return PhotoMeta(path, st.st_size, st.st_mtime_ns, problem=reason)
-    except Exception as e:  # a broken EXIF block: Pillow raises many kinds; the photo still has pixels
-        note = f"EXIF unreadable ({type(e).__name__}: {e}): located from its pixels alone"
-        return PhotoMeta(path, st.st_size, st.st_mtime_ns, note=note)
+    except UnidentifiedImageError:
+        return PhotoMeta(path, st.st_size, st.st_mtime_ns, problem="not an image (no format Pillow reads)")
+    except (OSError, ValueError, SyntaxError) as e:
+        return PhotoMeta(path, st.st_size, st.st_mtime_ns, problem=f"unreadable: {e}")
     return PhotoMeta(path, st.st_size, st.st_mtime_ns, gps, parse_exif_time(taken), camera)
+
+
+def _broken_exif(img: Image.Image) -> str | None:
+    """Why the photo's EXIF block cannot be parsed, or None (no block, or a sound one). Pillow raises many
+    kinds of exception on a damaged block; the pixels are still there."""
+    try:
+        exif = img.getexif()
+        exif.get_ifd(0x8769)
+        exif.get_ifd(0x8825)
+    except Exception as e:
+        return f"{type(e).__name__}: {e}"
+    if img.info.get("exif") and len(exif) == 0:
+        return "an EXIF block with no readable entry"
+    return None
 
 
 def _camera(img: Image.Image) -> str | None:
