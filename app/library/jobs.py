@@ -7,6 +7,7 @@ under ``GEOLOC_LIBRARY_ROOT`` (unset: the API scans nothing; the CLI has no such
 
 from __future__ import annotations
 
+import contextlib
 import io
 import logging
 import threading
@@ -78,7 +79,9 @@ def thumbnail(path: Path, px: int) -> bytes:
     """A JPEG of the photo's pixels only (no EXIF, XMP or comment), upright, at most ``px`` on a side."""
     with Image.open(path) as im:
         im.draft("RGB", (px * 2, px * 2))
-        im = ImageOps.exif_transpose(im).convert("RGB")
+        with contextlib.suppress(Exception):  # a broken EXIF block (a library has them): pixels as stored
+            im = ImageOps.exif_transpose(im)
+        im = im.convert("RGB")
         im.thumbnail((px, px))
         pixels = Image.new("RGB", im.size)
         pixels.paste(im)
