@@ -46,7 +46,8 @@ def penn_library(dest: Path, penn: Path, truth: dict[str, tuple[float, float]], 
 
 def score(results: list[dict], truth: dict[str, tuple[float, float]]) -> dict:
     """Placed, confident, and confident within the stated radius (and 25 m) of the truth; by basis."""
-    out = {"photos": 0, "placed": 0, "confident": 0, "confident_within_radius": 0, "confident_within_25m": 0}
+    out = {"photos": 0, "placed": 0, "placed_within_radius": 0, "confident": 0, "confident_within_radius": 0,
+           "confident_within_25m": 0}  # fmt: skip
     basis: dict[str, int] = {}
     for r in results:
         name = Path(r["file"]).name
@@ -57,9 +58,10 @@ def score(results: list[dict], truth: dict[str, tuple[float, float]]) -> dict:
             continue
         out["placed"] += 1
         basis[r["basis"]] = basis.get(r["basis"], 0) + 1
+        d = float(haversine_m(r["lat"], r["lon"], *truth[name]))
+        out["placed_within_radius"] += d <= r["radius_m"]
         if r["confident"]:
             out["confident"] += 1
-            d = float(haversine_m(r["lat"], r["lon"], *truth[name]))
             out["confident_within_radius"] += d <= r["radius_m"]
             out["confident_within_25m"] += d <= 25
     out["basis"] = basis
@@ -78,6 +80,7 @@ def main() -> None:
     ap.add_argument("--manifest", type=Path, default=REPO / "data" / "manifests" / "penn-campus-gps.csv")
     ap.add_argument("--penn", type=Path, default=REPO.parent / "shared" / "data" / "penn-campus-gps")
     ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--rerank", action="store_true", help="geometric verification of the top candidates")
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args()
     truth = query_photos(args.manifest)
@@ -87,7 +90,8 @@ def main() -> None:
         report = {}
         for name, prior in (("without", False), ("with", True)):
             journal = LibraryJournal(Path(tmp) / f"journal-{name}")
-            scan_library(service, folder, ScanOptions(workers=args.workers, time_prior=prior), journal)
+            options = ScanOptions(workers=args.workers, time_prior=prior, rerank=args.rerank)
+            scan_library(service, folder, options, journal)
             sid = journal.scan_id_of(folder)
             report[name] = score([r.result for r in journal.photos(sid, LOCATED)], truth)
             journal.close()
