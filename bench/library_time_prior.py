@@ -69,10 +69,10 @@ def score(results: list[dict], truth: dict[str, tuple[float, float]]) -> dict:
 
 
 def main() -> None:
-    from app.library.journal import LOCATED, LibraryJournal
     from app.library.scan import ScanOptions, scan_library
     from app.service import GeolocService
     from app.settings import Settings
+    from app.storage.library import LOCATED, LibraryJournal
 
     ap = argparse.ArgumentParser()
     ap.add_argument("--config", default=Settings().config)

@@ -28,13 +28,13 @@ def _fail(msg: str) -> None:
 
 
 def _journal(data_dir: Path):
-    from app.library.journal import LibraryJournal
+    from app.storage.library import LibraryJournal
 
     return LibraryJournal(data_dir)
 
 
 def _scan_of(journal, folder: Path) -> str:
-    from app.library.journal import scan_id
+    from app.storage.library import scan_id
 
     sid = scan_id(folder)
     if journal.scan(sid) is None:
@@ -74,6 +74,8 @@ def scan(
         try:
             s = scan_library(service, folder, options, journal, say=typer.echo)
         except LibraryError as e:
+            for path, reason in e.problems:
+                typer.echo(f"skipped {path}: {reason}")
             _fail(str(e))
         typer.echo(
             f"{s.photos} photos: {s.references} with GPS (the collection), {s.located} located now, "
@@ -93,7 +95,7 @@ def scan(
 @library_app.command("list")
 def list_cmd(folder: Folder, data_dir: DataDir = _S.data_dir) -> None:
     """Every located photo of the library, one JSON line each (id, file, suggestion, decision)."""
-    from app.library.journal import LOCATED
+    from app.storage.library import LOCATED
 
     journal = _journal(data_dir)
     try:

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import gpxpy.gpx
 
-from app.library.journal import LOCATED, PhotoRecord
+from app.storage.library import LOCATED, PhotoRecord
 
 FORMATS = ("geojson", "csv", "gpx")
 CSV_COLUMNS = (

@@ -15,9 +15,9 @@ from pathlib import Path
 
 from PIL import Image, ImageOps
 
-from app.library.journal import LibraryJournal, scan_id
 from app.library.scan import ScanOptions, scan_library
 from app.service import GeolocService
+from app.storage.library import LibraryJournal, scan_id
 
 log = logging.getLogger("geoloc.library")
 

@@ -4,7 +4,7 @@ or reject. Nothing is written here: ``app.library.writeback`` writes only what w
 from __future__ import annotations
 
 from app.engine.geo import valid_position
-from app.library.journal import ACCEPTED, LOCATED, REJECTED, LibraryJournal, PhotoRecord
+from app.storage.library import ACCEPTED, LOCATED, REJECTED, LibraryJournal, PhotoRecord
 
 ACTIONS = ("accept", "move", "reject", "clear")
 

@@ -24,18 +24,23 @@ from app.engine.errors import GeolocError
 from app.jobs.ingest.progress import Progress
 from app.jobs.ingest.run import IngestOptions, ingest
 from app.jobs.ingest.sources import Source, SourceItem
-from app.library.journal import LOCATED, PROBLEM, LibraryJournal
 from app.library.photos import PhotoMeta, read_meta, same_stat, walk_photos
 from app.library.suggest import suggestion
 from app.library.timeprior import Anchor, time_prior
 from app.service import GeolocService
 from app.settings import usable_cpus
+from app.storage.library import LOCATED, PROBLEM, LibraryJournal
 
 log = logging.getLogger("geoloc.library")
 
 
 class LibraryError(ValueError):
-    """The library as a whole cannot be scanned (no such folder, nothing to locate against)."""
+    """The library as a whole cannot be scanned (no such folder, nothing to locate against). ``problems``:
+    the files found unusable before it stopped, (file, reason), so that they are reported all the same."""
+
+    def __init__(self, message: str, problems: list[tuple[str, str]] | None = None):
+        super().__init__(message)
+        self.problems = problems or []
 
 
 @dataclass(frozen=True)
@@ -119,7 +124,8 @@ def scan_library(
             if service.collection.size == 0:
                 raise LibraryError(
                     f"{folder} has no photo with GPS and the data dir holds no references: nothing to locate "
-                    "the other photos against (add geotagged photos, or give a --data-dir with a collection)"
+                    "the other photos against (add geotagged photos, or give a --data-dir with a collection)",
+                    summary.problems,
                 )
             anchors = [Anchor(m.gps[0], m.gps[1], m.taken, m.camera) for m in refs if m.taken and m.gps]
             bar = make_bar(len(todo), f"locate ({workers} threads)")

@@ -15,6 +15,7 @@ Backups live in ``DATA_DIR/library-backups`` (0700): the user's folder gets noth
 from __future__ import annotations
 
 import hashlib
+import json
 import os
 import shutil
 import subprocess
@@ -24,8 +25,8 @@ from pathlib import Path
 
 from PIL import Image
 
-from app.library.journal import LibraryJournal
 from app.library.photos import sidecar_path
+from app.storage.library import LibraryJournal
 
 SIDECAR, IN_FILE = "sidecar", "exif"
 #: exiftool's own limit per call is the command line: a handful of tags per photo, one call per photo.
@@ -103,7 +104,20 @@ def _write_one(journal: LibraryJournal, sid: str, tool: str, backups: Path, p: P
     if target.exists():
         backup = backups / f"{uuid.uuid4().hex}{target.suffix}"
         shutil.copy2(target, backup)
-    journal.add_write(sid, p.photo_id, p.mode, target, backup)
+    write_id = journal.add_write(sid, p.photo_id, p.mode, target, backup)
+    try:
+        _run_exiftool(tool, target, backup, p)
+    except BaseException:
+        journal.mark_undone(write_id)  # put back already: nothing for undo to do
+        raise
+    if p.mode == IN_FILE:
+        st = target.stat()
+        journal.restat(p.photo_id, st.st_size, st.st_mtime_ns)
+    journal.set_written(p.photo_id, {"mode": p.mode, "target": str(target), "lat": p.lat, "lon": p.lon})
+
+
+def _run_exiftool(tool: str, target: Path, backup: Path | None, p: PlannedWrite) -> None:
+    """Write ``p``'s position into ``target``, checked; on any failure ``target`` is put back first."""
     before = pixel_hash(target) if p.mode == IN_FILE else None
     ns, ew = ("N" if p.lat >= 0 else "S"), ("E" if p.lon >= 0 else "W")
     if p.mode == IN_FILE:
@@ -122,13 +136,30 @@ def _write_one(journal: LibraryJournal, sid: str, tool: str, backups: Path, p: P
     if done.returncode != 0 or not target.exists():
         _restore(target, backup)
         raise WriteBackError(f"exiftool refused {target.name}: {(done.stderr or done.stdout).strip()[:300]}")
+    # -m lets exiftool pass over a photo's minor metadata faults, and then it may leave a damaged EXIF block
+    # unchanged and still exit 0: what was written is read back before it counts.
+    got = read_gps(tool, target)
+    if got is None or abs(got[0] - p.lat) > 1e-6 or abs(got[1] - p.lon) > 1e-6:
+        _restore(target, backup)
+        raise WriteBackError(f"exiftool could not write GPS into {target.name} (its metadata may be damaged)")
     if before is not None and pixel_hash(target) != before:
         _restore(target, backup)
         raise WriteBackError(f"{target.name}: the pixel data changed in the write; the original was put back")
-    if p.mode == IN_FILE:
-        st = target.stat()
-        journal.restat(p.photo_id, st.st_size, st.st_mtime_ns)
-    journal.set_written(p.photo_id, {"mode": p.mode, "target": str(target), "lat": p.lat, "lon": p.lon})
+
+
+def read_gps(tool: str, path: Path) -> tuple[float, float] | None:
+    """The GPS position exiftool reads in ``path`` (a photo or a sidecar), signed degrees; None if none."""
+    done = subprocess.run(
+        [tool, "-n", "-j", "-GPSLatitude", "-GPSLongitude", "--", str(path)],
+        capture_output=True,
+        text=True,
+        timeout=EXIFTOOL_TIMEOUT_S,
+    )
+    try:
+        got = json.loads(done.stdout)[0]
+        return float(got["GPSLatitude"]), float(got["GPSLongitude"])
+    except (ValueError, KeyError, IndexError, TypeError):
+        return None
 
 
 def _restore(target: Path, backup: Path | None) -> None:

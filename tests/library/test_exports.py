@@ -10,8 +10,8 @@ import json
 import gpxpy
 
 from app.library.exports import render
-from app.library.journal import LOCATED, LibraryJournal
 from app.library.review import decide
+from app.storage.library import LOCATED, LibraryJournal
 
 
 def _journal(tmp_path):

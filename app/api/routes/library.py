@@ -15,10 +15,10 @@ from app.api.deps import Core, read_access, write_access
 from app.api.errors import ApiError, error_responses
 from app.library.exports import FORMATS, MEDIA_TYPES, render
 from app.library.jobs import FolderRefused, LibraryJobs, thumbnail
-from app.library.journal import LOCATED, PROBLEM, PhotoRecord
 from app.library.review import DecisionError, decide
 from app.library.scan import ScanOptions
 from app.library.writeback import WriteBackError, undo, write_back
+from app.storage.library import LOCATED, PROBLEM, PhotoRecord
 
 router = APIRouter()
 #: The Library view: its own page beside index.html, under the same Content-Security-Policy.

@@ -148,7 +148,8 @@ async function load() {
   const scan = await api(`/library/scans/${scanId}`);
   photos = scan.photos;
   $("lib-actions").hidden = false;
-  status(`${scan.folder}: ${scan.state}, ${scan.done}/${scan.total} located` + (scan.message ? ` (${scan.message})` : ""));
+  status(`${scan.folder}: ${scan.state}, ${scan.done} photos located by this run (${scan.total} in the folder)` +
+    (scan.message ? `: ${scan.message}` : ""));
   render();
   if (scan.state === "running") setTimeout(() => load().catch((e) => showError(e.message)), 1000);
 }
