@@ -136,6 +136,20 @@ def test_review_on_the_page(browser, server):
     page.wait_for_function("() => /undid 2/.test(document.getElementById('write-result').textContent)")
     assert {p.name: sha(p) for p in lib.iterdir()} == originals
 
+    # Moving the pin: a photo with no suggestion (San Francisco) placed by hand on the map.
+    item = page.locator("#lib-photos li.photo", has_text="q1.jpg")
+    assert item.locator("button.accept").is_disabled()
+    item.locator(".name").click()
+    page.locator("#lib-map").click(position={"x": 300, "y": 200})
+    item.locator("button.move").click()
+    page.wait_for_function(
+        "() => [...document.querySelectorAll('#lib-photos li.photo')].some("
+        "(li) => li.textContent.includes('q1.jpg') && li.querySelector('.decision'))"
+    )
+    q1 = next(p for p in server.client.get(f"/library/scans/{sid}").json()["photos"] if p["file"].endswith("q1.jpg"))
+    assert q1["decision"] == "accepted" and 39.9 < q1["accepted_lat"] < 40.0 and -75.3 < q1["accepted_lon"] < -75.1
+    assert not page.errors
+
 
 def test_the_api_moves_dry_runs_writes_in_file_exports_and_undoes(server):
     """After the page's review (the module's order): the rest of the API on the same library."""
