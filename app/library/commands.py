@@ -16,7 +16,12 @@ from app.settings import Settings, usable_cpus
 
 library_app = typer.Typer(no_args_is_help=True, help="Geolocate a photo library: scan, review, write back, export.")
 _S = Settings()
-Folder = Annotated[Path, typer.Argument(help="the library: a folder of photos (recursively)")]
+Folder = Annotated[
+    Path,
+    typer.Argument(
+        help="the library: a folder of photos (recursively), or a manifest (db rows: references; query rows: to locate)"
+    ),
+]
 DataDir = Annotated[Path, typer.Option("--data-dir", help="the collection (the library's GPS photos go into it)")]
 ModelsDir = Annotated[Path, typer.Option("--models-dir", help="built model and fitted pipelines")]
 ConfigOpt = Annotated[str, typer.Option("--config", "-c", help="named pipeline configuration")]
@@ -64,8 +69,8 @@ def scan(
     from app.library.scan import LibraryError, ScanOptions, scan_library
     from app.service import GeolocService
 
-    if not folder.is_dir():
-        _fail(f"{folder} is not a folder")
+    if not folder.exists():
+        _fail(f"{folder} does not exist: give a folder of photos or a manifest (image,lat,lon,split)")
     service = GeolocService.open(data_dir, models_dir, config, limits=_S.image_limits())
     journal = _journal(data_dir)
     try:
@@ -78,7 +83,7 @@ def scan(
                 typer.echo(f"skipped {path}: {reason}")
             _fail(str(e))
         typer.echo(
-            f"{s.photos} photos: {s.references} with GPS (the collection), {s.located} located now, "
+            f"{s.photos} photos: {s.references} references (with a position), {s.located} located now, "
             f"{s.unchanged} done by an earlier run; {s.placed} placed, {s.confident} confident"
         )
         for path, reason in s.problems:

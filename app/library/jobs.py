@@ -43,8 +43,8 @@ class LibraryJobs:
         path = (path if path.is_absolute() else self.root / path).resolve()
         if path != self.root and self.root not in path.parents:
             raise FolderRefused(f"the folder must lie under the library root {self.root}")
-        if not path.is_dir():
-            raise FolderRefused(f"{path} is not a folder")
+        if not path.exists():
+            raise FolderRefused(f"{path} does not exist")
         return path
 
     def start(self, service: GeolocService, folder: Path, options: ScanOptions) -> str:

@@ -1,6 +1,8 @@
 """The library run (issue 36, point 1): `geoloc library scan DIR`, POST /library/scans and the page call
 ``scan_library``.
 
+0. The library is a folder (its photos with EXIF GPS are the references) or a manifest (its ``db`` rows
+   are, at their stated positions; its ``query`` rows are located).
 1. Every photo's header is read (``app.library.photos``, threads): GPS, capture time, camera.
 2. The photos with GPS go into the data dir through the ingest path (`geoloc ingest`'s run, its journal,
    claims and report), so the collection is the library itself; an existing data dir is used as it is.
@@ -13,14 +15,16 @@ A file that cannot be read is journalled as a problem with its reason and the ru
 
 from __future__ import annotations
 
+import csv
 import logging
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from app.domain import LocateOptions
 from app.engine.errors import GeolocError
+from app.evaluation.datasets import ManifestError, read_manifest
 from app.jobs.ingest.progress import Progress
 from app.jobs.ingest.run import IngestOptions, ingest
 from app.jobs.ingest.sources import Source, SourceItem
@@ -71,9 +75,11 @@ class PathsSource(Source):
     the photos to locate and report each one as "no GPS")."""
 
     paths: tuple[Path, ...] = ()
+    positions: dict | None = None  # a manifest's: path -> (lat, lon); None: each photo's EXIF GPS
 
     def items(self):
-        return (SourceItem(p) for p in self.paths)
+        where = self.positions or {}
+        return (SourceItem(p, *where.get(p, (None, None))) for p in self.paths)
 
     def count(self) -> int:
         return len(self.paths)
@@ -89,11 +95,7 @@ def scan_library(
 ) -> ScanSummary:
     """See the module docstring. ``progress(total, desc)`` makes the bar (default: ``Progress``)."""
     folder = Path(folder).resolve()
-    if not folder.is_dir():
-        raise LibraryError(f"{folder} is not a folder")
-    paths = walk_photos(folder)
-    if not paths:
-        raise LibraryError(f"{folder} holds no photos (.jpg .jpeg .png .webp .tif .tiff .heic ...)")
+    paths, positions = library_files(folder)
     workers = max(1, options.workers)
     make_bar = progress or (lambda total, desc: Progress(total, desc=desc))
     sid = journal.start_scan(folder, len(paths))
@@ -101,6 +103,8 @@ def scan_library(
     try:
         with ThreadPoolExecutor(max_workers=workers) as pool:
             metas = list(pool.map(read_meta, paths))
+            if positions is not None:  # a manifest says which photos are references, and where
+                metas = [replace(m, gps=positions.get(m.path)) for m in metas]
             known = journal.known(sid)
             ours = {p for p, r in known.items() if r.kind == LOCATED}  # GPS we may have written: not references
             refs = [m for m in metas if m.gps is not None and m.problem is None and str(m.path) not in ours]
@@ -117,7 +121,7 @@ def scan_library(
                         todo.append(m)
             summary.references = len(refs)
             if refs:
-                summary.added = _ingest(service, folder, refs, workers, options.ray, say)
+                summary.added = _ingest(service, folder, refs, positions, workers, options.ray, say)
             if not todo:
                 journal.finish_scan(sid, "done", None)
                 return summary
@@ -152,8 +156,33 @@ def scan_library(
     return summary
 
 
-def _ingest(service: GeolocService, folder: Path, refs: list[PhotoMeta], workers: int, ray, say) -> int:
-    source = PathsSource("folder", folder, paths=tuple(m.path for m in refs))
+def library_files(path: Path) -> tuple[list[Path], dict[Path, tuple[float, float]] | None]:
+    """The library's photos, and where a manifest puts its references (None for a folder: EXIF GPS).
+
+    A folder: every photo under it; those with EXIF GPS are the references. A manifest (a CSV with
+    ``image,lat,lon,split``): its ``db`` rows are the references at the manifest's positions, its ``query``
+    rows are the photos to locate (whatever GPS their EXIF holds), ``train`` rows are left out."""
+    if path.is_dir():
+        paths = walk_photos(path)
+        if not paths:
+            raise LibraryError(f"{path} holds no photos (.jpg .jpeg .png .webp .tif .tiff .heic ...)")
+        return paths, None
+    if not path.is_file():
+        raise LibraryError(f"{path} is neither a folder nor a manifest")
+    try:
+        rows = read_manifest(path)
+    except (ManifestError, UnicodeDecodeError, csv.Error) as e:
+        raise LibraryError(f"{path} is not a manifest (image,lat,lon,split): {e}") from None
+    positions = {r.image: (r.lat, r.lon) for r in rows if r.split == "db"}
+    queries = [r.image for r in rows if r.split == "query" and r.image not in positions]
+    if not queries:
+        raise LibraryError(f"{path} has no query rows: nothing to locate")
+    return sorted(set(positions) | set(queries)), positions
+
+
+def _ingest(service: GeolocService, folder: Path, refs: list[PhotoMeta], positions, workers: int, ray, say) -> int:
+    kind = "folder" if positions is None else "manifest"
+    source = PathsSource(kind, folder, paths=tuple(m.path for m in refs), positions=positions)
     summary, _ = ingest(service, source, IngestOptions(workers=workers, ray=ray), say=say)
     say(
         f"collection: {summary.added} new references from {len(refs)} photos with GPS "

@@ -29,7 +29,11 @@ def test_clear_messages(tmp_path, library_models):
     assert "Traceback" not in p.stderr and "skipped" in p.stdout and "notes.jpg" in p.stdout
 
     p = _scan(tmp_path / "missing", tmp_path / "data", library_models)
-    assert p.returncode == 2 and "is not a folder" in p.stderr, p.stderr
+    assert p.returncode == 2 and "does not exist" in p.stderr, p.stderr
+    notes = tmp_path / "notes.csv"
+    notes.write_text("a,b\n1,2\n")
+    p = _scan(notes, tmp_path / "data", library_models)
+    assert p.returncode == 2 and "is not a manifest" in p.stderr, p.stderr
     empty = tmp_path / "empty"
     empty.mkdir()
     p = _scan(empty, tmp_path / "data", library_models)

@@ -79,7 +79,7 @@ def test_the_readme_library_lines(shell, query_truth):
     line = _line("geoloc library scan ~/library --data-dir D --geojson")
     out = shell(line).stdout
     ran.append(line)
-    assert "65 with GPS (the collection)" in out, out
+    assert "65 references (with a position)" in out, out
     assert re.search(r"threads on \d+ usable CPUs", out), out
     assert "notes.jpg: not an image" in out, out  # a bad file is listed, the run goes on
     collection = json.loads((work / "out.geojson").read_text())
@@ -172,7 +172,7 @@ def test_the_readme_library_lines(shell, query_truth):
     assert {n: pixel_hash(lib / n) for n in pixels} == pixels
     # A photo we wrote GPS into is still ours to review, never taken as a reference by the next scan.
     out = shell(_line("geoloc library scan ~/library --data-dir D")).stdout
-    assert "65 with GPS" in out and "0 located now, 19 done by an earlier run" in out, out
+    assert "65 references" in out and "0 located now, 19 done by an earlier run" in out, out
     shell(_line("geoloc library undo"))
     assert {p.name: sha(p) for p in lib.iterdir()} == originals
 
