@@ -100,58 +100,62 @@ def scan_library(
     make_bar = progress or (lambda total, desc: Progress(total, desc=desc))
     sid = journal.start_scan(folder, len(paths))
     summary = ScanSummary(sid, photos=len(paths), workers=workers)
+    # An interrupted run (Ctrl-C, a failure) cancels the photos not started yet instead of locating the
+    # rest of a large library on its way out: what is done is journalled, the next run does the rest.
+    pool = ThreadPoolExecutor(max_workers=workers)
     try:
-        with ThreadPoolExecutor(max_workers=workers) as pool:
-            metas = list(pool.map(read_meta, paths))
-            if positions is not None:  # a manifest says which photos are references, and where
-                metas = [replace(m, gps=positions.get(m.path)) for m in metas]
-            known = journal.known(sid)
-            ours = {p for p, r in known.items() if r.kind == LOCATED}  # GPS we may have written: not references
-            refs = [m for m in metas if m.gps is not None and m.problem is None and str(m.path) not in ours]
-            todo: list[PhotoMeta] = []
-            for m in metas:
-                if m.problem is not None:
-                    summary.problems.append((str(m.path), m.problem))
-                    journal.record(sid, m.path, m.size, m.mtime_ns, PROBLEM, {"file": str(m.path), "reason": m.problem})
-                elif m.gps is None or str(m.path) in ours:
-                    rec = known.get(str(m.path))
-                    if rec is not None and rec.kind == LOCATED and same_stat(m, rec.size, rec.mtime_ns):
-                        summary.unchanged += 1
-                    else:
-                        todo.append(m)
-            summary.references = len(refs)
-            if refs:
-                summary.added = _ingest(service, folder, refs, positions, workers, options.ray, say)
-            if not todo:
-                journal.finish_scan(sid, "done", None)
-                return summary
-            if service.collection.size == 0:
-                raise LibraryError(
-                    f"{folder} has no photo with GPS and the data dir holds no references: nothing to locate "
-                    "the other photos against (add geotagged photos, or give a --data-dir with a collection)",
-                    summary.problems,
-                )
-            anchors = [Anchor(m.gps[0], m.gps[1], m.taken, m.camera) for m in refs if m.taken and m.gps]
-            bar = make_bar(len(todo), f"locate ({workers} threads)")
-            try:
-                for n, (meta, result) in enumerate(
-                    pool.map(lambda m: _locate(service, m, anchors, options), todo), start=1
-                ):
-                    kind = PROBLEM if "problem" in result else LOCATED
-                    journal.record(sid, meta.path, meta.size, meta.mtime_ns, kind, result)
-                    if kind == PROBLEM:
-                        summary.problems.append((str(meta.path), result["reason"]))
-                    else:
-                        summary.located += 1
-                        summary.placed += bool(result["placed"])
-                        summary.confident += bool(result["confident"])
-                    bar.update(1)
-                    journal.progress(sid, n)
-            finally:
-                bar.close()
+        metas = list(pool.map(read_meta, paths))
+        if positions is not None:  # a manifest says which photos are references, and where
+            metas = [replace(m, gps=positions.get(m.path)) for m in metas]
+        known = journal.known(sid)
+        ours = {p for p, r in known.items() if r.kind == LOCATED}  # GPS we may have written: not references
+        refs = [m for m in metas if m.gps is not None and m.problem is None and str(m.path) not in ours]
+        todo: list[PhotoMeta] = []
+        for m in metas:
+            if m.problem is not None:
+                summary.problems.append((str(m.path), m.problem))
+                journal.record(sid, m.path, m.size, m.mtime_ns, PROBLEM, {"file": str(m.path), "reason": m.problem})
+            elif m.gps is None or str(m.path) in ours:
+                rec = known.get(str(m.path))
+                if rec is not None and rec.kind == LOCATED and same_stat(m, rec.size, rec.mtime_ns):
+                    summary.unchanged += 1
+                else:
+                    todo.append(m)
+        summary.references = len(refs)
+        if refs:
+            summary.added = _ingest(service, folder, refs, positions, workers, options.ray, say)
+        if not todo:
+            journal.finish_scan(sid, "done", None)
+            return summary
+        if service.collection.size == 0:
+            raise LibraryError(
+                f"{folder} has no photo with GPS and the data dir holds no references: nothing to locate "
+                "the other photos against (add geotagged photos, or give a --data-dir with a collection)",
+                summary.problems,
+            )
+        anchors = [Anchor(m.gps[0], m.gps[1], m.taken, m.camera) for m in refs if m.taken and m.gps]
+        bar = make_bar(len(todo), f"locate ({workers} threads)")
+        try:
+            for n, (meta, result) in enumerate(
+                pool.map(lambda m: _locate(service, m, anchors, options), todo), start=1
+            ):
+                kind = PROBLEM if "problem" in result else LOCATED
+                journal.record(sid, meta.path, meta.size, meta.mtime_ns, kind, result)
+                if kind == PROBLEM:
+                    summary.problems.append((str(meta.path), result["reason"]))
+                else:
+                    summary.located += 1
+                    summary.placed += bool(result["placed"])
+                    summary.confident += bool(result["confident"])
+                bar.update(1)
+                journal.progress(sid, n)
+        finally:
+            bar.close()
     except BaseException as e:
         journal.finish_scan(sid, "failed", str(e) or type(e).__name__)
         raise
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
     journal.finish_scan(sid, "done", None)
     return summary
 

@@ -9,6 +9,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from app.engine.configs import DEFAULT_CONFIG
 from app.evaluation.datasets import Row, penn_campus_rows, write_manifest
 from tests.conftest import PENN
@@ -35,3 +37,30 @@ def test_a_manifest_library(tmp_path, library_models):
     assert "30 photos: 25 references (with a position), 5 located now" in p.stdout, p.stdout
     features = json.loads((tmp_path / "out.geojson").read_text())["features"]
     assert sorted(Path(f["properties"]["file"]).name for f in features) == sorted(r.image.name for r in queries + crops)
+
+    # Resumable: a run that dies after two photos leaves them journalled; the next run locates the rest only.
+    from app.library.scan import ScanOptions, scan_library
+    from app.service import GeolocService
+    from app.storage.library import LibraryJournal
+
+    class Dies:
+        def __init__(self, total: int, desc: str):
+            self.n = 0
+
+        def update(self, n: int) -> None:
+            self.n += n
+            if self.n == 2:
+                raise KeyboardInterrupt
+
+        def close(self) -> None:
+            pass
+
+    service = GeolocService.open(tmp_path / "data", library_models, DEFAULT_CONFIG)
+    journal = LibraryJournal(tmp_path / "journal")
+    with pytest.raises(KeyboardInterrupt):
+        scan_library(service, manifest, ScanOptions(workers=1), journal, progress=Dies)
+    sid = journal.scan_id_of(manifest)
+    assert journal.scan(sid)["state"] == "failed" and len(journal.photos(sid)) == 2
+    again = scan_library(service, manifest, ScanOptions(workers=1), journal)
+    assert (again.unchanged, again.located) == (2, 3)
+    journal.close()
