@@ -107,21 +107,7 @@ def scan_library(
         metas = list(pool.map(read_meta, paths))
         if positions is not None:  # a manifest says which photos are references, and where
             metas = [replace(m, gps=positions.get(m.path)) for m in metas]
-        known = journal.known(sid)
-        ours = {p for p, r in known.items() if r.kind == LOCATED}  # GPS we may have written: not references
-        refs = [m for m in metas if m.gps is not None and m.problem is None and str(m.path) not in ours]
-        todo: list[PhotoMeta] = []
-        for m in metas:
-            if m.problem is not None:
-                summary.problems.append((str(m.path), m.problem))
-                journal.record(sid, m.path, m.size, m.mtime_ns, PROBLEM, {"file": str(m.path), "reason": m.problem})
-            elif m.gps is None or str(m.path) in ours:
-                rec = known.get(str(m.path))
-                if rec is not None and rec.kind == LOCATED and same_stat(m, rec.size, rec.mtime_ns):
-                    summary.unchanged += 1
-                else:
-                    todo.append(m)
-        summary.references = len(refs)
+        refs, todo = _sort_out(metas, journal, sid, summary)
         if refs:
             summary.added = _ingest(service, folder, refs, positions, workers, options.ray, say)
         if not todo:
@@ -158,6 +144,30 @@ def scan_library(
         pool.shutdown(wait=True, cancel_futures=True)
     journal.finish_scan(sid, "done", None)
     return summary
+
+
+def _sort_out(
+    metas: list[PhotoMeta], journal: LibraryJournal, sid: str, summary: ScanSummary
+) -> tuple[list[PhotoMeta], list[PhotoMeta]]:
+    """(the references, the photos to locate now); problem files journalled and counted, photos located by
+    an earlier run and unchanged since counted. A photo this library located stays one to review even once
+    GPS was written into it: never a reference."""
+    known = journal.known(sid)
+    ours = {p for p, r in known.items() if r.kind == LOCATED}
+    refs = [m for m in metas if m.gps is not None and m.problem is None and str(m.path) not in ours]
+    todo: list[PhotoMeta] = []
+    for m in metas:
+        if m.problem is not None:
+            summary.problems.append((str(m.path), m.problem))
+            journal.record(sid, m.path, m.size, m.mtime_ns, PROBLEM, {"file": str(m.path), "reason": m.problem})
+        elif m.gps is None or str(m.path) in ours:
+            rec = known.get(str(m.path))
+            if rec is not None and rec.kind == LOCATED and same_stat(m, rec.size, rec.mtime_ns):
+                summary.unchanged += 1
+            else:
+                todo.append(m)
+    summary.references = len(refs)
+    return refs, todo
 
 
 def library_files(path: Path) -> tuple[list[Path], dict[Path, tuple[float, float]] | None]:

@@ -22,6 +22,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from datetime import datetime
 
+from app.engine.geo import haversine_m
+
 #: Only geotagged photos this close in time inform the prior.
 WINDOW_S = 10 * 60.0
 #: Walking speed: the prior's radius grows by this per second of gap.
@@ -88,8 +90,6 @@ def time_prior(taken: datetime | None, camera: str | None, anchors: Sequence[Anc
 
 
 def inside(prior: Prior, lat: float, lon: float) -> bool:
-    from app.engine.geo import haversine_m
-
     return float(haversine_m(prior.lat, prior.lon, lat, lon)) <= prior.radius_m
 
 
