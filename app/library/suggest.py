@@ -32,7 +32,11 @@ def suggestion(meta: PhotoMeta, answer: LocateAnswer, prior: Prior | None) -> di
         "lat": None,
         "lon": None,
         "radius_m": None,
+        # The calibrated probability of the visual answer's place; a position the time prior chose instead
+        # (a rescue, or time alone) has no calibrated rate, so "p" is then None and "visual_p" says the
+        # pixels' own.
         "p": None if answer.answer_p is None else round(float(answer.answer_p), 4),
+        "visual_p": None if answer.answer_p is None else round(float(answer.answer_p), 4),
         "basis": None,
         "reason_code": answer.reason_code,
         "reason": answer.reason,
@@ -56,10 +60,10 @@ def suggestion(meta: PhotoMeta, answer: LocateAnswer, prior: Prior | None) -> di
                 np.array([c.score for c in agreeing]),
             )
             if fused.lat is not None and fused.support >= MIN_SUPPORT:
-                return _placed(out, fused.lat, fused.lon, fused.radius_m, True, "pixels+time")
+                return _placed({**out, "p": None}, fused.lat, fused.lon, fused.radius_m, True, "pixels+time")
     radius = time_only_radius(prior)
     if radius is not None:
-        return _placed(out, prior.lat, prior.lon, radius, False, "time")
+        return _placed({**out, "p": None}, prior.lat, prior.lon, radius, False, "time")
     return out
 
 
