@@ -33,6 +33,9 @@ class Settings(BaseSettings):
         description="a folder (or CSV) of geotagged photos: a data dir with no references and no pipeline is "
         "fitted on them and they are ingested, at the server's first start (app/jobs/first_start.py)",
     )
+    library_root: Path | None = Field(
+        None, description="the folder whose sub-folders POST /library/scans may read (unset: none; issue 36)"
+    )
     api_key: str | None = Field(
         None, description="the key writes need in X-API-Key; unset: DATA_DIR/api_key, made at the first start"
     )
@@ -64,9 +67,6 @@ class Settings(BaseSettings):
         "CPU; 0: no limit). Each one holds a decoded photo and its feature maps: the limit bounds memory",
     )
     thumbnail_px: int = 320
-    library_root: Path | None = Field(
-        None, description="the folder whose sub-folders POST /library/scans may read (unset: none; issue 36)"
-    )
     snapshot_every_changes: int = Field(
         5_000, ge=1, description="write an index snapshot after this many index changes (the worker's process)"
     )
