@@ -24,7 +24,7 @@ HARD_QUERY ?= $(SHARED)/data/penn-campus-gps/photos/img_00008.jpg
 # A photo from elsewhere: San Francisco, a place the demo collection does not hold.
 ELSEWHERE_QUERY ?= $(SHARED)/data/sf-streetview-toy/queries/q1.jpg
 
-.PHONY: setup browser postgres model manifests fit demo run serve test test-quick test-container lint eval results bench load fuzz crash-full clean-index
+.PHONY: setup browser exiftool postgres model manifests fit demo run serve test test-quick test-container lint eval results bench load fuzz crash-full clean-index
 
 setup: $(VENV)/.installed $(LEAFLET) $(SWAGGER)
 
@@ -65,6 +65,12 @@ browser:
 	@test -x /usr/bin/chromium || { echo "installing chromium (Debian package) for the browser test"; \
 	  (apt-get update -q && DEBIAN_FRONTEND=noninteractive apt-get install -y -q chromium) > /tmp/geoloc-apt.log 2>&1 \
 	  || { echo "could not install chromium: see /tmp/geoloc-apt.log"; exit 1; }; }
+
+# `geoloc library write` calls exiftool (issue 36), and its tests run it: install it when it is missing.
+exiftool:
+	@command -v exiftool >/dev/null || { echo "installing exiftool (Debian package libimage-exiftool-perl)"; \
+	  (apt-get update -q && DEBIAN_FRONTEND=noninteractive apt-get install -y -q libimage-exiftool-perl) > /tmp/geoloc-apt.log 2>&1 \
+	  || { echo "could not install exiftool: see /tmp/geoloc-apt.log"; exit 1; }; }
 
 # The PostgreSQL tests start a server of their own from Debian's package (tools/postgres_server.py): install
 # it when it is missing.
@@ -135,13 +141,13 @@ serve: fit
 # Everything but the container test (make test-container): 13 min here with the Debian base already made
 # (the image build is most of it), about 10 min more to make the base.
 NOT_IN_TEST := not container
-test: setup browser postgres $(XFEAT_MODEL) $(RAY_STAMP)
+test: setup browser exiftool postgres $(XFEAT_MODEL) $(RAY_STAMP)
 	$(BIN)/python -m pytest -q -m "$(NOT_IN_TEST)"
 
 # The edit-test loop: engine, store, CLI and API tests (real servers included) without the crash, fuzz,
 # browser and container tests (pytest markers); tests/test_quick_selection.py checks that selection.
 QUICK := not crash and not fuzz and not browser and not container
-test-quick: setup postgres $(RAY_STAMP)
+test-quick: setup exiftool postgres $(RAY_STAMP)
 	$(BIN)/python -m pytest -q -m "$(QUICK)"
 
 # The Docker image built for real with buildah from a Debian base made by mmdebstrap (no Docker engine or

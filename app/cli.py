@@ -16,12 +16,14 @@ try:  # typer's own click (typer 0.29 vendors it); older typers use click itself
     from typer._click import exceptions as usage
 except ImportError:  # pragma: no cover
     from click import exceptions as usage
+from app.library.commands import library_app
 from app.runtime import tune_malloc
 from app.settings import Settings
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, help=__doc__, pretty_exceptions_enable=False)
 models_app = typer.Typer(no_args_is_help=True, help="Build model artifacts.")
 app.add_typer(models_app, name="models")
+app.add_typer(library_app, name="library")  # issue 36: scan, review, write back, export
 
 _S = Settings()
 DataDir = Annotated[Path, typer.Option("--data-dir", help="FAISS files, SQLite metadata, stored images")]

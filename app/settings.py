@@ -33,6 +33,9 @@ class Settings(BaseSettings):
         description="a folder (or CSV) of geotagged photos: a data dir with no references and no pipeline is "
         "fitted on them and they are ingested, at the server's first start (app/jobs/first_start.py)",
     )
+    library_root: Path | None = Field(
+        None, description="the folder whose sub-folders POST /library/scans may read (unset: none; issue 36)"
+    )
     api_key: str | None = Field(
         None, description="the key writes need in X-API-Key; unset: DATA_DIR/api_key, made at the first start"
     )

@@ -110,6 +110,12 @@ def test_image_holds_every_registered_model(container, build_log):
             assert name in listed.split(), f"{name} ({entry.name}) is not in the image: {listed}"
 
 
+def test_image_carries_exiftool(container, build_log):
+    """`geoloc library write` (issue 36) writes GPS with exiftool: the image carries it."""
+    out = _run(["buildah", "run", "--isolation", "chroot", container, "--", "exiftool", "-ver"], 120, build_log)
+    assert float(out.strip()) >= 12, out
+
+
 def test_image_dumps_the_compose_database_version(container, build_log):
     """`geoloc backup` on PostgreSQL runs pg_dump, which must be at least the server's major version: the
     image's client against the compose file's postgres image."""

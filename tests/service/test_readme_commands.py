@@ -32,6 +32,8 @@ README = (REPO / "README.md").read_text()
 ACTIVATE = "source .venv/bin/activate"
 
 #: README lines run by other tests (their commands there are the same, through `python -m app.cli`).
+#: The README's library lines run, in order and on a library of real photos, in their own test (issue 36).
+LIBRARY = "tests/library/test_readme_library.py"
 ELSEWHERE = {
     "geoloc models build": "tests/test_cli.py (test_build_fit_ingest_locate), tests/engine/test_xfeat_onnx.py",
     "geoloc fit --manifest M --config hybrid": "tests/test_cli.py (fit, with and without the SVM bank)",
@@ -46,6 +48,17 @@ ELSEWHERE = {
     "geoloc ingest ~/photos --data-dir /var/lib/geoloc": "tests/service/test_postgres_hosts.py (ingest into "
     "PostgreSQL: the README's 'Several hosts' block needs a database server)",
     "geoloc serve --data-dir /var/lib/geoloc": "tests/service/test_postgres_hosts.py (two servers on PostgreSQL)",
+    "geoloc library scan ~/library --data-dir D --geojson out.geojson --csv out.csv": LIBRARY,
+    "geoloc library scan ~/library --data-dir D": LIBRARY,
+    "geoloc library list ~/library --data-dir D": LIBRARY,
+    "geoloc library decide ~/library ~/library/img_00001.jpg accept --data-dir D": LIBRARY,
+    "geoloc library decide ~/library ~/library/img_00008.jpg move --lat 39.95041 --lon -75.19229 --data-dir D": LIBRARY,
+    "geoloc library decide ~/library ~/library/img_00009.jpg reject --data-dir D": LIBRARY,
+    "geoloc library write ~/library --data-dir D --dry-run": LIBRARY,
+    "geoloc library write ~/library --data-dir D": LIBRARY,
+    "geoloc library export ~/library --data-dir D --geojson accepted.geojson --gpx accepted.gpx": LIBRARY,
+    "geoloc library undo ~/library --data-dir D": LIBRARY,
+    "geoloc library write ~/library --data-dir D --in-file": LIBRARY,
 }
 
 

@@ -1,0 +1,115 @@
+"""Exports for GIS (issue 36, point 5): GeoJSON (RFC 7946), CSV and GPX.
+
+``accepted`` (the default of `geoloc library export`): the positions the user accepted or moved, nothing
+else. ``suggestions`` (what a scan writes, or ``--all``): every located photo, placed or not, with its radius,
+rate, basis and reason. RFC 7946: a FeatureCollection of Features whose coordinates are [lon, lat] in WGS 84;
+a photo with no position is a Feature with ``"geometry": null`` and its reason in its properties. GPX has no
+way to say "no position", so its file holds the placed photos only (waypoints, by gpxpy)."""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import os
+from pathlib import Path
+
+import gpxpy.gpx
+
+from app.storage.library import LOCATED, PhotoRecord
+
+FORMATS = ("geojson", "csv", "gpx")
+CSV_COLUMNS = (
+    "file", "lat", "lon", "radius_m", "placed", "confident", "p", "basis", "decision", "reason_code", "reason",
+    "taken", "camera", "note", "candidates",
+)  # fmt: skip
+
+
+def rows(records: list[PhotoRecord], everything: bool) -> list[dict]:
+    """One flat row per photo: the accepted ones only, or (``everything``) every located photo."""
+    out = []
+    for rec in records:
+        if rec.kind != LOCATED:
+            continue
+        r = rec.result
+        accepted = rec.accepted_position
+        if not everything and accepted is None:
+            continue
+        lat, lon = accepted if accepted is not None else (r.get("lat"), r.get("lon"))
+        placed = accepted is not None or bool(r.get("placed"))
+        moved = accepted is not None and accepted != (r.get("lat"), r.get("lon"))
+        out.append(
+            {
+                "file": rec.path,
+                "lat": lat if placed else None,
+                "lon": lon if placed else None,
+                "radius_m": None if moved or not placed else r.get("radius_m"),
+                "placed": placed,
+                "confident": bool(r.get("confident")),
+                "p": r.get("p"),
+                "basis": "user" if moved else r.get("basis"),
+                "decision": rec.decision,
+                "reason_code": None if placed else r.get("reason_code"),
+                "reason": None if placed else r.get("reason"),
+                "taken": r.get("taken"),
+                "camera": r.get("camera"),
+                "note": r.get("note"),
+                "candidates": r.get("candidates") or [],
+            }
+        )
+    return out
+
+
+def geojson(table: list[dict]) -> str:
+    features = []
+    for row in table:
+        props = {k: v for k, v in row.items() if k not in ("lat", "lon")}
+        geometry = None
+        if row["placed"]:
+            geometry = {"type": "Point", "coordinates": [round(row["lon"], 7), round(row["lat"], 7)]}
+        features.append({"type": "Feature", "geometry": geometry, "properties": props})
+    return json.dumps({"type": "FeatureCollection", "features": features}, indent=1)
+
+
+def csv_text(table: list[dict]) -> str:
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=CSV_COLUMNS, lineterminator="\n")
+    w.writeheader()
+    for row in table:
+        cands = "; ".join(f"{c['lat']:.7f} {c['lon']:.7f} {c['score']}" for c in row["candidates"])
+        w.writerow({**{k: ("" if v is None else v) for k, v in row.items()}, "candidates": cands})
+    return buf.getvalue()
+
+
+def gpx_text(table: list[dict]) -> str:
+    doc = gpxpy.gpx.GPX()
+    doc.creator = "geoloc library"
+    for row in table:
+        if not row["placed"]:
+            continue
+        desc = f"basis {row['basis']}" + (f", radius {row['radius_m']} m" if row["radius_m"] is not None else "")
+        doc.waypoints.append(
+            gpxpy.gpx.GPXWaypoint(
+                latitude=row["lat"], longitude=row["lon"], name=os.path.basename(row["file"]), description=desc
+            )
+        )
+    return doc.to_xml()
+
+
+RENDER = {"geojson": geojson, "csv": csv_text, "gpx": gpx_text}
+MEDIA_TYPES = {"geojson": "application/geo+json", "csv": "text/csv", "gpx": "application/gpx+xml"}
+
+
+def render(records: list[PhotoRecord], fmt: str, everything: bool) -> str:
+    if fmt not in RENDER:
+        raise ValueError(f"format must be one of {', '.join(FORMATS)}, got {fmt!r}")
+    return RENDER[fmt](rows(records, everything))
+
+
+def write_export(records: list[PhotoRecord], fmt: str, everything: bool, out: Path) -> int:
+    """Write one export atomically (a half-written GeoJSON is worse than none); returns its rows."""
+    text = render(records, fmt, everything)
+    tmp = out.with_name(f".{out.name}.tmp")
+    tmp.write_text(text)
+    os.replace(tmp, out)
+    return len(rows(records, everything))

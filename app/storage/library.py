@@ -1,0 +1,206 @@
+"""The library's journal: ``DATA_DIR/library.sqlite`` holds every scanned photo's suggestion, the user's
+decision on it and what was written back, so that
+
+- a second scan skips what is done (a photo is keyed by path, size and mtime, as the ingest journal does);
+- a review survives a restart of the server and can be made from the CLI, the API or the page alike;
+- every write can be undone (its backup is recorded before exiftool touches anything).
+
+One small SQLite file beside the collection's; one connection guarded by a lock (the API's thread pool and
+a scan's thread both use it), WAL so that a reader never waits for a scan."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import sqlite3
+import threading
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+
+SCHEMA = """
+CREATE TABLE IF NOT EXISTS scans (
+  id TEXT PRIMARY KEY, folder TEXT NOT NULL, state TEXT NOT NULL, total INTEGER NOT NULL DEFAULT 0,
+  done INTEGER NOT NULL DEFAULT 0, message TEXT, updated REAL NOT NULL
+);
+CREATE TABLE IF NOT EXISTS photos (
+  id INTEGER PRIMARY KEY, scan TEXT NOT NULL, path TEXT NOT NULL UNIQUE, size INTEGER NOT NULL,
+  mtime_ns INTEGER NOT NULL, kind TEXT NOT NULL, result TEXT NOT NULL,
+  decision TEXT, lat REAL, lon REAL, decided REAL, written TEXT
+);
+CREATE INDEX IF NOT EXISTS photos_scan ON photos(scan, id);
+CREATE TABLE IF NOT EXISTS writes (
+  id INTEGER PRIMARY KEY, scan TEXT NOT NULL, photo INTEGER NOT NULL, mode TEXT NOT NULL, target TEXT NOT NULL,
+  backup TEXT, created REAL NOT NULL, undone REAL
+);
+"""
+
+#: What a photo of the library is: located (it had no GPS), a reference (it had GPS), or a problem file.
+LOCATED, REFERENCE, PROBLEM = "located", "reference", "problem"
+ACCEPTED, REJECTED = "accepted", "rejected"
+COLUMNS = "id, scan, path, size, mtime_ns, kind, result, decision, lat, lon, written"
+
+
+def scan_id(folder: Path) -> str:
+    """A library's id: its resolved folder, hashed (stable across runs; no path in URLs)."""
+    return hashlib.sha256(str(Path(folder).resolve()).encode()).hexdigest()[:16]
+
+
+@dataclass(frozen=True)
+class PhotoRecord:
+    id: int
+    scan: str
+    path: str
+    size: int
+    mtime_ns: int
+    kind: str
+    result: dict
+    decision: str | None
+    lat: float | None
+    lon: float | None
+    written: dict | None
+
+    @property
+    def accepted_position(self) -> tuple[float, float] | None:
+        if self.decision == ACCEPTED and self.lat is not None and self.lon is not None:
+            return self.lat, self.lon
+        return None
+
+
+class LibraryJournal:
+    """See the module docstring. Open with ``LibraryJournal(data_dir)``; ``close`` when done."""
+
+    def __init__(self, data_dir: Path):
+        Path(data_dir).mkdir(parents=True, exist_ok=True)
+        self.path = Path(data_dir) / "library.sqlite"
+        self._db = sqlite3.connect(self.path, check_same_thread=False, timeout=30, isolation_level=None)
+        self._db.execute("PRAGMA journal_mode=WAL")
+        self._db.executescript(SCHEMA)
+        self._lock = threading.RLock()
+
+    def close(self) -> None:
+        self._db.close()
+
+    @contextmanager
+    def _tx(self) -> Iterator[sqlite3.Connection]:
+        with self._lock:
+            self._db.execute("BEGIN IMMEDIATE")
+            try:
+                yield self._db
+            except BaseException:
+                self._db.execute("ROLLBACK")
+                raise
+            self._db.execute("COMMIT")
+
+    # -- scans ------------------------------------------------------------------------------------------
+    def start_scan(self, folder: Path, total: int) -> str:
+        sid = scan_id(folder)
+        with self._tx() as db:
+            db.execute(
+                "INSERT INTO scans(id, folder, state, total, done, message, updated) VALUES (?,?,?,?,0,NULL,?) "
+                "ON CONFLICT(id) DO UPDATE SET state=excluded.state, total=excluded.total, done=0, message=NULL, "
+                "updated=excluded.updated",
+                (sid, str(Path(folder).resolve()), "running", total, time.time()),
+            )
+        return sid
+
+    def progress(self, sid: str, done: int) -> None:
+        with self._tx() as db:
+            db.execute("UPDATE scans SET done=?, updated=? WHERE id=?", (done, time.time(), sid))
+
+    def finish_scan(self, sid: str, state: str, message: str | None) -> None:
+        with self._tx() as db:
+            db.execute("UPDATE scans SET state=?, message=?, updated=? WHERE id=?", (state, message, time.time(), sid))
+
+    def scan(self, sid: str) -> dict | None:
+        with self._lock:
+            row = self._db.execute("SELECT id, folder, state, total, done, message FROM scans WHERE id=?", (sid,))
+            got = row.fetchone()
+        if got is None:
+            return None
+        return dict(zip(("id", "folder", "state", "total", "done", "message"), got, strict=True))
+
+    @staticmethod
+    def scan_id_of(folder: Path) -> str:
+        return scan_id(folder)
+
+    # -- photos -----------------------------------------------------------------------------------------
+    def known(self, sid: str) -> dict[str, PhotoRecord]:
+        """Every photo journalled for this library, by path."""
+        return {r.path: r for r in self.photos(sid)}
+
+    def record(self, sid: str, path: Path, size: int, mtime_ns: int, kind: str, result: dict) -> None:
+        """A photo's (new) suggestion: a file that changed since its decision loses the decision."""
+        with self._tx() as db:
+            db.execute(
+                "INSERT INTO photos(scan, path, size, mtime_ns, kind, result) VALUES (?,?,?,?,?,?) "
+                "ON CONFLICT(path) DO UPDATE SET scan=excluded.scan, size=excluded.size, "
+                "mtime_ns=excluded.mtime_ns, kind=excluded.kind, result=excluded.result, decision=NULL, "
+                "lat=NULL, lon=NULL, decided=NULL",
+                (sid, str(path), size, mtime_ns, kind, json.dumps(result)),
+            )
+
+    def restat(self, photo_id: int, size: int, mtime_ns: int) -> None:
+        """After our own in-file write: the file changed, but not its suggestion or decision."""
+        with self._tx() as db:
+            db.execute("UPDATE photos SET size=?, mtime_ns=? WHERE id=?", (size, mtime_ns, photo_id))
+
+    def photos(self, sid: str, kind: str | None = None) -> list[PhotoRecord]:
+        sql = f"SELECT {COLUMNS} FROM photos WHERE scan=?"
+        args: tuple = (sid,)
+        if kind is not None:
+            sql, args = sql + " AND kind=?", (sid, kind)
+        with self._lock:
+            rows = self._db.execute(sql + " ORDER BY path", args).fetchall()
+        return [_record(r) for r in rows]
+
+    def photo(self, sid: str, photo_id: int) -> PhotoRecord | None:
+        with self._lock:
+            row = self._db.execute(
+                f"SELECT {COLUMNS} FROM photos WHERE scan=? AND id=?",
+                (sid, photo_id),
+            ).fetchone()
+        return _record(row) if row else None
+
+    def decide(self, photo_id: int, decision: str | None, lat: float | None, lon: float | None) -> None:
+        with self._tx() as db:
+            db.execute(
+                "UPDATE photos SET decision=?, lat=?, lon=?, decided=? WHERE id=?",
+                (decision, lat, lon, time.time() if decision else None, photo_id),
+            )
+
+    def set_written(self, photo_id: int, written: dict | None) -> None:
+        with self._tx() as db:
+            db.execute(
+                "UPDATE photos SET written=? WHERE id=?", (None if written is None else json.dumps(written), photo_id)
+            )
+
+    # -- writes (for undo) ------------------------------------------------------------------------------
+    def add_write(self, sid: str, photo_id: int, mode: str, target: Path, backup: Path | None) -> int:
+        with self._tx() as db:
+            cur = db.execute(
+                "INSERT INTO writes(scan, photo, mode, target, backup, created) VALUES (?,?,?,?,?,?)",
+                (sid, photo_id, mode, str(target), None if backup is None else str(backup), time.time()),
+            )
+            return int(cur.lastrowid)
+
+    def live_writes(self, sid: str) -> list[dict]:
+        """Writes not undone, newest first (undo walks back in time)."""
+        with self._lock:
+            rows = self._db.execute(
+                "SELECT id, photo, mode, target, backup FROM writes WHERE scan=? AND undone IS NULL ORDER BY id DESC",
+                (sid,),
+            ).fetchall()
+        return [dict(zip(("id", "photo", "mode", "target", "backup"), r, strict=True)) for r in rows]
+
+    def mark_undone(self, write_id: int) -> None:
+        with self._tx() as db:
+            db.execute("UPDATE writes SET undone=? WHERE id=?", (time.time(), write_id))
+
+
+def _record(row) -> PhotoRecord:
+    rid, sid, path, size, mtime_ns, kind, result, decision, lat, lon, written = row
+    done = json.loads(written) if written else None
+    return PhotoRecord(rid, sid, path, size, mtime_ns, kind, json.loads(result), decision, lat, lon, done)

@@ -1,0 +1,61 @@
+"""The library tests' fixtures: the served default pipeline (fitted on penn-campus-gps, calibrated), and a
+library folder of real photos (penn's photos/, the 16 query-split photos with their GPS removed by
+exiftool, sf-streetview-toy photos from elsewhere, a text file named .jpg and a photo with broken EXIF)."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from app.engine.configs import DEFAULT_CONFIG
+from app.evaluation.datasets import penn_campus_rows, write_manifest
+from bench.library_time_prior import penn_library
+from tests.conftest import PENN, REPO, SHARED
+
+SF = SHARED / "data" / "sf-streetview-toy" / "queries"
+ELSEWHERE = ("q1.jpg", "q2.jpg")  # San Francisco: no reference there
+
+
+def exiftool_ready() -> None:
+    if shutil.which("exiftool") is None:
+        pytest.fail("exiftool is missing: `make test` installs Debian's libimage-exiftool-perl")
+
+
+@pytest.fixture(scope="session")
+def query_truth() -> dict[str, tuple[float, float]]:
+    """The 16 query-split photos of penn (the shared manifest's seed): name -> true position."""
+    return {
+        r.image.name: (r.lat, r.lon)
+        for r in penn_campus_rows(PENN)
+        if r.split == "query" and r.image.parent.name == "photos"
+    }
+
+
+@pytest.fixture(scope="session")
+def library_models(tmp_path_factory, models_dir, lite2, xfeat) -> Path:
+    """The default configuration, fitted as `make fit` fits it: the checkout's when `make fit` ran, else
+    fitted here once (about two minutes) into the session's models dir."""
+    if (REPO / "models" / "pipelines" / DEFAULT_CONFIG / "pipeline.json").exists():
+        return REPO / "models"
+    manifest = tmp_path_factory.mktemp("library-manifest") / "penn-campus-gps.csv"
+    write_manifest(manifest, penn_campus_rows(PENN))
+    args = ["fit", "--manifest", str(manifest), "--config", DEFAULT_CONFIG, "--models-dir", str(models_dir)]
+    done = subprocess.run([sys.executable, "-m", "app.cli", *args], capture_output=True, text=True, timeout=900)
+    assert done.returncode == 0, done.stdout + done.stderr
+    return models_dir
+
+
+def make_library(folder: Path, truth: dict[str, tuple[float, float]]) -> Path:
+    """penn's photos with the query photos' GPS removed, two photos from elsewhere, and two bad files."""
+    exiftool_ready()
+    penn_library(folder, PENN, truth, [SF / n for n in ELSEWHERE])
+    (folder / "notes.jpg").write_text("not a photo")  # a file that is not an image
+    data = bytearray((PENN / "photos" / "img_00001.jpg").read_bytes())
+    at = data.find(b"Exif\x00\x00") + 6
+    data[at : at + 400] = bytes((k * 37) & 0xFF for k in range(400))  # the EXIF block garbled
+    (folder / "broken-exif.jpg").write_bytes(bytes(data))
+    return folder

@@ -1,0 +1,40 @@
+"""Bad input to `geoloc library scan` gets one clear line and exit 2, never a traceback: a folder with no
+geotagged photo (and a data dir with no collection), a path that is not a folder, a folder with no photo."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+
+from app.engine.configs import DEFAULT_CONFIG
+from tests.library.conftest import SF
+
+
+def _scan(folder, data, models) -> subprocess.CompletedProcess:
+    args = ["library", "scan", str(folder), "--data-dir", str(data), "--models-dir", str(models),
+            "--config", DEFAULT_CONFIG, "--geojson", str(data.parent / "out.geojson")]  # fmt: skip
+    return subprocess.run([sys.executable, "-m", "app.cli", *args], capture_output=True, text=True, timeout=600)
+
+
+def test_clear_messages(tmp_path, library_models):
+    folder = tmp_path / "elsewhere"
+    folder.mkdir()
+    for name in ("q1.jpg", "q2.jpg"):  # San Francisco photos, no GPS
+        shutil.copyfile(SF / name, folder / name)
+    (folder / "notes.jpg").write_text("not a photo")
+    p = _scan(folder, tmp_path / "data", library_models)
+    assert p.returncode == 2, p.stdout + p.stderr
+    assert "has no photo with GPS and the data dir holds no references" in p.stderr, p.stderr
+    assert "Traceback" not in p.stderr and "skipped" in p.stdout and "notes.jpg" in p.stdout
+
+    p = _scan(tmp_path / "missing", tmp_path / "data", library_models)
+    assert p.returncode == 2 and "does not exist" in p.stderr, p.stderr
+    notes = tmp_path / "notes.csv"
+    notes.write_text("a,b\n1,2\n")
+    p = _scan(notes, tmp_path / "data", library_models)
+    assert p.returncode == 2 and "is not a manifest" in p.stderr, p.stderr
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    p = _scan(empty, tmp_path / "data", library_models)
+    assert p.returncode == 2 and "holds no photos" in p.stderr, p.stderr

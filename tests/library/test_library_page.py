@@ -1,0 +1,20 @@
+"""The Library page holds to the page's rules (tests/service/test_hardening_web.py): nothing inline that
+the Content-Security-Policy would have to allow, and no string ever parsed as HTML (file names, labels and
+reasons are user text)."""
+
+from __future__ import annotations
+
+from app.api.app import WEB_DIR
+from tests.service.test_hardening_web import _Inline
+
+
+def test_library_html_has_nothing_inline():
+    parser = _Inline()
+    parser.feed((WEB_DIR / "library.html").read_text())
+    assert parser.found == []
+
+
+def test_library_js_never_parses_strings_as_html():
+    js = (WEB_DIR / "library.js").read_text()
+    for sink in ("innerHTML", "outerHTML", "insertAdjacentHTML", "document.write", "bindPopup(`", "html:"):
+        assert sink not in js, sink
