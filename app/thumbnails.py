@@ -49,7 +49,7 @@ def thumbnail(image: Path, size: int, limits: ImageLimits) -> bytes:
             try:
                 return path.read_bytes()  # made by the request this one waited for
             except FileNotFoundError:
-                data = _make(image.read_bytes(), size, limits)
+                data = render_thumbnail(image.read_bytes(), size, limits)
             try:
                 private_dir(path.parent.parent)
                 private_dir(path.parent)
@@ -63,7 +63,8 @@ def thumbnail(image: Path, size: int, limits: ImageLimits) -> bytes:
                 del _MAKING[path]
 
 
-def _make(data: bytes, size: int, limits: ImageLimits) -> bytes:
+def render_thumbnail(data: bytes, size: int, limits: ImageLimits) -> bytes:
+    """The JPEG thumbnail of image bytes, decoded under ``limits`` (reduced, under the pixel budget)."""
     img = load_image(data, limits.stored(), decode_long_side=size)
     large = max(img.original_size) > 2 * size
     pixels = Image.fromarray(img.rgb)  # a new image: none of the photo's metadata comes along

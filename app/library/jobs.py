@@ -7,17 +7,15 @@ under ``GEOLOC_LIBRARY_ROOT`` (unset: the API scans nothing; the CLI has no such
 
 from __future__ import annotations
 
-import contextlib
-import io
 import logging
 import threading
 from pathlib import Path
 
-from PIL import Image, ImageOps
-
+from app.engine.imageio import ImageLimits
 from app.library.scan import ScanOptions, scan_library
 from app.service import GeolocService
 from app.storage.library import LibraryJournal, scan_id
+from app.thumbnails import render_thumbnail
 
 log = logging.getLogger("geoloc.library")
 
@@ -76,15 +74,7 @@ class LibraryJobs:
 
 
 def thumbnail(path: Path, px: int) -> bytes:
-    """A JPEG of the photo's pixels only (no EXIF, XMP or comment), upright, at most ``px`` on a side."""
-    with Image.open(path) as im:
-        im.draft("RGB", (px * 2, px * 2))
-        with contextlib.suppress(Exception):  # a broken EXIF block (a library has them): pixels as stored
-            im = ImageOps.exif_transpose(im)
-        im = im.convert("RGB")
-        im.thumbnail((px, px))
-        pixels = Image.new("RGB", im.size)
-        pixels.paste(im)
-    buf = io.BytesIO()
-    pixels.save(buf, "JPEG", quality=85)
-    return buf.getvalue()
+    """A JPEG of the photo's pixels only (no EXIF, XMP or comment), upright, at most ``px`` on a side:
+    decoded as a reference's thumbnail is (``app.thumbnails``: reduced, under the process's pixel budget;
+    a 7000 x 7000 WebP decoded whole per request cost gigabytes, issue 30)."""
+    return render_thumbnail(path.read_bytes(), px, ImageLimits().stored())

@@ -13,6 +13,7 @@ from pydantic import BaseModel, Field
 from app.api import security
 from app.api.deps import Core, read_access, write_access
 from app.api.errors import ApiError, error_responses
+from app.engine.errors import GeolocError
 from app.library.exports import FORMATS, MEDIA_TYPES, render
 from app.library.jobs import FolderRefused, LibraryJobs, thumbnail
 from app.library.review import DecisionError, decide
@@ -113,7 +114,7 @@ def photo_thumbnail(request: Request, sid: ScanId, photo_id: PhotoId, lib: Jobs)
         raise ApiError(404, "not_found", f"no photo {photo_id} in library scan {sid}")
     try:
         data = thumbnail(FsPath(rec.path), request.app.state.settings.thumbnail_px)
-    except OSError:
+    except (OSError, GeolocError):  # gone, or not an image (a library holds such files)
         raise ApiError(404, "image_missing", f"photo {photo_id} cannot be read any more") from None
     return Response(data, media_type="image/jpeg", headers={"Cache-Control": "max-age=60"})
 
