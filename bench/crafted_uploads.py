@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import argparse
 import tempfile
-import threading
 import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
@@ -26,8 +25,9 @@ from PIL import Image
 
 from app.settings import usable_cpus
 from bench.common import REPO, is_photo, machine, penn_rows, post_references, write_section
-from bench.locate_memory import MiB, ensure_models, rss_bytes
+from bench.locate_memory import ensure_models
 from tools.crafted_images import STRIPS, encoded, noise, tiff_with_frames
+from tools.process_memory import MiB, PeakRss, rss_bytes
 from tools.server_process import ServerProcess
 
 #: Each burst's target from the issue: the RSS peak over idle for eight at once, and the slowest answer.
@@ -94,32 +94,19 @@ def shapes(photo: Path, full: Path) -> list[Shape]:
 
 def burst(server: ServerProcess, shape: Shape, n: int, first: int) -> Burst:
     """``n`` requests at once, numbered from ``first``."""
-    pid = server.proc.pid
     time.sleep(1.0)
-    idle = rss_bytes(pid)
-    peak = idle
-    done = threading.Event()
-
-    def sample() -> None:
-        nonlocal peak
-        while not done.is_set():
-            peak = max(peak, rss_bytes(pid))
-            time.sleep(0.02)
-
-    sampler = threading.Thread(target=sample, daemon=True)
-    sampler.start()
+    idle = rss_bytes(server.proc.pid)
 
     def one(k: int) -> tuple[int, float]:
         t0 = time.perf_counter()
         status = shape.request(server, k)
         return status, time.perf_counter() - t0
 
-    with ThreadPoolExecutor(n) as pool:
-        answers = list(pool.map(one, range(first, first + n)))
-    time.sleep(1.0)  # work left running after the answers would still grow the process here
-    done.set()
-    sampler.join()
-    return Burst(n, (peak - idle) / MiB, max(s for _, s in answers), [st for st, _ in answers])
+    with PeakRss(server.proc.pid) as sampled:
+        with ThreadPoolExecutor(n) as pool:
+            answers = list(pool.map(one, range(first, first + n)))
+        time.sleep(1.0)  # work left running after the answers would still grow the process here
+    return Burst(n, (sampled.peak - idle) / MiB, max(s for _, s in answers), [st for st, _ in answers])
 
 
 def main() -> None:

@@ -16,7 +16,6 @@ import argparse
 import io
 import statistics
 import tempfile
-import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -30,6 +29,7 @@ from app.engine.configs import get_config
 from app.engine.pipeline import pipeline_dir
 from app.settings import Settings, usable_cpus
 from bench.common import REPO, is_photo, machine, penn_rows, post_references, write_section
+from tools.process_memory import MiB, PeakRss, rss_bytes
 from tools.server_process import ServerProcess
 
 SIDE = 7000  # 49 MP, under the 50 MP default limit
@@ -37,7 +37,6 @@ SETTINGS = {  # label -> server environment
     "old settings (no limit, no trim)": {"GEOLOC_LOCATE_CONCURRENCY": "0", "GEOLOC_MALLOC_TRIM": "0"},
     "defaults": {},
 }
-MiB = 1024 * 1024
 WARM: Path  # a 1600 px penn photo that warms a server up
 NOTE = (
     "The defaults: at most one /locate per usable CPU decoding and extracting at once "
@@ -48,14 +47,6 @@ NOTE = (
     "(the decode, orientation and RGB copies, and the 147 MB array it returned); now at most +200 MB, and "
     "it returns a 9 MB array (one `load_image` in a fresh process, peak VmHWM)."
 )
-
-
-def rss_bytes(pid: int) -> int:
-    """VmRSS of ``pid`` from /proc (psutil is not a dependency)."""
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        if line.startswith("VmRSS:"):
-            return int(line.split()[1]) * 1024
-    raise RuntimeError(f"no VmRSS for {pid}")
 
 
 def flat_png() -> bytes:
@@ -115,28 +106,16 @@ def burst(server: ServerProcess, data: bytes, name: str, n: int, after_s: float)
     pid = server.proc.pid
     time.sleep(2.0)
     idle = rss_bytes(pid)
-    peak = idle
-    done = threading.Event()
-
-    def sample() -> None:
-        nonlocal peak
-        while not done.is_set():
-            peak = max(peak, rss_bytes(pid))
-            time.sleep(0.05)
-
-    sampler = threading.Thread(target=sample, daemon=True)
-    sampler.start()
 
     def one(_: int) -> int:
         with httpx.Client(base_url=server.url, timeout=600) as c:
             return c.post("/locate", files=[("image", (name, data, "application/octet-stream"))]).status_code
 
     t0 = time.perf_counter()
-    with ThreadPoolExecutor(n) as pool:
+    with PeakRss(pid, every_s=0.05) as sampler, ThreadPoolExecutor(n) as pool:
         statuses = list(pool.map(one, range(n)))
     seconds = time.perf_counter() - t0
-    done.set()
-    sampler.join()
+    peak = sampler.peak
     end = time.monotonic() + after_s
     back_s = None
     t_last = time.monotonic()

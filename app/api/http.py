@@ -22,10 +22,19 @@ from uvicorn.protocols.http.h11_impl import H11Protocol
 
 
 class HeaderDeadline:
-    """The deadline's state, mixed into a uvicorn protocol (which provides ``loop`` and ``transport``)."""
+    """The deadline's state, mixed into a uvicorn protocol before it (the protocol provides ``loop`` and
+    ``transport``, and the connection callbacks this calls on)."""
 
     header_timeout: float = 10.0
     _deadline: asyncio.TimerHandle | None = None
+
+    def connection_made(self, transport: asyncio.Transport) -> None:
+        super().connection_made(transport)  # type: ignore[misc]
+        self._arm()  # a new connection: the server waits for its first request's headers
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self._disarm()
+        super().connection_lost(exc)  # type: ignore[misc]
 
     def _arm(self) -> None:
         """The server now waits for a request's headers: they must all be in within ``header_timeout``."""
@@ -48,10 +57,6 @@ class BoundedH11(HeaderDeadline, H11Protocol):
     """h11: it waits for headers exactly while the client's side is IDLE (h11 starts a new cycle only once
     both sides of the previous one are done)."""
 
-    def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
-        super().connection_made(transport)
-        self._arm()
-
     def handle_events(self) -> None:
         super().handle_events()
         self._follow()
@@ -59,10 +64,6 @@ class BoundedH11(HeaderDeadline, H11Protocol):
     def on_response_complete(self) -> None:
         super().on_response_complete()
         self._follow()
-
-    def connection_lost(self, exc: Exception | None) -> None:
-        self._disarm()
-        super().connection_lost(exc)
 
     def _follow(self) -> None:
         if self.conn.their_state is not h11.IDLE:
@@ -86,10 +87,6 @@ def httptools_protocol() -> type | None:
         _read = True  # the last request was read whole (none yet: as if so)
         _answered = True
 
-        def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
-            super().connection_made(transport)
-            self._arm()
-
         def on_message_begin(self) -> None:
             self._read = False
             super().on_message_begin()
@@ -108,10 +105,6 @@ def httptools_protocol() -> type | None:
             self._answered = True
             super().on_response_complete()
             self._follow()
-
-        def connection_lost(self, exc: Exception | None) -> None:
-            self._disarm()
-            super().connection_lost(exc)
 
         def _follow(self) -> None:
             if self._read and self._answered and self._deadline is None and not self.transport.is_closing():

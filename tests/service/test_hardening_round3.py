@@ -22,9 +22,9 @@ from PIL import Image
 from app.storage.files import THUMBNAILS
 from tests.conftest import PENN
 from tests.service.conftest import Server, wait_job
-from tests.service.test_hardening_shapes import rss_mb
 from tests.test_cli import geoloc
 from tools.crafted_images import encoded
+from tools.process_memory import MiB, PeakRss, rss_bytes
 
 PHOTO = PENN / "photos" / "img_00000.jpg"
 FULL = sorted((PENN / "photos-full").glob("*.jpg"))
@@ -35,27 +35,6 @@ def _copy(mini_collection: Path, tmp_path: Path) -> Path:
     data = tmp_path / "data"
     shutil.copytree(mini_collection, data)
     return data
-
-
-class PeakRss:
-    """The largest resident size of a process while the block runs (sampled every 20 ms)."""
-
-    def __init__(self, pid: int):
-        self.pid, self.peak, self._stop = pid, 0.0, threading.Event()
-
-    def __enter__(self):
-        self._thread = threading.Thread(target=self._sample, daemon=True)
-        self._thread.start()
-        return self
-
-    def _sample(self):
-        while not self._stop.is_set():
-            self.peak = max(self.peak, rss_mb(self.pid))
-            time.sleep(0.02)
-
-    def __exit__(self, *exc):
-        self._stop.set()
-        self._thread.join()
 
 
 def test_thumbnails_of_a_large_webp_are_bounded_and_made_once(tmp_path, fitted_models, mini_collection):
@@ -69,7 +48,7 @@ def test_thumbnails_of_a_large_webp_are_bounded_and_made_once(tmp_path, fitted_m
         assert r.status_code == 202, r.text
         ref = r.json()["reference_ids"][0]
         assert wait_job(s.client, r.json()["job_id"])["status"] == "done"
-        idle = rss_mb(s.proc.pid)
+        idle = rss_bytes(s.proc.pid)
         answers: list[httpx.Response] = []
         with PeakRss(s.proc.pid) as peak:
             threads = [
@@ -86,7 +65,7 @@ def test_thumbnails_of_a_large_webp_are_bounded_and_made_once(tmp_path, fitted_m
         assert max(thumb.size) == 320 and not thumb.info.get("exif")
         # One 49 MP WebP decode at a time, once (Pillow decodes WebP whole: about +0.75 GB for that one);
         # eight at once used to pass 6 GB.
-        assert peak.peak - idle < 1000, (idle, peak.peak)
+        assert peak.peak - idle < 1000 * MiB, (idle / MiB, peak.peak / MiB)
         cached = list((data / "images" / THUMBNAILS / "320").glob("*.jpg"))
         assert len(cached) == 1 and stat.S_IMODE(cached[0].stat().st_mode) == 0o600
         assert s.client.delete(f"/references/{ref}").status_code == 200

@@ -20,17 +20,11 @@ from tests.conftest import PENN
 from tests.service.conftest import CONFIG, Server, wait_job
 from tests.test_cli import geoloc
 from tools.crafted_images import STRIPS, encoded, tiff_with_frames
+from tools.process_memory import MiB, rss_bytes
 
 PHOTO = PENN / "photos" / "img_00000.jpg"
 #: Real 224 px crops the mini collection does not hold (it holds crops 0 and 1 of its captures).
 CROPS = sorted((PENN / "crops").glob("img_000*_3.jpg"))
-
-
-def rss_mb(pid: int) -> float:
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        if line.startswith("VmRSS:"):
-            return int(line.split()[1]) / 1024
-    raise AssertionError("no VmRSS")
 
 
 def test_strips_are_refused_on_both_routes_and_the_server_stays_small(tmp_path, fitted_models, mini_collection):
@@ -38,7 +32,7 @@ def test_strips_are_refused_on_both_routes_and_the_server_stays_small(tmp_path, 
     shutil.copytree(mini_collection, data)
     with Server(data, fitted_models) as s:
         assert s.client.post("/locate", files=[("image", ("q.jpg", PHOTO.read_bytes()))]).status_code == 200
-        idle = rss_mb(s.proc.pid)
+        idle = rss_bytes(s.proc.pid)
         for name, make in STRIPS.items():
             body = make()
             r = s.client.post("/locate", files=[("image", ("x.img", body))])
@@ -48,7 +42,7 @@ def test_strips_are_refused_on_both_routes_and_the_server_stays_small(tmp_path, 
             assert r.status_code == 422 and r.json()["error"] == "image_shape", (name, r.status_code, r.text)
         time.sleep(2)  # work left running after an answer would show here
         assert s.client.get("/health").status_code == 200
-        assert rss_mb(s.proc.pid) - idle < 300, (idle, rss_mb(s.proc.pid))
+        assert rss_bytes(s.proc.pid) - idle < 300 * MiB, (idle / MiB, rss_bytes(s.proc.pid) / MiB)
         assert s.client.get("/references", params={"status": "pending"}).status_code == 200
         assert s.client.get("/ready").json()["index_size"] == 30  # nothing was accepted
 
