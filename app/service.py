@@ -28,7 +28,7 @@ from app.locate import StoreReferences, locate_features
 from app.runtime import release_free_memory
 from app.storage.queue import Job
 from app.storage.store import KeysetPage, NewReference, Reference, ReferenceStore
-from app.thumbnails import thumbnail
+from app.thumbnails import THUMBNAIL_PX, keep_thumbnail, thumbnail
 from app.uploads import _differences, prepare_upload
 
 log = logging.getLogger("geoloc.core")
@@ -53,8 +53,10 @@ class GeolocService:
         limits: ImageLimits | None = None,
         keep_queries: bool = False,
         locate_concurrency: int = 0,
+        thumbnail_px: int = THUMBNAIL_PX,
     ):
         self.collection = collection
+        self.thumbnail_px = thumbnail_px  # references' thumbnails: made at encoding, served by ``thumbnail``
         self.limits = limits or ImageLimits()
         self.keep_queries = keep_queries
         self.refs = StoreReferences(collection.store)
@@ -71,8 +73,10 @@ class GeolocService:
         policy: SnapshotPolicy | None = None,
         keep_queries: bool = False,
         locate_concurrency: int = 0,
+        thumbnail_px: int = THUMBNAIL_PX,
     ) -> GeolocService:
-        return cls(Collection.open(data_dir, models_dir, config, policy), limits, keep_queries, locate_concurrency)
+        collection = Collection.open(data_dir, models_dir, config, policy)
+        return cls(collection, limits, keep_queries, locate_concurrency, thumbnail_px)
 
     @property
     def store(self) -> ReferenceStore:
@@ -197,10 +201,11 @@ class GeolocService:
         return self.store.update(ref_id, fields)
 
     def encode(self, batch: Sequence[tuple[int, Path]], workers: int = 1) -> list[Encoded]:
-        if workers <= 1 or len(batch) <= 1:
-            return [encode_item(self.pipeline, self.limits, EncodeItem(i, p)) for i, p in batch]
+        items = [EncodeItem(i, p, thumbnail_px=self.thumbnail_px) for i, p in batch]
+        if workers <= 1 or len(items) <= 1:
+            return [encode_item(self.pipeline, self.limits, item) for item in items]
         with ThreadPoolExecutor(max_workers=workers) as pool:
-            return list(pool.map(lambda b: encode_item(self.pipeline, self.limits, EncodeItem(*b)), batch))
+            return list(pool.map(lambda item: encode_item(self.pipeline, self.limits, item), items))
 
     def complete(self, results: Sequence[Encoded]) -> list[int]:
         """Record a batch in one transaction (storage failures stay pending) and bring the index up to date.
@@ -220,7 +225,16 @@ class GeolocService:
         if stale and self.store.get_meta("fingerprint") != self.pipeline.fingerprint:
             self.collection.refresh_generation(wait=True)
         self.collection.catch_up()
+        self._keep_thumbnails(results, set(done))
         return done
+
+    def _keep_thumbnails(self, results: Sequence[Encoded], done: set[int]) -> None:
+        """The thumbnails the encoder made, for the references now indexed (a delete since removes its own)."""
+        for r in results:
+            if r.thumbnail is not None and r.ref_id in done:
+                path = self.store.image_path(r.ref_id)
+                if path is not None:
+                    keep_thumbnail(path, self.thumbnail_px, r.thumbnail)
 
     # -- the rest ---------------------------------------------------------------------------------------
     def delete(self, ref_id: int) -> str | None:
@@ -249,8 +263,8 @@ class GeolocService:
     def image_path(self, ref_id: int) -> Path | None:
         return self.store.image_path(ref_id)
 
-    def thumbnail(self, ref_id: int, size: int) -> bytes | None:
+    def thumbnail(self, ref_id: int) -> bytes | None:
         """The reference's JPEG thumbnail (``app.thumbnails``); None when there is no such reference.
         FileNotFoundError when its stored image is gone."""
         path = self.store.image_path(ref_id)
-        return None if path is None else thumbnail(path, size, self.limits)
+        return None if path is None else thumbnail(path, self.thumbnail_px, self.limits)

@@ -66,7 +66,7 @@ class Settings(BaseSettings):
         description="/locate requests decoding and extracting at once, more wait (default: one per usable "
         "CPU; 0: no limit). Each one holds a decoded photo and its feature maps: the limit bounds memory",
     )
-    thumbnail_px: int = 320
+    thumbnail_px: int = Field(320, ge=16, le=2048, description="long side of a reference's thumbnail")
     header_timeout_seconds: float = Field(
         10.0,
         gt=0,

@@ -1,11 +1,13 @@
-"""A reference's thumbnail: made once per reference and size, under the decode budget, then served from
-its file.
+"""A reference's thumbnail: made once per reference and size, then served from its file.
+
+Made at encoding where it can be (the encoder holds the decoded photo already: ``Encoded.thumbnail``), or on
+the first request (a reference encoded before, or decoded smaller than the thumbnail), decoded like an upload
+(``load_image``: reduced right after the decode, full-size decodes sharing the process's pixel budget).
 
 Why: the thumbnail route is public, and it decoded the stored image on every request. Pillow scales a JPEG
 while decoding it, but a 7000 x 7000 WebP was decoded whole each time: one request cost +0.94 GB, eight at
-once passed 6 GB (issue 30). It is now decoded like an upload (``load_image``: reduced right after the
-decode, full-size decodes sharing the process's pixel budget), once; the JPEG is kept beside the images
-(``app.storage.files.THUMBNAILS``) and removed with its image.
+once passed 6 GB (issue 30). The JPEG is kept beside the images (``app.storage.files.THUMBNAILS``) and removed
+with its image.
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ import logging
 import threading
 from pathlib import Path
 
+import numpy as np
 from PIL import Image
 
 from app.engine.imageio import ImageLimits, load_image
@@ -23,6 +26,8 @@ from app.runtime import release_free_memory
 from app.storage.files import THUMBNAILS, write_image_file
 
 log = logging.getLogger("geoloc.thumbnails")
+#: The long side of a reference's thumbnail (``GEOLOC_THUMBNAIL_PX``).
+THUMBNAIL_PX = 320
 #: One maker per thumbnail file at a time: concurrent first requests for the same reference wait for the
 #: first one's file instead of each decoding the image.
 _MAKING: dict[Path, threading.Lock] = {}
@@ -50,12 +55,7 @@ def thumbnail(image: Path, size: int, limits: ImageLimits) -> bytes:
                 return path.read_bytes()  # made by the request this one waited for
             except FileNotFoundError:
                 data = render_thumbnail(image.read_bytes(), size, limits)
-            try:
-                private_dir(path.parent.parent)
-                private_dir(path.parent)
-                write_image_file(path, data, sync=False)  # a cache: a lost one is made again
-            except OSError as e:  # a full or read-only disk costs the cache, not the answer
-                log.warning("thumbnail not kept in %s: %s", path.parent, e)
+            keep_thumbnail(image, size, data)
             return data
     finally:
         with _MAKING_LOCK:
@@ -67,11 +67,29 @@ def render_thumbnail(data: bytes, size: int, limits: ImageLimits) -> bytes:
     """The JPEG thumbnail of image bytes, decoded under ``limits`` (reduced, under the pixel budget)."""
     img = load_image(data, limits.stored(), decode_long_side=size)
     large = max(img.original_size) > 2 * size
-    pixels = Image.fromarray(img.rgb)  # a new image: none of the photo's metadata comes along
+    out = thumbnail_of(img.rgb, size)
     del img
-    pixels.thumbnail((size, size))
-    buf = io.BytesIO()
-    pixels.save(buf, "JPEG", quality=85)  # JFIF only: no EXIF/GPS, XMP, ICC, IPTC or comment
     if large:  # the decode's buffers, back to the kernel (glibc keeps them in the thread's arena)
         release_free_memory()
+    return out
+
+
+def thumbnail_of(rgb: np.ndarray, size: int) -> bytes:
+    """A JPEG of ``rgb`` (upright pixels) at most ``size`` on a side: a new image, so none of the photo's
+    metadata comes along (JFIF only: no EXIF/GPS, XMP, ICC, IPTC or comment)."""
+    pixels = Image.fromarray(rgb)
+    pixels.thumbnail((size, size))
+    buf = io.BytesIO()
+    pixels.save(buf, "JPEG", quality=85)
     return buf.getvalue()
+
+
+def keep_thumbnail(image: Path, size: int, data: bytes) -> None:
+    """Keep a thumbnail made elsewhere (at encoding: ``app.encoding.items.encode_data``) for ``image``."""
+    path = thumbnail_path(image, size)
+    try:
+        private_dir(path.parent.parent)
+        private_dir(path.parent)
+        write_image_file(path, data, sync=False)  # a cache: a lost one is made again on demand
+    except OSError as e:  # a full or read-only disk costs the cache, not the encoding
+        log.warning("thumbnail not kept in %s: %s", path.parent, e)

@@ -113,8 +113,11 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--models-dir", type=Path, default=REPO / "models")
     ap.add_argument("--config", default="hybrid-nobank", help="the hybrid's extraction, no SVM bank to fit")
+    ap.add_argument("--only", default="", help="run the shapes whose name contains this text (all by default)")
     ap.add_argument("--write", action="store_true", help="write the figures into docs/BENCHMARKS.md")
     args = ap.parse_args()
+    if args.only and args.write:
+        ap.error("--write writes every shape's row: run it without --only")
     rows = penn_rows()
     photos = [r for r in rows if is_photo(r)]
     crops = [r for r in rows if r.image.parent.name == "crops" and r.split == "db"]
@@ -123,7 +126,8 @@ def main() -> None:
     models = ensure_models(args.models_dir, args.config, rows)
     results: list[tuple[str, list[Burst]]] = []
     with tempfile.TemporaryDirectory(prefix="crafted-") as tmp:
-        for k, shape in enumerate(shapes(photos[0].image, full)):
+        chosen = [s for s in shapes(photos[0].image, full) if args.only in s.name]
+        for k, shape in enumerate(chosen):
             server = ServerProcess(Path(tmp) / f"data-{k}", models, args.config, extra_env={"GEOLOC_ORT_THREADS": "1"})
             with server:
                 post_references(server.client, seed, batch=8)

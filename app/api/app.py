@@ -89,6 +89,7 @@ def _load(app: FastAPI, stop: threading.Event) -> None:
                 s.snapshot_policy(),
                 s.keep_queries,
                 s.locate_concurrency,  # the extraction slots: app/service.py, extraction_slots
+                s.thumbnail_px,
             )
             if s.worker == "inprocess":
                 _run_writer(app, service)

@@ -6,14 +6,15 @@ whichever engine ran it."""
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
 from app.engine.errors import GeolocError
-from app.engine.imageio import ImageLimits
+from app.engine.imageio import ImageLimits, LoadedImage
 from app.engine.pipeline import Pipeline
+from app.thumbnails import thumbnail_of
 
 log = logging.getLogger("geoloc.encoding")
 
@@ -26,6 +27,8 @@ class EncodeItem:
     ref_id: int
     path: Path
     data: bytes | None = None
+    #: Make the reference's thumbnail of this size from the decoded photo too (None: no thumbnail).
+    thumbnail_px: int | None = None
 
 
 @dataclass(frozen=True)
@@ -36,6 +39,7 @@ class Encoded:
     error: str | None = None  # a permanent failure (the row becomes failed)
     retry: bool = False  # a storage failure: the row stays pending and is tried again later
     fingerprint: str | None = None  # the pipeline that made the codes (a re-fit may switch meanwhile)
+    thumbnail: bytes | None = None  # a JPEG made from the same decode (``app.thumbnails``), when asked
 
 
 def read_item(item: EncodeItem) -> EncodeItem | Encoded:
@@ -44,7 +48,7 @@ def read_item(item: EncodeItem) -> EncodeItem | Encoded:
     if item.data is not None:
         return item
     try:
-        return EncodeItem(item.ref_id, item.path, item.path.read_bytes())
+        return replace(item, data=item.path.read_bytes())
     except FileNotFoundError:
         if item.path.parent.is_dir():
             return Encoded(item.ref_id, None, None, "the stored image is missing")
@@ -54,13 +58,17 @@ def read_item(item: EncodeItem) -> EncodeItem | Encoded:
         return Encoded(item.ref_id, None, None, retry=True)
 
 
-def encode_data(pipeline: Pipeline, limits: ImageLimits, ref_id: int, data: bytes) -> Encoded:
+def encode_data(
+    pipeline: Pipeline, limits: ImageLimits, ref_id: int, data: bytes, thumbnail_px: int | None = None
+) -> Encoded:
     """Image bytes to codes; a bad image is a permanent failure of that row, never an exception. So is any
     other failure while encoding it (a library's assertion on an odd image, a bug): it fails that row alone,
     with its reason, and the rest of its batch goes on (issue 30: one row's ``cv2.error`` failed its whole
     batch, which was retried whole, for ever)."""
     try:
-        codes = pipeline.encode_image(pipeline.decode(data, limits.stored()).rgb)
+        img = pipeline.decode(data, limits.stored())
+        codes = pipeline.encode_image(img.rgb)
+        thumb = _thumbnail(img, thumbnail_px)
     except GeolocError as e:
         return Encoded(ref_id, None, None, str(e), fingerprint=pipeline.fingerprint)
     except MemoryError:
@@ -69,7 +77,16 @@ def encode_data(pipeline: Pipeline, limits: ImageLimits, ref_id: int, data: byte
         log.exception("reference %d: encoding failed", ref_id)
         reason = f"encoding failed: {type(e).__name__}: {str(e)[:300]}"
         return Encoded(ref_id, None, None, reason, fingerprint=pipeline.fingerprint)
-    return Encoded(ref_id, codes.float_, codes.binary, fingerprint=pipeline.fingerprint)
+    return Encoded(ref_id, codes.float_, codes.binary, fingerprint=pipeline.fingerprint, thumbnail=thumb)
+
+
+def _thumbnail(img: LoadedImage, size: int | None) -> bytes | None:
+    """The thumbnail from the encoder's own decode, when that decode holds enough pixels for it (a photo
+    is decoded at the pipeline's scale: 384 px or more for the default). Why here: a 49 MP WebP decoded
+    again for its thumbnail cost 0.75 GB and 2 s a request (issue 30); the encoder has the pixels already."""
+    if not size or max(img.rgb.shape[:2]) < min(size, max(img.original_size)):
+        return None
+    return thumbnail_of(img.rgb, size)
 
 
 def encode_item(pipeline: Pipeline, limits: ImageLimits, item: EncodeItem) -> Encoded:
@@ -77,4 +94,4 @@ def encode_item(pipeline: Pipeline, limits: ImageLimits, item: EncodeItem) -> En
     read = read_item(item)
     if isinstance(read, Encoded):
         return read
-    return encode_data(pipeline, limits, read.ref_id, read.data)
+    return encode_data(pipeline, limits, read.ref_id, read.data, read.thumbnail_px)

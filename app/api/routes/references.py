@@ -199,7 +199,7 @@ def get_reference(ref_id: RefId, core: Core) -> ReferenceOut:
 )
 def reference_image(request: Request, ref_id: RefId, core: Core) -> Response:
     try:
-        data = core.thumbnail(ref_id, request.app.state.settings.thumbnail_px)
+        data = core.thumbnail(ref_id)
     except FileNotFoundError:
         raise ApiError(
             404, "image_missing", f"reference {ref_id} exists but its stored image is missing (see `geoloc check`)"

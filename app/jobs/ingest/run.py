@@ -197,7 +197,7 @@ class IngestRun:
             _, ref, item = ok[n]
             self._paths[ref_id] = item.path
             path = self.service.store.image_path_for(ref.sha256, ref.ext)
-            out.append(EncodeItem(ref_id, path, ref.image if ship else None))
+            out.append(EncodeItem(ref_id, path, ref.image if ship else None, self.service.thumbnail_px))
         return out
 
     def _prepare(self, pair: tuple[SourceItem, FileKey]) -> NewReference | tuple[str, str]:
