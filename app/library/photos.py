@@ -114,15 +114,21 @@ def sidecar_path(photo: Path) -> Path:
 
 
 def walk_photos(root: Path) -> list[Path]:
-    """The library's photos (the ingest folder rule: recursive, sorted, hidden files skipped)."""
+    """The library's photos (the ingest folder rule: recursive, sorted, hidden files skipped).
+
+    Symbolic links are skipped, files and folders alike: a link may lead out of the folder (or out of the
+    server's library root), and reading, thumbnailing or writing through it would touch a file the user
+    did not put in the library (exiftool would even replace the link with a regular file)."""
     from app.jobs.ingest.sources import IMAGE_SUFFIXES
 
     out = []
-    for folder, dirs, files in os.walk(root):
-        dirs[:] = sorted(d for d in dirs if not d.startswith("."))
+    for folder, dirs, files in os.walk(root):  # followlinks=False: a linked folder is listed, never entered
+        dirs[:] = sorted(d for d in dirs if not d.startswith(".") and not os.path.islink(os.path.join(folder, d)))
         out += [
             Path(folder) / n
             for n in sorted(files)
-            if not n.startswith(".") and os.path.splitext(n)[1].lower() in IMAGE_SUFFIXES
+            if not n.startswith(".")
+            and os.path.splitext(n)[1].lower() in IMAGE_SUFFIXES
+            and not os.path.islink(os.path.join(folder, n))
         ]
     return out
