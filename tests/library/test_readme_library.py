@@ -85,7 +85,10 @@ def test_the_readme_library_lines(shell, query_truth):
     collection = json.loads((work / "out.geojson").read_text())
     assert collection["type"] == "FeatureCollection"
     by_name = {Path(f["properties"]["file"]).name: f for f in collection["features"]}
-    assert set(query_truth) | set(ELSEWHERE) | {"broken-exif.jpg"} == set(by_name), sorted(by_name)
+    # Every photo without a position: the 16, the two from elsewhere, the broken one, and the file that is
+    # not an image (unplaced, its reason "unreadable").
+    assert set(query_truth) | set(ELSEWHERE) | {"broken-exif.jpg", "notes.jpg"} == set(by_name), sorted(by_name)
+    assert by_name["notes.jpg"]["geometry"] is None and by_name["notes.jpg"]["properties"]["reason_code"]
     rows = {Path(r["file"]).name: r for r in csv.DictReader((work / "out.csv").open())}
     assert set(rows) == set(by_name)
     placed = confident = 0
