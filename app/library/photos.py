@@ -58,7 +58,17 @@ def parse_exif_time(text: str | None) -> datetime | None:
 
 
 def read_meta(path: Path) -> PhotoMeta:
-    """The header of ``path``; never raises (a problem is reported in ``problem``)."""
+    """The header of ``path``; never raises (a problem is reported in ``problem``).
+
+    A file name that is not UTF-8 (bytes from an old camera or another system's encoding) cannot be kept in
+    the journal, nor in a GeoJSON or CSV: the file is a problem under a printable form of its name (the
+    undecodable bytes shown as U+FFFD), and the scan goes on."""
+    name = str(path)
+    try:
+        name.encode("utf-8")
+    except UnicodeEncodeError:
+        shown = name.encode("utf-8", "surrogateescape").decode("utf-8", "replace")
+        return PhotoMeta(Path(shown), 0, 0, problem="the file name is not UTF-8: rename the file to scan it")
     try:
         st = path.stat()
     except OSError as e:

@@ -14,11 +14,11 @@ import pytest
 
 from app.engine.imageio import ImageLimits
 from app.library.jobs import FolderRefused, LibraryJobs, ScanBusy
-from app.library.photos import walk_photos
+from app.library.photos import read_meta, walk_photos
 from app.library.review import decide
 from app.library.scan import bounded_map
 from app.library.writeback import write_back
-from app.storage.library import LOCATED, LibraryJournal
+from app.storage.library import LOCATED, PROBLEM, LibraryJournal
 from tests.conftest import PENN
 from tests.library.conftest import exiftool_ready
 
@@ -154,3 +154,32 @@ def test_the_pool_gets_a_bounded_window_and_a_stop_ends_submission():
             if n == 9:
                 stop.set()
     assert got[:10] == list(range(10)) and len(started) <= 10 + 4, len(started)
+
+
+def test_a_file_name_that_is_not_utf8_is_a_problem_not_a_failed_scan(tmp_path):
+    lib = tmp_path / "lib"
+    lib.mkdir()
+    shutil.copyfile(PHOTO, lib / "a.jpg")
+    raw = os.path.join(os.fsencode(lib), b"caf\xe9.jpg")  # Latin-1 bytes: not UTF-8
+    shutil.copyfile(PHOTO, raw)
+    paths = walk_photos(lib)
+    assert len(paths) == 2
+    metas = [read_meta(p) for p in paths]
+    bad = next(m for m in metas if m.problem)
+    assert "not UTF-8" in bad.problem and bad.path.name == "caf\ufffd.jpg"
+    j = LibraryJournal(tmp_path / "data")
+    sid = j.start_scan(lib, 2)
+    j.record(sid, bad.path, 0, 0, PROBLEM, {"file": str(bad.path), "reason": bad.problem})  # the journal takes it
+    assert [r.kind for r in j.photos(sid)] == [PROBLEM]
+    j.close()
+
+
+def test_a_parent_and_its_sub_folder_keep_their_own_rows(tmp_path):
+    (tmp_path / "sub").mkdir()
+    j = LibraryJournal(tmp_path / "data")
+    parent, sub = j.start_scan(tmp_path, 1), j.start_scan(tmp_path / "sub", 1)
+    photo = tmp_path / "sub" / "a.jpg"
+    j.record(parent, photo, 1, 1, LOCATED, {"file": str(photo), "placed": False})
+    j.record(sub, photo, 1, 1, LOCATED, {"file": str(photo), "placed": False})  # keyed by (scan, path)
+    assert len(j.photos(parent)) == 1 and len(j.photos(sub)) == 1
+    j.close()
