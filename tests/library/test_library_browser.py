@@ -21,7 +21,7 @@ from tests.library.conftest import SF, make_library
 from tests.service.test_browser import ARGS, CHROMIUM, SHOTS, open_page
 from tools.server_process import ServerProcess
 
-pytestmark = pytest.mark.browser
+pytestmark = [pytest.mark.browser, pytest.mark.library]
 KEY = "library-key"
 HOSTILE = '<img src=x onerror="window.__xss=1">.jpg'
 
@@ -54,10 +54,12 @@ def server(tmp_path_factory, library_models, query_truth):
         api_key=KEY,
         extra_env={"GEOLOC_ORT_THREADS": "1", "GEOLOC_LIBRARY_ROOT": str(root)},
     )
-    s.wait_ready()
-    s.library = root / "library"
-    yield s
-    s.stop()
+    try:  # a server that never got ready is stopped all the same (no process left behind)
+        s.wait_ready()
+        s.library = root / "library"
+        yield s
+    finally:
+        s.stop()
 
 
 def wait_scan(c, sid: str, timeout_s: float = 900) -> dict:

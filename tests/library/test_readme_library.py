@@ -24,6 +24,9 @@ from tests.conftest import REPO
 from tests.library.conftest import ELSEWHERE, make_library
 from tests.service.test_readme_commands import ACTIVATE, commands
 
+#: A whole library scanned with the fitted default pipeline: make test, not make test-quick.
+pytestmark = pytest.mark.library
+
 README = (REPO / "README.md").read_text()
 SECTION = README.split("## Geolocating a photo library")[1].split("\n## ")[0]
 LINES = [c for c in commands(SECTION) if c.startswith("geoloc library")]
