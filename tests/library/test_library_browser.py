@@ -17,7 +17,7 @@ import pytest
 
 from app.engine.configs import DEFAULT_CONFIG
 from app.library.writeback import pixel_hash
-from tests.library.conftest import SF, make_library
+from tests.library.conftest import SF, copy_collection, make_library
 from tests.service.test_browser import ARGS, CHROMIUM, SHOTS, open_page
 from tools.server_process import ServerProcess
 
@@ -43,9 +43,10 @@ def browser():
 
 
 @pytest.fixture(scope="module")
-def server(tmp_path_factory, library_models, query_truth):
+def server(tmp_path_factory, library_models, query_truth, penn_collection):
     root = tmp_path_factory.mktemp("library-root")
     make_library(root / "library", query_truth)
+    copy_collection(penn_collection, root / "data")  # the references: already encoded
     shutil.copyfile(SF / "q3.jpg", root / "library" / HOSTILE)  # a file name that is HTML: shown as text
     s = ServerProcess(
         root / "data",

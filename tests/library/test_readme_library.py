@@ -21,7 +21,7 @@ from app.engine.configs import DEFAULT_CONFIG
 from app.engine.geo import haversine_m
 from app.library.writeback import pixel_hash
 from tests.conftest import REPO
-from tests.library.conftest import ELSEWHERE, make_library
+from tests.library.conftest import ELSEWHERE, copy_collection, make_library
 from tests.service.test_readme_commands import ACTIVATE, commands
 
 #: A whole library scanned with the fitted default pipeline: make test, not make test-quick.
@@ -43,11 +43,14 @@ def gps_of(path: Path) -> tuple[float, float] | None:
 
 
 @pytest.fixture(scope="module")
-def shell(tmp_path_factory, library_models, query_truth):
+def shell(tmp_path_factory, library_models, query_truth, penn_collection):
     home = tmp_path_factory.mktemp("library-home")
     work = home / "work"
     work.mkdir()
     make_library(home / "library", query_truth)
+    # D holds the references already (the session's collection): the scan's ingest finds them present
+    # ("adds them to an existing --data-dir"), the locating is the README line's own.
+    copy_collection(penn_collection, work / "D")
     env = {
         **{k: v for k, v in os.environ.items() if not k.startswith(("GEOLOC_", "VIRTUAL_ENV"))},
         "HOME": str(home),
