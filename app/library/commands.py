@@ -33,9 +33,12 @@ def _fail(msg: str) -> None:
 
 
 def _journal(data_dir: Path):
-    from app.storage.library import LibraryJournal
+    from app.storage.library import JournalError, LibraryJournal
 
-    return LibraryJournal(data_dir)
+    try:
+        return LibraryJournal(data_dir)
+    except JournalError as e:  # a journal of the first layout: said in one line, not a traceback
+        _fail(str(e))
 
 
 def _scan_of(journal, folder: Path) -> str:

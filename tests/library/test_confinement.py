@@ -18,7 +18,7 @@ from app.library.photos import read_meta, walk_photos
 from app.library.review import decide
 from app.library.scan import bounded_map
 from app.library.writeback import write_back
-from app.storage.library import LOCATED, PROBLEM, LibraryJournal
+from app.storage.library import LOCATED, PROBLEM, JournalError, LibraryJournal
 from tests.conftest import PENN
 from tests.library.conftest import exiftool_ready
 
@@ -183,3 +183,21 @@ def test_a_parent_and_its_sub_folder_keep_their_own_rows(tmp_path):
     j.record(sub, photo, 1, 1, LOCATED, {"file": str(photo), "placed": False})  # keyed by (scan, path)
     assert len(j.photos(parent)) == 1 and len(j.photos(sub)) == 1
     j.close()
+
+
+def test_a_journal_of_the_first_layout_is_refused_in_one_line(tmp_path):
+    import sqlite3
+    import subprocess
+    import sys
+
+    data = tmp_path / "data"
+    data.mkdir()
+    old = sqlite3.connect(data / "library.sqlite")  # schema 1: photos keyed by path alone, no user_version
+    old.execute("CREATE TABLE photos (id INTEGER PRIMARY KEY, scan TEXT, path TEXT NOT NULL UNIQUE)")
+    old.commit()
+    old.close()
+    with pytest.raises(JournalError, match="older library journal"):
+        LibraryJournal(data)
+    args = [sys.executable, "-m", "app.cli", "library", "list", str(tmp_path), "--data-dir", str(data)]
+    p = subprocess.run(args, capture_output=True, text=True, timeout=300)
+    assert p.returncode == 2 and "older library journal" in p.stderr and "Traceback" not in p.stderr, p.stderr
