@@ -145,8 +145,8 @@ test: setup browser exiftool postgres $(XFEAT_MODEL) $(RAY_STAMP)
 	$(BIN)/python -m pytest -q -m "$(NOT_IN_TEST)"
 
 # The edit-test loop: engine, store, CLI and API tests (real servers included) without the crash, fuzz,
-# browser and container tests (pytest markers); tests/test_quick_selection.py checks that selection.
-QUICK := not crash and not fuzz and not browser and not container
+# browser, library-scan and container tests (pytest markers); tests/test_quick_selection.py checks that selection.
+QUICK := not crash and not fuzz and not browser and not library and not container
 test-quick: setup exiftool postgres $(RAY_STAMP)
 	$(BIN)/python -m pytest -q -m "$(QUICK)"
 

@@ -1,5 +1,5 @@
-"""`make test-quick` keeps the engine and API tests and leaves out the crash, fuzz, browser and container
-tests; `make test` leaves out the container test only (`make test-container` runs it)."""
+"""`make test-quick` keeps the engine and API tests and leaves out the crash, fuzz, browser, library-scan
+and container tests; `make test` leaves out the container test only (`make test-container` runs it)."""
 
 import re
 import subprocess
@@ -26,13 +26,15 @@ def test_make_test_leaves_out_the_container_test_only():
     assert '-m "$(NOT_IN_TEST)"' in (REPO / "Makefile").read_text()
 
 
-def test_quick_selection_leaves_out_crash_fuzz_browser_and_container_only():
+def test_quick_selection_leaves_out_crash_fuzz_browser_library_and_container_only():
     everything, quick = _collected(None), _collected(_make_var("QUICK"))
     left_out = {
         "tests/service/test_crash.py",
         "tests/service/test_fuzz.py",
         "tests/service/test_browser.py",
         "tests/library/test_library_browser.py",
+        "tests/library/test_readme_library.py",
+        "tests/library/test_manifest_library.py",
         "tests/test_container_build.py",
     }
     assert left_out <= everything

@@ -120,6 +120,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         yield
         stop.set()
         loader.join(timeout=60)
+        if getattr(app.state, "library", None) is not None:  # issue 36: its scans stop between two photos
+            app.state.library.close()
         if app.state.listener is not None:
             app.state.listener.stop()
         if app.state.writer is not None:  # the worker, the final snapshot and checkpoint, the lock

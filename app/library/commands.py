@@ -33,16 +33,17 @@ def _fail(msg: str) -> None:
 
 
 def _journal(data_dir: Path):
-    from app.storage.library import LibraryJournal
+    from app.storage.library import JournalError, LibraryJournal
 
-    return LibraryJournal(data_dir)
+    try:
+        return LibraryJournal(data_dir)
+    except JournalError as e:  # a journal of the first layout: said in one line, not a traceback
+        _fail(str(e))
 
 
 def _scan_of(journal, folder: Path) -> str:
-    from app.storage.library import scan_id
-
-    sid = scan_id(folder)
-    if journal.scan(sid) is None:
+    sid = journal.scan_of(folder)
+    if sid is None:
         _fail(f"{folder.resolve()} has not been scanned into this data dir: run `geoloc library scan` first")
     return sid
 
@@ -66,18 +67,24 @@ def scan(
     """Photos with GPS join the collection; photos without GPS are located (resumable: a second run skips
     what is done). Nothing is written into any photo: review, then `geoloc library write`."""
     from app.library.exports import write_export
-    from app.library.scan import LibraryError, ScanOptions, scan_library
+    from app.library.scan import LibraryError, ScanOptions, library_files, scan_library
     from app.service import GeolocService
 
     if not folder.exists():
         _fail(f"{folder} does not exist: give a folder of photos or a manifest (image,lat,lon,split)")
+    # The folder (or manifest) is checked before the models load: a bad path costs milliseconds, not the
+    # seconds of loading the network and the index.
+    try:
+        files = library_files(folder.resolve())
+    except LibraryError as e:
+        _fail(str(e))
     service = GeolocService.open(data_dir, models_dir, config, limits=_S.image_limits())
     journal = _journal(data_dir)
     try:
         options = ScanOptions(workers=workers, time_prior=time_prior, rerank=rerank, ray=ray)
         typer.echo(f"library {folder.resolve()}: {workers} threads on {usable_cpus()} usable CPUs")
         try:
-            s = scan_library(service, folder, options, journal, say=typer.echo)
+            s = scan_library(service, folder, options, journal, say=typer.echo, files=files)
         except LibraryError as e:
             for path, reason in e.problems:
                 typer.echo(f"skipped {path}: {reason}")
@@ -158,6 +165,11 @@ def write_cmd(
             typer.echo(f"{verb} {w['target']}: {w['lat']},{w['lon']}")
         for f in out["failed"]:
             typer.echo(f"not written {f['file']}: {f['reason']}")
+        if dry_run:
+            for path in out["withdrawn"]:
+                typer.echo(f"would undo the write of {path} (no longer accepted)")
+        else:
+            _say_undo(out["withdrawn"], "no longer accepted: ")
         typer.echo(f"{len(out['written'])} {verb}, {len(out['failed'])} failed")
     finally:
         journal.close()
@@ -171,11 +183,20 @@ def undo_cmd(folder: Folder, data_dir: DataDir = _S.data_dir) -> None:
     journal = _journal(data_dir)
     try:
         out = undo(journal, _scan_of(journal, folder))
-        for t in out["restored"]:
-            typer.echo(f"restored {t}")
+        _say_undo(out)
         typer.echo(f"{len(out['restored'])} writes undone")
     finally:
         journal.close()
+
+
+def _say_undo(out: dict, why: str = "") -> None:
+    """One line per restored, skipped (changed since our write) and failed target of an undo."""
+    for t in out["restored"]:
+        typer.echo(f"{why}restored {t}")
+    for s in out["skipped"]:
+        typer.echo(f"{why}skipped {s['target']}: {s['reason']}")
+    for f in out["failed"]:
+        typer.echo(f"{why}not restored {f['target']}: {f['reason']}")
 
 
 @library_app.command("export")

@@ -4,7 +4,13 @@
 else. ``suggestions`` (what a scan writes, or ``--all``): every located photo, placed or not, with its radius,
 rate, basis and reason. RFC 7946: a FeatureCollection of Features whose coordinates are [lon, lat] in WGS 84;
 a photo with no position is a Feature with ``"geometry": null`` and its reason in its properties. GPX has no
-way to say "no position", so its file holds the placed photos only (waypoints, by gpxpy)."""
+way to say "no position", so its file holds the placed photos only (waypoints, by gpxpy). With
+``everything``, a file the scan could not read is there too, unplaced, with its reason (reason_code
+``unreadable``): "all" means every photo without a position from the library, not only the readable ones.
+
+CSV cells are opened by spreadsheets, which run a cell starting with ``= + - @`` (or a tab or carriage
+return before one) as a formula; file names and cameras come from the user's files and EXIF, so such a
+text cell gets a leading ``'`` (OWASP's CSV-injection rule). Numbers are written as numbers."""
 
 from __future__ import annotations
 
@@ -16,7 +22,7 @@ from pathlib import Path
 
 import gpxpy.gpx
 
-from app.storage.library import LOCATED, PhotoRecord
+from app.storage.library import LOCATED, PROBLEM, PhotoRecord
 
 FORMATS = ("geojson", "csv", "gpx")
 CSV_COLUMNS = (
@@ -29,6 +35,9 @@ def rows(records: list[PhotoRecord], everything: bool) -> list[dict]:
     """One flat row per photo: the accepted ones only, or (``everything``) every located photo."""
     out = []
     for rec in records:
+        if rec.kind == PROBLEM and everything:
+            out.append(_unreadable(rec))
+            continue
         if rec.kind != LOCATED:
             continue
         r = rec.result
@@ -60,6 +69,27 @@ def rows(records: list[PhotoRecord], everything: bool) -> list[dict]:
     return out
 
 
+def _unreadable(rec: PhotoRecord) -> dict:
+    """A file the scan could not use, as an unplaced row with its reason."""
+    return {
+        "file": rec.path, "lat": None, "lon": None, "radius_m": None, "placed": False, "confident": False,
+        "p": None, "basis": None, "decision": None, "reason_code": "unreadable",
+        "reason": rec.result.get("reason"), "taken": None, "camera": None, "note": None, "candidates": [],
+    }  # fmt: skip
+
+
+FORMULA_START = ("=", "+", "-", "@", "\t", "\r")
+
+
+def csv_cell(value: object) -> object:
+    """A value as a CSV cell no spreadsheet runs: text starting like a formula gets a leading ``'``."""
+    if value is None:
+        return ""
+    if isinstance(value, str) and value.startswith(FORMULA_START):
+        return "'" + value
+    return value
+
+
 def geojson(table: list[dict]) -> str:
     features = []
     for row in table:
@@ -77,7 +107,7 @@ def csv_text(table: list[dict]) -> str:
     w.writeheader()
     for row in table:
         cands = "; ".join(f"{c['lat']:.7f} {c['lon']:.7f} {c['score']}" for c in row["candidates"])
-        w.writerow({**{k: ("" if v is None else v) for k, v in row.items()}, "candidates": cands})
+        w.writerow({**{k: csv_cell(v) for k, v in row.items()}, "candidates": cands})
     return buf.getvalue()
 
 
@@ -110,6 +140,6 @@ def write_export(records: list[PhotoRecord], fmt: str, everything: bool, out: Pa
     """Write one export atomically (a half-written GeoJSON is worse than none); returns its rows."""
     text = render(records, fmt, everything)
     tmp = out.with_name(f".{out.name}.tmp")
-    tmp.write_text(text)
+    tmp.write_text(text, encoding="utf-8")  # never the locale's: a C locale cannot write "é"
     os.replace(tmp, out)
     return len(rows(records, everything))

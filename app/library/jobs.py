@@ -3,35 +3,63 @@ library at a time, its state and results in the journal (so GET answers from any
 loses only the run in flight, which the next POST resumes).
 
 Why a folder root: the server reads folders of its own file system on a client's word, so it reads only
-under ``GEOLOC_LIBRARY_ROOT`` (unset: the API scans nothing; the CLI has no such limit)."""
+folders under ``GEOLOC_LIBRARY_ROOT`` (unset: the API scans nothing; the CLI has no such limit), and never
+a manifest (its rows may name any file, ``../`` or absolute). Every file it then reads (thumbnails) or
+writes (write-back, undo) is checked again, resolved, against the root: a journal row names a path, and
+the path may have become a link since.
+
+Why a lock per scan: a scan, a write and an undo of the same library must not interleave (a write during
+a scan would race its journal rows; two undos would restore twice). The server's scans use one thread by
+default: they share the cores with /locate, which must stay responsive."""
 
 from __future__ import annotations
 
 import logging
 import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
+from app.engine.errors import GeolocError
 from app.engine.imageio import ImageLimits
 from app.library.scan import ScanOptions, scan_library
 from app.service import GeolocService
-from app.storage.library import LibraryJournal, scan_id
+from app.storage.library import LibraryJournal
 from app.thumbnails import render_thumbnail
 
 log = logging.getLogger("geoloc.library")
+#: How long ``close`` waits for a scan thread to stop after the stop flag (it stops between two photos).
+STOP_WAIT_S = 30.0
 
 
 class FolderRefused(ValueError):
     """The folder is outside the library root, or no root is set, or it is not a folder."""
 
 
+class ScanBusy(RuntimeError):
+    """A scan, write or undo of this library is in progress."""
+
+
+def inside(root: Path, path: Path) -> bool:
+    """Whether ``path``, every link resolved, is ``root`` or lies under it (``root`` resolved already)."""
+    real = path.resolve()
+    return real == root or root in real.parents
+
+
 class LibraryJobs:
-    """The server's library scans over one data dir."""
+    """The server's library scans over one data dir. Made once per process (``open``), ``close``d at its
+    shutdown: the stop flag ends the scan threads between two photos."""
 
     def __init__(self, data_dir: Path, root: Path | None):
         self.journal = LibraryJournal(data_dir)
         self.root = root.resolve() if root is not None else None
         self._threads: dict[str, threading.Thread] = {}
+        self._locks: dict[str, threading.Lock] = {}
         self._lock = threading.Lock()
+        self.stop = threading.Event()
+        # No scan runs in this process yet: one the journal says is running died with an earlier process.
+        for sid in self.journal.interrupt_running():
+            log.warning("library scan %s was left running by an earlier process: marked interrupted", sid)
 
     def folder(self, text: str) -> Path:
         """``text`` as a folder under the root (symlinks resolved first: a link cannot lead out of it)."""
@@ -43,26 +71,50 @@ class LibraryJobs:
             raise FolderRefused(f"the folder must lie under the library root {self.root}")
         if not path.exists():
             raise FolderRefused(f"{path} does not exist")
+        if not path.is_dir():  # a manifest's rows may name files anywhere: the API takes folders only
+            raise FolderRefused(f"{path} is not a folder (the API scans folders only; manifests: the CLI)")
         return path
+
+    def _scan_lock(self, sid: str) -> threading.Lock:
+        with self._lock:
+            return self._locks.setdefault(sid, threading.Lock())
+
+    @contextmanager
+    def exclusive(self, sid: str) -> Iterator[None]:
+        """Hold the library's lock for a write or an undo; ``ScanBusy`` at once if a scan (or another write)
+        holds it (an API thread never waits minutes for a scan)."""
+        lock = self._scan_lock(sid)
+        if not lock.acquire(blocking=False):
+            raise ScanBusy("this library is being scanned or written: try again once that is done")
+        try:
+            yield
+        finally:
+            lock.release()
 
     def start(self, service: GeolocService, folder: Path, options: ScanOptions) -> str:
         """Start scanning ``folder`` (a scan already running for it is left to run); returns its id."""
-        sid = scan_id(folder)
         with self._lock:
-            running = self._threads.get(sid)
-            if running is not None and running.is_alive():
+            if self.stop.is_set():
+                raise ScanBusy("the server is shutting down")
+            sid = self.journal.scan_of(folder)
+            running = self._threads.get(sid) if sid else None
+            if sid is not None and running is not None and running.is_alive():
                 return sid
-            self.journal.start_scan(folder, 0)
-            t = threading.Thread(target=self._run, args=(service, folder, options), name=f"library-{sid}", daemon=True)
+            sid = self.journal.start_scan(folder, 0)
+            t = threading.Thread(
+                target=self._run, args=(service, folder, options, sid), name=f"library-{sid}", daemon=True
+            )
             self._threads[sid] = t
             t.start()
         return sid
 
-    def _run(self, service: GeolocService, folder: Path, options: ScanOptions) -> None:
-        try:
-            scan_library(service, folder, options, self.journal)
-        except Exception as e:  # recorded in the journal by scan_library; the server goes on
-            log.warning("library scan of %s failed: %s", folder, e)
+    def _run(self, service: GeolocService, folder: Path, options: ScanOptions, sid: str) -> None:
+        with self._scan_lock(sid):
+            try:
+                scan_library(service, folder, options, self.journal, stop=self.stop)
+            except Exception as e:  # the server goes on; the scan's row says why it stopped
+                log.warning("library scan of %s failed: %s", folder, e)
+                self.journal.finish_scan(sid, "failed", str(e) or type(e).__name__)
 
     def wait(self, sid: str, timeout: float | None = None) -> None:
         t = self._threads.get(sid)
@@ -70,11 +122,24 @@ class LibraryJobs:
             t.join(timeout)
 
     def close(self) -> None:
+        """Stop the scans (between two photos) and close the journal."""
+        self.stop.set()
+        for t in list(self._threads.values()):
+            t.join(STOP_WAIT_S)
         self.journal.close()
 
+    def thumbnail(self, path: Path, px: int, limits: ImageLimits) -> bytes:
+        """The thumbnail of a journalled photo, read only when it is a regular file under the root (a link
+        put there since the scan is refused) and no larger than the server's upload limit."""
+        if path.is_symlink() or (self.root is not None and not inside(self.root, path)):
+            raise FileNotFoundError(f"{path.name} is no longer a file of the library")
+        if path.stat().st_size > limits.max_bytes:
+            raise GeolocError(f"{path.name} is larger than the server's image limit")
+        return thumbnail(path, px, limits)
 
-def thumbnail(path: Path, px: int) -> bytes:
+
+def thumbnail(path: Path, px: int, limits: ImageLimits | None = None) -> bytes:
     """A JPEG of the photo's pixels only (no EXIF, XMP or comment), upright, at most ``px`` on a side:
-    decoded as a reference's thumbnail is (``app.thumbnails``: reduced, under the process's pixel budget;
-    a 7000 x 7000 WebP decoded whole per request cost gigabytes, issue 30)."""
-    return render_thumbnail(path.read_bytes(), px, ImageLimits().stored())
+    decoded as a reference's thumbnail is (``app.thumbnails``: reduced, under the pixel budget; a
+    7000 x 7000 WebP decoded whole per request cost gigabytes, issue 30), under the server's limits."""
+    return render_thumbnail(path.read_bytes(), px, (limits or ImageLimits()).stored())

@@ -58,7 +58,17 @@ def parse_exif_time(text: str | None) -> datetime | None:
 
 
 def read_meta(path: Path) -> PhotoMeta:
-    """The header of ``path``; never raises (a problem is reported in ``problem``)."""
+    """The header of ``path``; never raises (a problem is reported in ``problem``).
+
+    A file name that is not UTF-8 (bytes from an old camera or another system's encoding) cannot be kept in
+    the journal, nor in a GeoJSON or CSV: the file is a problem under a printable form of its name (the
+    undecodable bytes shown as U+FFFD), and the scan goes on."""
+    name = str(path)
+    try:
+        name.encode("utf-8")
+    except UnicodeEncodeError:
+        shown = name.encode("utf-8", "surrogateescape").decode("utf-8", "replace")
+        return PhotoMeta(Path(shown), 0, 0, problem="the file name is not UTF-8: rename the file to scan it")
     try:
         st = path.stat()
     except OSError as e:
@@ -114,15 +124,21 @@ def sidecar_path(photo: Path) -> Path:
 
 
 def walk_photos(root: Path) -> list[Path]:
-    """The library's photos (the ingest folder rule: recursive, sorted, hidden files skipped)."""
+    """The library's photos (the ingest folder rule: recursive, sorted, hidden files skipped).
+
+    Symbolic links are skipped, files and folders alike: a link may lead out of the folder (or out of the
+    server's library root), and reading, thumbnailing or writing through it would touch a file the user
+    did not put in the library (exiftool would even replace the link with a regular file)."""
     from app.jobs.ingest.sources import IMAGE_SUFFIXES
 
     out = []
-    for folder, dirs, files in os.walk(root):
-        dirs[:] = sorted(d for d in dirs if not d.startswith("."))
+    for folder, dirs, files in os.walk(root):  # followlinks=False: a linked folder is listed, never entered
+        dirs[:] = sorted(d for d in dirs if not d.startswith(".") and not os.path.islink(os.path.join(folder, d)))
         out += [
             Path(folder) / n
             for n in sorted(files)
-            if not n.startswith(".") and os.path.splitext(n)[1].lower() in IMAGE_SUFFIXES
+            if not n.startswith(".")
+            and os.path.splitext(n)[1].lower() in IMAGE_SUFFIXES
+            and not os.path.islink(os.path.join(folder, n))
         ]
     return out

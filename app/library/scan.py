@@ -11,16 +11,23 @@
    fused with the time prior (``app.library.suggest``) and journalled one by one: a second run, or a run
    after a crash, skips what is done (same path, size and mtime).
 
-A file that cannot be read is journalled as a problem with its reason and the run goes on."""
+A file that cannot be read is journalled as a problem with its reason and the run goes on.
+
+Why a bounded window of work: the thread pool gets at most ``WINDOW_PER_WORKER`` photos per thread ahead
+of the one being journalled, never the whole library up front; so a stop (the server shutting down, the
+user's Ctrl-C) waits for a handful of photos, not for the rest of a 10^5-photo scan."""
 
 from __future__ import annotations
 
 import csv
 import logging
-from collections.abc import Callable
+import threading
+from collections import deque
+from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import TypeVar
 
 from app.domain import LocateOptions
 from app.engine.errors import GeolocError
@@ -36,6 +43,9 @@ from app.settings import usable_cpus
 from app.storage.library import LOCATED, PROBLEM, LibraryJournal
 
 log = logging.getLogger("geoloc.library")
+T, R = TypeVar("T"), TypeVar("R")
+#: Photos in flight per thread (read or being located) ahead of the one journalled next.
+WINDOW_PER_WORKER = 2
 
 
 class LibraryError(ValueError):
@@ -92,10 +102,14 @@ def scan_library(
     journal: LibraryJournal,
     say: Callable[[str], None] = log.info,
     progress: Callable[[int, str], Progress] | None = None,
+    stop: threading.Event | None = None,
+    files: tuple[list[Path], dict[Path, tuple[float, float]] | None] | None = None,
 ) -> ScanSummary:
-    """See the module docstring. ``progress(total, desc)`` makes the bar (default: ``Progress``)."""
+    """See the module docstring. ``progress(total, desc)`` makes the bar (default: ``Progress``); ``stop``
+    set ends the run between two photos (state "interrupted"); ``files``: ``library_files(folder)`` when
+    the caller already checked the folder."""
     folder = Path(folder).resolve()
-    paths, positions = library_files(folder)
+    paths, positions = files if files is not None else library_files(folder)
     workers = max(1, options.workers)
     make_bar = progress or (lambda total, desc: Progress(total, desc=desc))
     sid = journal.start_scan(folder, len(paths))
@@ -104,7 +118,10 @@ def scan_library(
     # rest of a large library on its way out: what is done is journalled, the next run does the rest.
     pool = ThreadPoolExecutor(max_workers=workers)
     try:
-        metas = list(pool.map(read_meta, paths))
+        metas = list(bounded_map(pool, read_meta, paths, workers * WINDOW_PER_WORKER, stop))
+        if stop is not None and stop.is_set():
+            journal.finish_scan(sid, "interrupted", "stopped (the server shut down): scan again to resume")
+            return summary
         if positions is not None:  # a manifest says which photos are references, and where
             metas = [replace(m, gps=positions.get(m.path)) for m in metas]
         refs, todo = _sort_out(metas, journal, sid, summary)
@@ -122,8 +139,9 @@ def scan_library(
         anchors = [Anchor(m.gps[0], m.gps[1], m.taken, m.camera) for m in refs if m.taken and m.gps]
         bar = make_bar(len(todo), f"locate ({workers} threads)")
         try:
+            locate = lambda m: _locate(service, m, anchors, options)  # noqa: E731
             for n, (meta, result) in enumerate(
-                pool.map(lambda m: _locate(service, m, anchors, options), todo), start=1
+                bounded_map(pool, locate, todo, workers * WINDOW_PER_WORKER, stop), start=1
             ):
                 kind = PROBLEM if "problem" in result else LOCATED
                 journal.record(sid, meta.path, meta.size, meta.mtime_ns, kind, result)
@@ -137,6 +155,9 @@ def scan_library(
                 journal.progress(sid, n)
         finally:
             bar.close()
+        if stop is not None and stop.is_set():
+            journal.finish_scan(sid, "interrupted", "stopped (the server shut down): scan again to resume")
+            return summary
     except BaseException as e:
         journal.finish_scan(sid, "failed", str(e) or type(e).__name__)
         raise
@@ -144,6 +165,28 @@ def scan_library(
         pool.shutdown(wait=True, cancel_futures=True)
     journal.finish_scan(sid, "done", None)
     return summary
+
+
+def bounded_map(
+    pool: ThreadPoolExecutor, fn: Callable[[T], R], items: Iterable[T], window: int, stop: threading.Event | None
+) -> Iterator[R]:
+    """``pool.map(fn, items)`` in order, with at most ``window`` calls submitted ahead, and none submitted
+    once ``stop`` is set (the ones in flight finish and are yielded)."""
+    pending: deque = deque()
+    it = iter(items)
+
+    def fill() -> None:
+        while len(pending) < max(1, window) and not (stop is not None and stop.is_set()):
+            try:
+                item = next(it)
+            except StopIteration:
+                return
+            pending.append(pool.submit(fn, item))
+
+    fill()
+    while pending:
+        yield pending.popleft().result()
+        fill()
 
 
 def _sort_out(

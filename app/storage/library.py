@@ -6,12 +6,16 @@ decision on it and what was written back, so that
 - every write can be undone (its backup is recorded before exiftool touches anything).
 
 One small SQLite file beside the collection's; one connection guarded by a lock (the API's thread pool and
-a scan's thread both use it), WAL so that a reader never waits for a scan."""
+a scan's thread both use it), WAL so that a reader never waits for a scan. It lives in the data dir of the
+host that scanned, also where the collection is on PostgreSQL: a library's journal is per host.
+
+A scan's id is random (``secrets.token_hex``), made once per folder and found again by its folder: an id
+derived from the path would let anyone who can guess a folder name address its scan."""
 
 from __future__ import annotations
 
-import hashlib
 import json
+import secrets
 import sqlite3
 import threading
 import time
@@ -26,16 +30,20 @@ CREATE TABLE IF NOT EXISTS scans (
   done INTEGER NOT NULL DEFAULT 0, message TEXT, updated REAL NOT NULL
 );
 CREATE TABLE IF NOT EXISTS photos (
-  id INTEGER PRIMARY KEY, scan TEXT NOT NULL, path TEXT NOT NULL UNIQUE, size INTEGER NOT NULL,
+  id INTEGER PRIMARY KEY, scan TEXT NOT NULL, path TEXT NOT NULL, size INTEGER NOT NULL,
   mtime_ns INTEGER NOT NULL, kind TEXT NOT NULL, result TEXT NOT NULL,
-  decision TEXT, lat REAL, lon REAL, decided REAL, written TEXT
+  decision TEXT, lat REAL, lon REAL, decided REAL, written TEXT, UNIQUE(scan, path)
 );
+CREATE INDEX IF NOT EXISTS scans_folder ON scans(folder);
 CREATE INDEX IF NOT EXISTS photos_scan ON photos(scan, id);
 CREATE TABLE IF NOT EXISTS writes (
   id INTEGER PRIMARY KEY, scan TEXT NOT NULL, photo INTEGER NOT NULL, mode TEXT NOT NULL, target TEXT NOT NULL,
-  backup TEXT, created REAL NOT NULL, undone REAL
+  backup TEXT, after_sha TEXT, created REAL NOT NULL, undone REAL
 );
 """
+#: PRAGMA user_version of the schema above. 1 (the first merge of issue 36) keyed photos by path alone and
+#: kept no hash of a write's result; such a journal is refused with a message rather than misread.
+SCHEMA_VERSION = 2
 
 #: What a photo of the library is: located (it had no GPS), a reference (it had GPS), or a problem file.
 LOCATED, REFERENCE, PROBLEM = "located", "reference", "problem"
@@ -43,9 +51,13 @@ ACCEPTED, REJECTED = "accepted", "rejected"
 COLUMNS = "id, scan, path, size, mtime_ns, kind, result, decision, lat, lon, written"
 
 
-def scan_id(folder: Path) -> str:
-    """A library's id: its resolved folder, hashed (stable across runs; no path in URLs)."""
-    return hashlib.sha256(str(Path(folder).resolve()).encode()).hexdigest()[:16]
+class JournalError(RuntimeError):
+    """The journal file is of an older, incompatible layout."""
+
+
+def new_scan_id() -> str:
+    """16 random hex digits: unguessable, and no path in URLs."""
+    return secrets.token_hex(8)
 
 
 @dataclass(frozen=True)
@@ -77,7 +89,13 @@ class LibraryJournal:
         self.path = Path(data_dir) / "library.sqlite"
         self._db = sqlite3.connect(self.path, check_same_thread=False, timeout=30, isolation_level=None)
         self._db.execute("PRAGMA journal_mode=WAL")
+        version = self._db.execute("PRAGMA user_version").fetchone()[0]
+        old = self._db.execute("SELECT 1 FROM sqlite_master WHERE name='photos'").fetchone()
+        if old is not None and version < SCHEMA_VERSION:
+            self._db.close()
+            raise JournalError(f"{self.path} is an older library journal: move it aside and scan again")
         self._db.executescript(SCHEMA)
+        self._db.execute(f"PRAGMA user_version={SCHEMA_VERSION}")
         self._lock = threading.RLock()
 
     def close(self) -> None:
@@ -95,16 +113,41 @@ class LibraryJournal:
             self._db.execute("COMMIT")
 
     # -- scans ------------------------------------------------------------------------------------------
+    def scan_of(self, folder: Path) -> str | None:
+        """The id of the scan of ``folder`` (resolved), or None if it was never scanned into this journal."""
+        with self._lock:
+            got = self._db.execute("SELECT id FROM scans WHERE folder=?", (str(Path(folder).resolve()),)).fetchone()
+        return got[0] if got else None
+
+    def scan_id_of(self, folder: Path) -> str | None:
+        """``scan_of`` under its first name (bench/library_time_prior.py calls it)."""
+        return self.scan_of(folder)
+
     def start_scan(self, folder: Path, total: int) -> str:
-        sid = scan_id(folder)
+        """Mark the scan of ``folder`` running (made, with a new random id, on its first scan); its id."""
+        name = str(Path(folder).resolve())
         with self._tx() as db:
+            got = db.execute("SELECT id FROM scans WHERE folder=?", (name,)).fetchone()
+            sid = got[0] if got else new_scan_id()
             db.execute(
                 "INSERT INTO scans(id, folder, state, total, done, message, updated) VALUES (?,?,?,?,0,NULL,?) "
                 "ON CONFLICT(id) DO UPDATE SET state=excluded.state, total=excluded.total, done=0, message=NULL, "
                 "updated=excluded.updated",
-                (sid, str(Path(folder).resolve()), "running", total, time.time()),
+                (sid, name, "running", total, time.time()),
             )
         return sid
+
+    def interrupt_running(self) -> list[str]:
+        """Mark every scan still "running" as interrupted: at a server's start no thread of this process runs
+        one, so such a scan died with an earlier process (killed, crashed). Its journalled photos stay; the
+        next scan of its folder does the rest. Returns their ids."""
+        with self._tx() as db:
+            ids = [r[0] for r in db.execute("SELECT id FROM scans WHERE state='running'").fetchall()]
+            db.execute(
+                "UPDATE scans SET state='interrupted', message=?, updated=? WHERE state='running'",
+                ("the process running this scan stopped before it finished: scan again to resume", time.time()),
+            )
+        return ids
 
     def progress(self, sid: str, done: int) -> None:
         with self._tx() as db:
@@ -122,10 +165,6 @@ class LibraryJournal:
             return None
         return dict(zip(("id", "folder", "state", "total", "done", "message"), got, strict=True))
 
-    @staticmethod
-    def scan_id_of(folder: Path) -> str:
-        return scan_id(folder)
-
     # -- photos -----------------------------------------------------------------------------------------
     def known(self, sid: str) -> dict[str, PhotoRecord]:
         """Every photo journalled for this library, by path."""
@@ -136,7 +175,7 @@ class LibraryJournal:
         with self._tx() as db:
             db.execute(
                 "INSERT INTO photos(scan, path, size, mtime_ns, kind, result) VALUES (?,?,?,?,?,?) "
-                "ON CONFLICT(path) DO UPDATE SET scan=excluded.scan, size=excluded.size, "
+                "ON CONFLICT(scan, path) DO UPDATE SET size=excluded.size, "
                 "mtime_ns=excluded.mtime_ns, kind=excluded.kind, result=excluded.result, decision=NULL, "
                 "lat=NULL, lon=NULL, decided=NULL",
                 (sid, str(path), size, mtime_ns, kind, json.dumps(result)),
@@ -179,6 +218,8 @@ class LibraryJournal:
 
     # -- writes (for undo) ------------------------------------------------------------------------------
     def add_write(self, sid: str, photo_id: int, mode: str, target: Path, backup: Path | None) -> int:
+        """Record a write before it is made (its backup exists already), so that a crash mid-write leaves
+        something for undo to find."""
         with self._tx() as db:
             cur = db.execute(
                 "INSERT INTO writes(scan, photo, mode, target, backup, created) VALUES (?,?,?,?,?,?)",
@@ -186,14 +227,21 @@ class LibraryJournal:
             )
             return int(cur.lastrowid)
 
-    def live_writes(self, sid: str) -> list[dict]:
-        """Writes not undone, newest first (undo walks back in time)."""
+    def wrote(self, write_id: int, after_sha: str) -> None:
+        """The SHA-256 of the target as our write left it: undo restores only a file still in that state
+        (a later edit by the user or another tool is never overwritten)."""
+        with self._tx() as db:
+            db.execute("UPDATE writes SET after_sha=? WHERE id=?", (after_sha, write_id))
+
+    def live_writes(self, sid: str, photo_id: int | None = None) -> list[dict]:
+        """Writes not undone (of one photo, or all), newest first (undo walks back in time)."""
+        sql = "SELECT id, photo, mode, target, backup, after_sha FROM writes WHERE scan=? AND undone IS NULL"
+        args: tuple = (sid,)
+        if photo_id is not None:
+            sql, args = sql + " AND photo=?", (sid, photo_id)
         with self._lock:
-            rows = self._db.execute(
-                "SELECT id, photo, mode, target, backup FROM writes WHERE scan=? AND undone IS NULL ORDER BY id DESC",
-                (sid,),
-            ).fetchall()
-        return [dict(zip(("id", "photo", "mode", "target", "backup"), r, strict=True)) for r in rows]
+            rows = self._db.execute(sql + " ORDER BY id DESC", args).fetchall()
+        return [dict(zip(("id", "photo", "mode", "target", "backup", "after_sha"), r, strict=True)) for r in rows]
 
     def mark_undone(self, write_id: int) -> None:
         with self._tx() as db:

@@ -1,6 +1,12 @@
-"""The library tests' fixtures: the served default pipeline (fitted on penn-campus-gps, calibrated), and a
+"""The library tests' fixtures: the served default pipeline (fitted on penn-campus-gps, calibrated), a
 library folder of real photos (penn's photos/, the 16 query-split photos with their GPS removed by
-exiftool, sf-streetview-toy photos from elsewhere, a text file named .jpg and a photo with broken EXIF)."""
+exiftool, sf-streetview-toy photos from elsewhere, a text file named .jpg and a photo with broken EXIF),
+and penn's 65 geotagged photos as a collection, ingested once per session.
+
+Why the shared collection: each library test scans its own copy of the library (they write sidecars, EXIF
+and decisions), but encoding the same 65 references once per test was most of their cost on a two-core
+CI machine. A test copies the session's data dir; its scan finds every reference already there (the same
+bytes: a duplicate, never encoded again) and locates the others as a first scan does."""
 
 from __future__ import annotations
 
@@ -47,6 +53,29 @@ def library_models(tmp_path_factory, models_dir, lite2, xfeat) -> Path:
     done = subprocess.run([sys.executable, "-m", "app.cli", *args], capture_output=True, text=True, timeout=900)
     assert done.returncode == 0, done.stdout + done.stderr
     return models_dir
+
+
+@pytest.fixture(scope="session")
+def penn_collection(tmp_path_factory, library_models, query_truth) -> Path:
+    """A data dir holding penn's 65 geotagged photos (the library's references), made by `geoloc library
+    scan` of a folder of them alone (nothing to locate). Copy it (``copy_collection``), never write it."""
+    base = tmp_path_factory.mktemp("penn-collection")
+    refs = base / "refs"
+    refs.mkdir()
+    for src in sorted((PENN / "photos").glob("*.jpg")):
+        if src.name not in query_truth:
+            shutil.copyfile(src, refs / src.name)
+    args = ["library", "scan", str(refs), "--data-dir", str(base / "data"), "--models-dir", str(library_models),
+            "--config", DEFAULT_CONFIG]  # fmt: skip
+    done = subprocess.run([sys.executable, "-m", "app.cli", *args], capture_output=True, text=True, timeout=900)
+    assert done.returncode == 0 and "65 references" in done.stdout, done.stdout + done.stderr
+    return base / "data"
+
+
+def copy_collection(collection: Path, dest: Path) -> Path:
+    """The session's collection as a new data dir (without its library journal: the test's own scans)."""
+    shutil.copytree(collection, dest, ignore=shutil.ignore_patterns("library.sqlite*", "library-backups"))
+    return dest
 
 
 def make_library(folder: Path, truth: dict[str, tuple[float, float]]) -> Path:

@@ -6,12 +6,15 @@ from __future__ import annotations
 import csv
 import io
 import json
+import os
+import subprocess
+import sys
 
 import gpxpy
 
 from app.library.exports import render
 from app.library.review import decide
-from app.storage.library import LOCATED, LibraryJournal
+from app.storage.library import LOCATED, PROBLEM, LibraryJournal
 
 
 def _journal(tmp_path):
@@ -46,3 +49,40 @@ def test_geojson_csv_gpx(tmp_path):
     assert [f["geometry"]["coordinates"] for f in moved] == [[-75.191, 39.951]]
     assert moved[0]["properties"]["basis"] == "user" and moved[0]["properties"]["radius_m"] is None
     j.close()
+
+
+def test_csv_cells_never_run_as_formulas_and_all_includes_unreadable_files(tmp_path):
+    j = LibraryJournal(tmp_path)
+    sid = j.start_scan(tmp_path, 2)
+    placed = {"file": "/x/=a.jpg", "placed": True, "confident": True, "lat": 39.95, "lon": -75.19,
+              "radius_m": 30.0, "p": 0.9, "basis": "pixels", "camera": '=HYPERLINK("http://x","y")',
+              "candidates": []}  # fmt: skip
+    j.record(sid, tmp_path / "=a.jpg", 1, 1, LOCATED, placed)
+    j.record(sid, tmp_path / "-notes.jpg", 1, 1, PROBLEM, {"file": "x", "reason": "not an image"})
+    rows = list(csv.DictReader(io.StringIO(render(j.photos(sid), "csv", True))))
+    by_name = {r["file"].rsplit("/", 1)[-1]: r for r in rows}
+    assert by_name["=a.jpg"]["camera"] == '\'=HYPERLINK("http://x","y")' and by_name["=a.jpg"]["lon"] == "-75.19"
+    for row in rows:
+        assert not any(v.startswith(("=", "+", "-", "@", "\t", "\r")) for k, v in row.items() if k != "lon"), row
+    doc = json.loads(render(j.photos(sid), "geojson", True))
+    unreadable = [f for f in doc["features"] if f["properties"]["reason_code"] == "unreadable"]
+    assert len(unreadable) == 1 and unreadable[0]["geometry"] is None
+    assert unreadable[0]["properties"]["reason"] == "not an image"
+    assert len(json.loads(render(j.photos(sid), "geojson", False))["features"]) == 0  # accepted only: none
+    j.close()
+
+
+def test_exports_are_utf8_whatever_the_locale(tmp_path):
+    out = tmp_path / "out.csv"
+    code = (
+        "import sys; from pathlib import Path; from app.library.exports import write_export;"
+        "from app.storage.library import LOCATED, PROBLEM, LibraryJournal;"
+        "t = Path(sys.argv[1]); j = LibraryJournal(t);"
+        "s = j.start_scan(t, 1);"
+        "j.record(s, t / 'caf\\u00e9.jpg', 1, 1, LOCATED, {'placed': False, 'reason': 'no match', 'candidates': []});"
+        "write_export(j.photos(s), 'csv', True, t / 'out.csv')"
+    )
+    env = {**os.environ, "LC_ALL": "C", "LANG": "C", "PYTHONUTF8": "0", "PYTHONCOERCECLOCALE": "0"}
+    p = subprocess.run([sys.executable, "-c", code, str(tmp_path)], capture_output=True, text=True, env=env)
+    assert p.returncode == 0, p.stderr
+    assert "café.jpg" in out.read_bytes().decode("utf-8")

@@ -17,11 +17,11 @@ import pytest
 
 from app.engine.configs import DEFAULT_CONFIG
 from app.library.writeback import pixel_hash
-from tests.library.conftest import SF, make_library
+from tests.library.conftest import SF, copy_collection, make_library
 from tests.service.test_browser import ARGS, CHROMIUM, SHOTS, open_page
 from tools.server_process import ServerProcess
 
-pytestmark = pytest.mark.browser
+pytestmark = [pytest.mark.browser, pytest.mark.library]
 KEY = "library-key"
 HOSTILE = '<img src=x onerror="window.__xss=1">.jpg'
 
@@ -43,9 +43,10 @@ def browser():
 
 
 @pytest.fixture(scope="module")
-def server(tmp_path_factory, library_models, query_truth):
+def server(tmp_path_factory, library_models, query_truth, penn_collection):
     root = tmp_path_factory.mktemp("library-root")
     make_library(root / "library", query_truth)
+    copy_collection(penn_collection, root / "data")  # the references: already encoded
     shutil.copyfile(SF / "q3.jpg", root / "library" / HOSTILE)  # a file name that is HTML: shown as text
     s = ServerProcess(
         root / "data",
@@ -54,10 +55,23 @@ def server(tmp_path_factory, library_models, query_truth):
         api_key=KEY,
         extra_env={"GEOLOC_ORT_THREADS": "1", "GEOLOC_LIBRARY_ROOT": str(root)},
     )
-    s.wait_ready()
-    s.library = root / "library"
-    yield s
-    s.stop()
+    try:  # a server that never got ready is stopped all the same (no process left behind)
+        s.wait_ready()
+        s.library = root / "library"
+        yield s
+    finally:
+        s.stop()
+
+
+def wait_scan(c, sid: str, timeout_s: float = 900) -> dict:
+    """The scan's state once it is no longer running (the test fails if it never ends)."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        state = c.get(f"/library/scans/{sid}", headers={"X-API-Key": KEY}).json()
+        if state["state"] != "running":
+            return state
+        time.sleep(0.2)
+    pytest.fail(f"library scan {sid} still running after {timeout_s} s")
 
 
 def test_the_api_refuses_what_it_must(server):
@@ -67,7 +81,21 @@ def test_the_api_refuses_what_it_must(server):
     assert outside.status_code == 422 and "library root" in outside.json()["message"]
     escape = c.post("/library/scans", json={"folder": "library/../../.."}, headers=key)
     assert escape.status_code == 422
-    assert c.get("/library/scans/0123456789abcdef").status_code == 404
+    assert c.get("/library/scans/0123456789abcdef", headers=key).status_code == 404
+    # Reads need the key too: a scan's results, thumbnails and exports show the server's files.
+    for path in ("/library/scans/0123456789abcdef", "/library/scans/0123456789abcdef/photos/1/thumbnail",
+                 "/library/scans/0123456789abcdef/export"):  # fmt: skip
+        assert c.get(path).status_code == 401, path
+    # A manifest under the root is refused: its rows could name any file of the server.
+    manifest = server.library.parent / "survey.csv"
+    manifest.write_text("image,lat,lon,split\n/etc/hostname,0,0,query\n")
+    refused = c.post("/library/scans", json={"folder": "survey.csv"}, headers=key)
+    assert refused.status_code == 422 and "not a folder" in refused.json()["message"], refused.json()
+    # A scan that fails at once (a folder with no photo) says so instead of staying "running" forever.
+    (server.library.parent / "empty").mkdir(exist_ok=True)
+    sid = c.post("/library/scans", json={"folder": "empty"}, headers=key).json()["id"]
+    state = wait_scan(c, sid)
+    assert state["state"] == "failed" and "holds no photos" in state["message"], state
     page = c.get("/library")
     assert page.status_code == 200 and "script-src 'self'" in page.headers["content-security-policy"]
     body = b"{" + b" " * 200_000 + b"}"
@@ -76,7 +104,7 @@ def test_the_api_refuses_what_it_must(server):
 
 
 def test_review_on_the_page(browser, server):
-    lib = server.library
+    lib, key = server.library, {"X-API-Key": KEY}
     originals = {p.name: sha(p) for p in lib.iterdir()}
     pixels = {p.name: pixel_hash(p) for p in lib.iterdir() if p.name != "notes.jpg"}
     page = open_page(browser, server, "desktop", None)
@@ -107,7 +135,7 @@ def test_review_on_the_page(browser, server):
 
     page.click("#write-btn")
     page.wait_for_function("() => /wrote 2/.test(document.getElementById('write-result').textContent)")
-    scan = server.client.get(page.url.replace(server.url + "/library?scan=", "/library/scans/")).json()
+    scan = server.client.get(page.url.replace(server.url + "/library?scan=", "/library/scans/"), headers=key).json()
     by_file = {p["file"]: p for p in scan["photos"]}
     for f in names[:2]:
         got = subprocess.run(["exiftool", "-n", "-j", "-GPSLatitude", "-GPSLongitude", f + ".xmp"], capture_output=True)
@@ -122,13 +150,9 @@ def test_review_on_the_page(browser, server):
 
     # A second run skips what is done: every photo keeps its decision, nothing is located again.
     sid = scan["id"]
-    again = server.client.post("/library/scans", json={"folder": "library"}, headers={"X-API-Key": KEY})
+    again = server.client.post("/library/scans", json={"folder": "library"}, headers=key)
     assert again.status_code == 202 and again.json()["id"] == sid
-    for _ in range(600):
-        state = server.client.get(f"/library/scans/{sid}").json()
-        if state["state"] != "running":
-            break
-        page.wait_for_timeout(200)
+    state = wait_scan(server.client, sid)
     assert state["state"] == "done" and state["done"] == 0, state
     assert {p["file"]: p["decision"] for p in state["photos"]}[names[0]] == "accepted"
 
@@ -146,20 +170,23 @@ def test_review_on_the_page(browser, server):
         "() => [...document.querySelectorAll('#lib-photos li.photo')].some("
         "(li) => li.textContent.includes('q1.jpg') && li.querySelector('.decision'))"
     )
-    q1 = next(p for p in server.client.get(f"/library/scans/{sid}").json()["photos"] if p["file"].endswith("q1.jpg"))
+    photos = server.client.get(f"/library/scans/{sid}", headers=key).json()["photos"]
+    q1 = next(p for p in photos if p["file"].endswith("q1.jpg"))
     assert q1["decision"] == "accepted" and 39.9 < q1["accepted_lat"] < 40.0 and -75.3 < q1["accepted_lon"] < -75.1
     assert not page.errors
+    thumb = server.client.get(f"/library/scans/{sid}/photos/{q1['id']}/thumbnail", headers=key)
+    assert thumb.status_code == 200 and thumb.headers["cache-control"] == "private, no-store"
+    for p in photos:  # the library's decisions as they were: the other tests do not depend on the order
+        if p["decision"] is not None:
+            server.client.post(f"/library/scans/{sid}/photos/{p['id']}/decision", json={"action": "clear"}, headers=key)
 
 
 def test_the_api_moves_dry_runs_writes_in_file_exports_and_undoes(server):
-    """After the page's review (the module's order): the rest of the API on the same library."""
+    """The rest of the API on the same library (scanned here, or already by the page's test: either order)."""
     c, key = server.client, {"X-API-Key": KEY}
     sid = c.post("/library/scans", json={"folder": str(server.library)}, headers=key).json()["id"]
-    for _ in range(600):
-        scan = c.get(f"/library/scans/{sid}").json()
-        if scan["state"] != "running":
-            break
-        time.sleep(0.2)
+    scan = wait_scan(c, sid)
+    assert scan["state"] == "done", scan
     undecided = [p for p in scan["photos"] if p["kind"] == "located" and p["decision"] is None]
     unplaced = next(p for p in undecided if Path(p["file"]).name.startswith("img_"))
     broken = next(p for p in undecided if Path(p["file"]).name == "broken-exif.jpg")
@@ -190,14 +217,16 @@ def test_the_api_moves_dry_runs_writes_in_file_exports_and_undoes(server):
     assert (got["GPSLatitude"], got["GPSLongitude"]) == pytest.approx((39.9512, -75.1921), abs=1e-6)
     assert sha(photo) != before and pixel_hash(photo) == pixels  # metadata written, pixels untouched
 
-    geo = c.get(f"/library/scans/{sid}/export", params={"format": "geojson"})
+    geo = c.get(f"/library/scans/{sid}/export", params={"format": "geojson"}, headers=key)
     assert geo.headers["content-type"].startswith("application/geo+json")
     accepted = {Path(f["properties"]["file"]).name: f["geometry"]["coordinates"] for f in geo.json()["features"]}
     assert accepted[photo.name] == [-75.1921, 39.9512]
-    everything = c.get(f"/library/scans/{sid}/export", params={"format": "geojson", "all": "true"}).json()
-    assert len(everything["features"]) == 20  # every located photo, placed or not
-    assert "<wpt" in c.get(f"/library/scans/{sid}/export", params={"format": "gpx"}).text
-    assert c.get(f"/library/scans/{sid}/export", params={"format": "kmz"}).status_code == 422
+    everything = c.get(f"/library/scans/{sid}/export", params={"format": "geojson", "all": "true"}, headers=key)
+    assert len(everything.json()["features"]) == 21  # every photo without a position, the unreadable one too
+    assert "<wpt" in c.get(f"/library/scans/{sid}/export", params={"format": "gpx"}, headers=key).text
+    assert c.get(f"/library/scans/{sid}/export", params={"format": "kmz"}, headers=key).status_code == 422
 
     undone = c.post(f"/library/scans/{sid}/undo", headers=key).json()
     assert str(photo) in undone["restored"] and sha(photo) == before
+    for p in (unplaced, broken):  # the decisions of this test taken back: the page's test may come after
+        c.post(f"/library/scans/{sid}/photos/{p['id']}/decision", json={"action": "clear"}, headers=key)

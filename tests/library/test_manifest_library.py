@@ -15,6 +15,9 @@ from app.engine.configs import DEFAULT_CONFIG
 from app.evaluation.datasets import Row, penn_campus_rows, write_manifest
 from tests.conftest import PENN
 
+#: A whole library scanned with the fitted default pipeline: make test, not make test-quick.
+pytestmark = pytest.mark.library
+
 
 def test_a_manifest_library(tmp_path, library_models):
     rows = penn_campus_rows(PENN)

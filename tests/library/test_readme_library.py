@@ -21,8 +21,11 @@ from app.engine.configs import DEFAULT_CONFIG
 from app.engine.geo import haversine_m
 from app.library.writeback import pixel_hash
 from tests.conftest import REPO
-from tests.library.conftest import ELSEWHERE, make_library
+from tests.library.conftest import ELSEWHERE, copy_collection, make_library
 from tests.service.test_readme_commands import ACTIVATE, commands
+
+#: A whole library scanned with the fitted default pipeline: make test, not make test-quick.
+pytestmark = pytest.mark.library
 
 README = (REPO / "README.md").read_text()
 SECTION = README.split("## Geolocating a photo library")[1].split("\n## ")[0]
@@ -40,11 +43,14 @@ def gps_of(path: Path) -> tuple[float, float] | None:
 
 
 @pytest.fixture(scope="module")
-def shell(tmp_path_factory, library_models, query_truth):
+def shell(tmp_path_factory, library_models, query_truth, penn_collection):
     home = tmp_path_factory.mktemp("library-home")
     work = home / "work"
     work.mkdir()
     make_library(home / "library", query_truth)
+    # D holds the references already (the session's collection): the scan's ingest finds them present
+    # ("adds them to an existing --data-dir"), the locating is the README line's own.
+    copy_collection(penn_collection, work / "D")
     env = {
         **{k: v for k, v in os.environ.items() if not k.startswith(("GEOLOC_", "VIRTUAL_ENV"))},
         "HOME": str(home),
@@ -85,7 +91,10 @@ def test_the_readme_library_lines(shell, query_truth):
     collection = json.loads((work / "out.geojson").read_text())
     assert collection["type"] == "FeatureCollection"
     by_name = {Path(f["properties"]["file"]).name: f for f in collection["features"]}
-    assert set(query_truth) | set(ELSEWHERE) | {"broken-exif.jpg"} == set(by_name), sorted(by_name)
+    # Every photo without a position: the 16, the two from elsewhere, the broken one, and the file that is
+    # not an image (unplaced, its reason "unreadable").
+    assert set(query_truth) | set(ELSEWHERE) | {"broken-exif.jpg", "notes.jpg"} == set(by_name), sorted(by_name)
+    assert by_name["notes.jpg"]["geometry"] is None and by_name["notes.jpg"]["properties"]["reason_code"]
     rows = {Path(r["file"]).name: r for r in csv.DictReader((work / "out.csv").open())}
     assert set(rows) == set(by_name)
     placed = confident = 0

@@ -1,8 +1,13 @@
 """/library: scan a folder of the server as a batch job, its results, a decision per photo, write back,
-undo, exports; and the Library page. Parse, call ``app.library``, shape."""
+undo, exports; and the Library page. Parse, call ``app.library``, shape.
+
+Every route but the page itself needs the key (``write_access``), reads included: a scan's results, its
+thumbnails and its exports show the server's files (names, photos, places), which ``read_access`` (open
+by default) would hand to anyone who can reach the port."""
 
 from __future__ import annotations
 
+import threading
 from pathlib import Path as FsPath
 from typing import Annotated, Literal
 
@@ -11,11 +16,11 @@ from fastapi.responses import FileResponse, JSONResponse, Response
 from pydantic import BaseModel, Field
 
 from app.api import security
-from app.api.deps import Core, read_access, write_access
+from app.api.deps import Core, write_access
 from app.api.errors import ApiError, error_responses
 from app.engine.errors import GeolocError
 from app.library.exports import FORMATS, MEDIA_TYPES, render
-from app.library.jobs import FolderRefused, LibraryJobs, thumbnail
+from app.library.jobs import FolderRefused, LibraryJobs, ScanBusy
 from app.library.review import DecisionError, decide
 from app.library.scan import ScanOptions
 from app.library.writeback import WriteBackError, undo, write_back
@@ -45,11 +50,16 @@ class WriteIn(BaseModel):
     dry_run: bool = False
 
 
+_MAKING = threading.Lock()
+
+
 def jobs(request: Request, core: Core) -> LibraryJobs:
-    """The server's library runner, made at first use over the served data dir."""
+    """The server's library runner, made once (under a lock: two at once would run the same scan twice)
+    over the served data dir at its first use; the app's shutdown closes it (its scans stop)."""
     state = request.app.state
-    if getattr(state, "library", None) is None:
-        state.library = LibraryJobs(core.store.data_dir, state.settings.library_root)
+    with _MAKING:
+        if getattr(state, "library", None) is None:
+            state.library = LibraryJobs(core.store.data_dir, state.settings.library_root)
     return state.library
 
 
@@ -85,14 +95,18 @@ def start_scan(body: ScanIn, core: Core, lib: Jobs) -> JSONResponse:
         folder = lib.folder(body.folder)
     except FolderRefused as e:
         raise ApiError(422, "invalid_request", str(e)) from None
-    sid = lib.start(core, folder, ScanOptions(time_prior=body.time_prior, rerank=body.rerank))
+    # One thread: a scan shares the server's cores with /locate, which must keep answering.
+    try:
+        sid = lib.start(core, folder, ScanOptions(workers=1, time_prior=body.time_prior, rerank=body.rerank))
+    except ScanBusy as e:
+        raise ApiError(503, "not_ready", str(e)) from None
     return JSONResponse({"id": sid, "state": "running"}, status_code=202, headers={"Location": f"/library/scans/{sid}"})
 
 
 @router.get(
     "/library/scans/{sid}",
     responses=error_responses(401, 404, 503),
-    dependencies=[Depends(read_access)],
+    dependencies=[Depends(write_access)],
     summary="A scan's state and every photo's suggestion, decision and write",
 )
 def get_scan(sid: ScanId, lib: Jobs) -> dict:
@@ -105,7 +119,7 @@ def get_scan(sid: ScanId, lib: Jobs) -> dict:
     "/library/scans/{sid}/photos/{photo_id}/thumbnail",
     response_class=Response,
     responses={200: {"content": {"image/jpeg": {}}}, **error_responses(401, 404, 503)},
-    dependencies=[Depends(read_access)],
+    dependencies=[Depends(write_access)],
     summary="A thumbnail of a library photo (pixels only)",
 )
 def photo_thumbnail(request: Request, sid: ScanId, photo_id: PhotoId, lib: Jobs) -> Response:
@@ -113,10 +127,12 @@ def photo_thumbnail(request: Request, sid: ScanId, photo_id: PhotoId, lib: Jobs)
     if rec is None:
         raise ApiError(404, "not_found", f"no photo {photo_id} in library scan {sid}")
     try:
-        data = thumbnail(FsPath(rec.path), request.app.state.settings.thumbnail_px)
-    except (OSError, GeolocError):  # gone, or not an image (a library holds such files)
+        settings = request.app.state.settings
+        data = lib.thumbnail(FsPath(rec.path), settings.thumbnail_px, settings.image_limits())
+    except (OSError, GeolocError):  # gone, a link, not an image (a library holds such files), too large
         raise ApiError(404, "image_missing", f"photo {photo_id} cannot be read any more") from None
-    return Response(data, media_type="image/jpeg", headers={"Cache-Control": "max-age=60"})
+    # A private photo of the server's disk, fetched with the key: no shared cache may keep it.
+    return Response(data, media_type="image/jpeg", headers={"Cache-Control": "private, no-store"})
 
 
 @router.post(
@@ -144,8 +160,9 @@ def photo_decision(sid: ScanId, photo_id: PhotoId, body: DecisionIn, lib: Jobs) 
 def write(sid: ScanId, body: WriteIn, lib: Jobs) -> dict:
     _scan(lib, sid)
     try:
-        return write_back(lib.journal, sid, lib.journal.path.parent, body.in_file, body.dry_run)
-    except WriteBackError as e:
+        with lib.exclusive(sid):
+            return write_back(lib.journal, sid, lib.journal.path.parent, body.in_file, body.dry_run, lib.root)
+    except (WriteBackError, ScanBusy) as e:
         raise ApiError(503, "not_ready", str(e)) from None
 
 
@@ -153,18 +170,22 @@ def write(sid: ScanId, body: WriteIn, lib: Jobs) -> dict:
     "/library/scans/{sid}/undo",
     responses=error_responses(401, 404, 503),
     dependencies=[Depends(write_access)],
-    summary="Undo every write of this library, newest first",
+    summary="Undo every write of this library, newest first (a file changed since is skipped and listed)",
 )
 def undo_writes(sid: ScanId, lib: Jobs) -> dict:
     _scan(lib, sid)
-    return undo(lib.journal, sid)
+    try:
+        with lib.exclusive(sid):
+            return undo(lib.journal, sid, lib.root)
+    except ScanBusy as e:
+        raise ApiError(503, "not_ready", str(e)) from None
 
 
 @router.get(
     "/library/scans/{sid}/export",
     response_class=Response,
     responses=error_responses(401, 404, 422, 503),
-    dependencies=[Depends(read_access)],
+    dependencies=[Depends(write_access)],
     summary="The accepted positions (or every suggestion, all=true) as GeoJSON, CSV or GPX",
 )
 def export(

@@ -80,15 +80,33 @@ function summary(p) {
   return `${p.lat.toFixed(6)}, ${p.lon.toFixed(6)} ± ${p.radius_m} m, from ${p.basis}` + (p.p != null ? `, p ${p.p}` : "");
 }
 
-const thumbs = new Map(); // photo id -> object URL (fetched with the key header, shown as blob:)
+// photo id -> a promise of its object URL (fetched once with the key header, shown as blob:): the poll
+// re-renders the list every second while a scan runs, and must not fetch a thumbnail again each time.
+const thumbs = new Map();
+function clearThumbs() {
+  for (const url of thumbs.values()) url.then((u) => u && URL.revokeObjectURL(u));
+  thumbs.clear();
+}
 async function thumb(img, p) {
   if (!thumbs.has(p.id)) {
-    try {
-      thumbs.set(p.id, URL.createObjectURL(await api(`/library/scans/${scanId}/photos/${p.id}/thumbnail`)));
-    } catch (e) { return; }
+    thumbs.set(p.id, api(`/library/scans/${scanId}/photos/${p.id}/thumbnail`)
+      .then((blob) => URL.createObjectURL(blob))
+      .catch(() => { thumbs.delete(p.id); return null; }));
   }
-  img.src = thumbs.get(p.id);
+  const url = await thumbs.get(p.id);
+  if (url) img.src = url;
 }
+// Thumbnails are fetched when their row comes near the viewport (a library lists thousands of photos).
+const lazy = "IntersectionObserver" in window
+  ? new IntersectionObserver((entries) => {
+    for (const e of entries) {
+      if (!e.isIntersecting) continue;
+      lazy.unobserve(e.target);
+      const p = photos.find((q) => String(q.id) === e.target.dataset.photo);
+      if (p) thumb(e.target, p);
+    }
+  }, { rootMargin: "200px" })
+  : null;
 
 async function decide(p, action, extra = {}) {
   showError("");
@@ -103,10 +121,11 @@ async function decide(p, action, extra = {}) {
 
 function render() {
   const list = $("lib-photos");
+  if (lazy) lazy.disconnect(); // the rows below replace the observed ones
   list.replaceChildren();
   for (const p of photos) {
-    const img = el("img", { alt: "" });
-    if (p.kind !== "problem") thumb(img, p);
+    const img = el("img", { alt: "", "data-photo": String(p.id) });
+    if (p.kind !== "problem") { if (lazy) lazy.observe(img); else thumb(img, p); }
     const cands = el("ol", { class: "cands", "aria-label": "candidates" },
       ...(p.candidates || []).slice(0, 3).map((c) => el("li", {}, `${c.lat.toFixed(5)}, ${c.lon.toFixed(5)} (${c.score})`)));
     const buttons = [];
@@ -144,13 +163,15 @@ function render() {
 }
 
 // -- scan, poll, write, undo, export ---------------------------------------------------------------------------
+let shown = ""; // the photos last rendered, as JSON: a poll that changed nothing renders nothing
 async function load() {
   const scan = await api(`/library/scans/${scanId}`);
   photos = scan.photos;
   $("lib-actions").hidden = false;
   status(`${scan.folder}: ${scan.state}, ${scan.done} photos located by this run (${scan.total} in the folder)` +
     (scan.message ? `: ${scan.message}` : ""));
-  render();
+  const now = JSON.stringify(photos);
+  if (now !== shown) { shown = now; render(); }
   if (scan.state === "running") setTimeout(() => load().catch((e) => showError(e.message)), 1000);
 }
 
@@ -159,6 +180,7 @@ $("scan-form").addEventListener("submit", async (e) => {
   showError("");
   try {
     const got = await post("/library/scans", { folder: $("scan-folder").value, time_prior: $("scan-time").checked });
+    if (got.id !== scanId) clearThumbs();
     scanId = got.id;
     history.replaceState(null, "", `/library?scan=${scanId}`);
     status("scanning...");
