@@ -38,6 +38,7 @@ def ready(request: Request):
         worker="in-process" if state.worker is not None and (state.writer is None or state.writer.held) else "external",
         database=state.service.store.engine,
         index_loaded="rebuilt" if col.stats.full_rebuilds else "snapshot",
+        calibration=col.calibration_summary(),
     )
 
 
