@@ -278,3 +278,15 @@ def test_the_readme_synopsis_shows_each_numeric_default_the_command_has():
                 assert float(params[name].default) == float(value), (line, name, params[name].default)
                 checked.append(f"{words[1]} {name}")
     assert "ingest --workers" in checked and "locate --top-k" in checked, checked
+
+
+def test_the_readme_recipe_for_another_configuration_fills_its_data_dir_and_git_ignores_it():
+    """The hybrid-bin recipe served an empty collection (no ingest shown) from an untracked index-bin/ (issue
+    34): it ingests into the data dir it serves, and git ignores that folder."""
+    text = " ".join(README.split())
+    recipe = text.split("serve another one on its own data dir", 1)[1].split("geoloc serve", 1)[0]
+    assert "make fit CONFIG=hybrid-bin" in recipe
+    assert re.search(r"geoloc ingest [^`]*--config hybrid-bin --data-dir index-bin", recipe), recipe
+    assert "GEOLOC_CONFIG=hybrid-bin GEOLOC_DATA_DIR=index-bin" in recipe
+    ignored = subprocess.run(["git", "check-ignore", "-q", "index-bin/references.sqlite"], cwd=REPO)
+    assert ignored.returncode == 0, "index-bin/ is not ignored by git"
