@@ -254,6 +254,8 @@ def test_an_answer_without_estimate(browser, server, tile_png, viewport, tmp_pat
     assert re.search(r"spread over \d", page.inner_text("#explain"))
     assert "from candidate 1" in page.locator("#candidates li").nth(1).inner_text()
     assert page.locator("#map path.leaflet-interactive").count() == 0  # no estimate circle
+    # The dashed rectangle (the collection's extent) has its line in the legend (issue 34).
+    assert page.locator("#map path.extent").count() == 1 and page.locator("#legend-extent").is_visible()
     check_markers = markers(page)
     one = next(m for m in check_markers if m["n"] == "1")
     assert all(one["z"] > m["z"] for m in check_markers if m is not one)
@@ -268,6 +270,8 @@ def test_an_answer_without_estimate(browser, server, tile_png, viewport, tmp_pat
     page.click("#locate-btn")
     page.wait_for_selector("#locate-error:not([hidden])")
     assert "not a JPEG" in page.inner_text("#locate-error")
+    # Beside the refusal, the caption no longer says the file "can still be located" (issue 34).
+    assert "can still be located" not in page.inner_text("#preview-box"), page.inner_text("#preview-box")
     assert not page.errors, page.errors
 
 
@@ -428,7 +432,7 @@ def test_a_photo_without_features(browser, server, tile_png, tmp_path):
     page.wait_for_selector("#answer:not([hidden])", timeout=60_000)
     assert page.inner_text("#level") == "No match"
     assert page.inner_text("#headline") == "This photo has nothing to recognise a place by."
-    assert "No features" in page.inner_text("#features-used")
+    assert page.inner_text("#answer").count("blank, dark or blurred") == 1, "said once (issue 34)"
     assert page.locator("#candidates li").count() == 0 and page.locator("#map .num-marker").count() == 0
     assert not page.errors, page.errors
 

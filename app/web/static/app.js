@@ -220,6 +220,8 @@ async function locate() {
   } catch (e) {
     status("locate", "");
     showError("locate", e.message);
+    // The caption had promised that a photo the browser cannot draw "can still be located".
+    if ($("preview").hidden) $("preview-caption").textContent = "Your photo (the service could not read it either: see below)";
   } finally {
     $("locate-btn").disabled = false;
   }
@@ -344,7 +346,8 @@ function renderAnswer(res) {
   $("level").className = `level ${level}`;
   $("headline").textContent = words.headline;
   $("explain").textContent = words.explain;
-  $("features-used").textContent = featuresInWords(res.features);
+  // A photo without features is said so once, by the verdict.
+  $("features-used").textContent = res.reason_code === "no_features" ? "" : featuresInWords(res.features);
   technical(res);
   $("answer").hidden = false;
 }
@@ -427,6 +430,7 @@ function drawLocate(res) {
   const est = res.estimate;
   $("legend").hidden = n === 0;
   $("legend-est").hidden = !est;
+  $("legend-extent").hidden = true;
   const bounds = L.latLngBounds(res.candidates.map((c) => [c.lat, c.lon]));
   if (est) {
     const circle = L.circle([est.lat, est.lon], { radius: est.radius_m, color: "#c92a2a", weight: 2, fillOpacity: 0.12 })
@@ -442,6 +446,7 @@ function drawLocate(res) {
       { color: "#1c5fa8", weight: 2, dashArray: "6 4", fill: false, interactive: false, className: "extent" })
       .addTo(layer);
     bounds.extend(box.getBounds());
+    $("legend-extent").hidden = false;
   }
   candidateMarkers = res.candidates.map((c, i) => {
     const name = refName(c.reference_id, c.label).title;
