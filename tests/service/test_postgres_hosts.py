@@ -15,6 +15,7 @@ import sys
 import time
 from pathlib import Path
 
+import httpx
 import pytest
 
 from app.apikey import key_path, read_key
@@ -327,11 +328,15 @@ def test_a_host_without_the_shared_images_folder_refuses_to_serve(tmp_path, fitt
         try:
             deadline = time.monotonic() + 120
             while True:
-                r = b.client.get("/ready")
+                assert time.monotonic() < deadline, b.read_log()
+                try:
+                    r = b.client.get("/ready")
+                except httpx.TransportError:  # not listening yet
+                    time.sleep(0.5)
+                    continue
                 if r.status_code == 503 and "GEOLOC_IMAGES_DIR" in r.json()["message"]:
                     break
                 assert r.status_code != 200, "the second host serves with an images folder no other host reads"
-                assert time.monotonic() < deadline, b.read_log()
                 time.sleep(0.5)
             assert "one shared folder" in r.json()["message"]
             photo = NEW_PHOTOS[0]
