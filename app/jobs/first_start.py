@@ -246,17 +246,17 @@ def _fit(
     say(f"first start: fitting the pipeline: step 2 of {STEPS}, codebook, PCA and SVM bank on {len(photos)} photos")
     refs = {i: Geotagged(p.features, p.lat, p.lon, p.group) for i, p in enumerate(photos)}
     source_name = bank_source(cfg, None)
+    hashes = {i: p.sha256 for i, p in enumerate(photos)}
+    seconds: dict[str, float] = {}
+    features = [p.features for p in photos]
     try:
-        hashes = {i: p.sha256 for i, p in enumerate(photos)}
-        seconds: dict[str, float] = {}
-        fit_pipeline(
-            pipe, [p.features for p in photos], refs, [], source_name, seed=seed, hashes=hashes, seconds=seconds
-        )
-        log.info("first start: fitted in %s", ", ".join(f"{k} {v:.1f} s" for k, v in seconds.items()))
+        fit_pipeline(pipe, features, refs, [], source_name, seed=seed, hashes=hashes, seconds=seconds)
     except (FitRefused, NothingToTrainOn) as e:  # too small or too uniform for a bank: serve without one, say so
         log.warning("first start: no SVM bank (%s); the pipeline is fitted without one", e)
-        pipe.bank = None
         source_name = "none"
+        pipe.bank = None  # and calibrated on these photos all the same: never judged by another's figures
+        fit_pipeline(pipe, features, refs, [], source_name, seed=seed, hashes=hashes, seconds=seconds)
+    log.info("first start: fitted in %s", ", ".join(f"{k} {v:.1f} s" for k, v in seconds.items()))
     target = save_generation(
         store.data_dir, pipe, 0, {"first_start": str(source.path), "fit_photos": len(photos), "svm_bank": source_name}
     )
