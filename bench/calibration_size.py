@@ -1,6 +1,7 @@
 """How many references a collection needs before its own calibration can give a confident answer.
 
     python -m bench.calibration_size [--manifest data/manifests/penn-campus-gps.csv] [--sizes 20,40,...]
+                                     [--seeds 3] [--first-seed 0]
 
 Why: `geoloc refit` of a 20-photo collection found no level at which its answers held (threshold 1.01), and
 nothing told the user that this is the collection's size, not a fault (issue 34). This refits, as `geoloc
@@ -45,6 +46,7 @@ def main() -> None:
     ap.add_argument("--models-dir", type=Path, default=REPO_ROOT / "models")
     ap.add_argument("--sizes", default="20,40,60,80,120,160,240,389")
     ap.add_argument("--seeds", type=int, default=3)
+    ap.add_argument("--first-seed", type=int, default=0)
     ap.add_argument("--cache", type=Path, default=REPO_ROOT / "out/cache")
     args = ap.parse_args()
     cfg = get_config(args.config)
@@ -58,7 +60,7 @@ def main() -> None:
     print(f"{len(rows)} db rows in {len(groups)} captures ({cfg.name})")
     print("references  seed  confident_p  calibration")
     for size in (int(s) for s in args.sizes.split(",")):
-        for seed in range(args.seeds):
+        for seed in range(args.first_seed, args.first_seed + args.seeds):
             ids = subset(groups, size, seed)
             refs = {i: Geotagged(feats[i], rows[i].lat, rows[i].lon, rows[i].group) for i in ids}
             t0 = time.perf_counter()

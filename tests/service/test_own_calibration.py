@@ -11,6 +11,7 @@ import shutil
 import pytest
 
 from app.engine.calibration import CONFIDENT_FROM_REFERENCES
+from app.service import GeolocService
 from tests.conftest import PENN
 from tests.service.conftest import CONFIG, Server
 from tests.test_cli import geoloc
@@ -50,7 +51,7 @@ def test_a_new_collection_is_judged_by_its_own_calibration_or_by_none(tmp_path, 
     where = ["--models-dir", str(models), "--config", CONFIG]
     geoloc("ingest", "--manifest", str(manifest), "--split", "db", "--data-dir", str(own), *where)
     geoloc("ingest", str(photos), "--data-dir", str(mine), *where)
-    query = PENN / captures[3]["photo"]
+    query = PENN / captures[3]["crops"].split(";")[0]  # a crop of a photo of `mine`: its best match is 0 m off
     # The collection the pipeline was calibrated on is judged by it: probabilities.
     answer = json.loads(_locate(query, own, models))
     assert answer["candidates"][0]["p_within_25m"] is not None
@@ -59,6 +60,11 @@ def test_a_new_collection_is_judged_by_its_own_calibration_or_by_none(tmp_path, 
     assert all(c["p_within_25m"] is None for c in answer["candidates"])
     assert "fitted on another collection" in answer["reason"] and "geoloc refit" in answer["reason"]
     assert "calibration was fitted on another collection" in _locate(query, mine, models, "--brief")
+    service = GeolocService.open(mine, models, CONFIG)
+    try:  # what /ready says of it
+        assert "fitted on another collection" in service.collection.calibration_summary()
+    finally:
+        service.store.close()
 
     # A refit calibrates it on itself; 20 photos are too few for a confident answer, and both the refit's
     # summary and /ready say what it needs.
