@@ -54,8 +54,9 @@ CONSERVATIVE_SHARE = 0.8
 SAME_COLLECTION_SHARE = 0.5
 #: About how many references (photos and crops, several per place) a collection needs before its own
 #: calibration finds a level at which answers are confident: measured on penn-campus-gps by refitting
-#: subsets of increasing size (``python -m bench.calibration_size``, docs/RESULTS.md).
-CONFIDENT_FROM_REFERENCES = 0
+#: subsets of whole captures (``python -m bench.calibration_size``, docs/RESULTS.md): none of 7 refits of
+#: 22-123 references found one, 1 of 4 of 160-243, both of 320 and 389.
+CONFIDENT_FROM_REFERENCES = 300
 
 # The reason codes a client can branch on (documented in the README and in /locate's schema).
 NO_FEATURES = "no_features"
