@@ -335,6 +335,42 @@ def test_no_match(browser, server, tile_png):
     assert not page.errors, page.errors
 
 
+def test_markers_a_few_metres_apart_name_each_other(browser, server, tile_png):
+    """Two candidates 6 m apart: their markers overlap at the popup's zoom (issue 34: markers 4 and 8 hid
+    each other unseen), so each popup names the other; one 300 m away is not named."""
+    ref = server.client.get("/references?limit=1").json()["items"][0]
+    spots = [(0.0, 0.61), (6.0, 0.58), (300.0, 0.55)]  # metres north of the reference, score
+    answer = {
+        "candidates": [
+            {
+                "reference_id": ref["id"], "lat": ref["lat"] + m / 111_320, "lon": ref["lon"], "score": s,
+                "distance_m": None, "label": None, "captured_at": None, "heading": None, "inliers": None,
+                "p_within_25m": None,
+            }
+            for m, s in spots
+        ],
+        "estimate": None,
+        "reason": "the candidates disagree on the place",
+        "reason_code": "ambiguous",
+        "mode": "float",
+        "config": "hybrid-bin",
+        "features": {"extracted": 1200, "kept": 900},
+        "timings_ms": {"total": 12.0},
+        "index": {"size": len(server.rows), "version": 1},
+    }  # fmt: skip
+    page = open_page(browser, server, "desktop", tile_png)
+    page.route("**/locate", lambda route: route.fulfill(status=200, json=answer))
+    page.set_input_files("#locate-file", str(server.query))
+    page.click("#locate-btn")
+    page.wait_for_selector("#answer:not([hidden])")
+    page.click("#candidates li:nth-child(2) button")
+    page.wait_for_selector(".leaflet-popup-content")
+    popup = page.inner_text(".leaflet-popup-content")
+    assert popup.startswith("2. ") and "Overlapping markers (within 12 m): 1" in popup, popup
+    assert "3" not in popup.split("Overlapping markers", 1)[1], popup
+    assert not page.errors, page.errors
+
+
 def test_calibrated_probabilities_in_words(browser, server, tile_png):
     """Where the answer carries each candidate's calibrated ``p_within_25m`` (the application core gives
     it for the first 10), the page says it as a chance; served by the test, in the service's shape."""

@@ -414,10 +414,15 @@ function renderLocate(res) {
   drawLocate(res);
 }
 
-// Markers at one spot hide each other: each popup names the others there.
+// Markers at one spot hide each other, and so do markers a few metres apart (24 px icons cover 11 m at
+// the zoom a candidate's Map button opens, 18): each popup names the others there and those that close.
+const OVERLAP_M = 12;
 function sameSpot(cands, i) {
-  const here = cands.map((c, j) => j).filter((j) => j !== i && haversine(cands[i], cands[j]) < 1);
-  return here.length ? `Also at this spot: ${here.map((j) => j + 1).join(", ")}` : "";
+  const others = cands.map((c, j) => [j, haversine(cands[i], c)]).filter(([j]) => j !== i);
+  const here = others.filter(([, d]) => d < 1).map(([j]) => j + 1);
+  const near = others.filter(([, d]) => d >= 1 && d < OVERLAP_M).map(([j]) => j + 1);
+  return [here.length ? `Also at this spot: ${here.join(", ")}` : "",
+    near.length ? `Overlapping markers (within ${OVERLAP_M} m): ${near.join(", ")}` : ""];
 }
 
 // Marker 1 is drawn last and with the largest z-index offset, so it is on top of any later candidate at
@@ -457,7 +462,7 @@ function drawLocate(res) {
       alt: `Candidate ${i + 1}`,
       riseOnHover: true,
     }).bindPopup(el("div", {}, ...lines(`${i + 1}. ${name}`, whereFrom(c, i, res) || "best match",
-      sameSpot(res.candidates, i))));
+      ...sameSpot(res.candidates, i))));
   });
   candidateMarkers.slice().reverse().forEach((m) => m.addTo(layer));
   if (bounds.isValid()) map.fitBounds(bounds, { padding: [30, 30], maxZoom: 18 });
