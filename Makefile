@@ -107,7 +107,7 @@ $(MANIFEST): | setup
 SVM_BANK ?=
 fit: models/pipelines/$(CONFIG)/pipeline.json
 models/pipelines/$(CONFIG)/pipeline.json: $(MODEL) $(XFEAT_MODEL) $(LIGHTERGLUE_MODEL) $(LITE2_MODEL) $(MANIFEST)
-	@$(STEP) fit -- $(GEOLOC) fit --manifest $(MANIFEST) --config $(CONFIG) $(if $(SVM_BANK),--svm-bank $(SVM_BANK))
+	@$(STEP) fit-$(CONFIG) --live -- $(GEOLOC) fit --manifest $(MANIFEST) --config $(CONFIG) $(if $(SVM_BANK),--svm-bank $(SVM_BANK))
 
 # The demo collection: penn-campus-gps db rows in index/ (identical images are skipped on re-runs).
 demo: fit

@@ -5,6 +5,7 @@ from __future__ import annotations
 import errno
 import json
 import sys
+import time
 from pathlib import Path
 from typing import Annotated
 
@@ -153,11 +154,17 @@ def fit(
         _fail(str(e))
     rows = [r for r in read_manifest(manifest) if r.split in ("db", "train")]
     pipe = Pipeline(cfg, models_dir=models_dir)
-    feats = [e.features for e in extract_all(pipe, rows, desc="extract")]
-    typer.echo(f"fitting {cfg.name} on {len(feats)} images ...")
-    _fit_with_bank(pipe, rows, feats, svm_bank_kind, seed, source, calibration_sample, calibrate_rerank)
+    t0 = time.perf_counter()
+    feats = [e.features for e in extract_all(pipe, rows, desc="fit: extract")]
+    seconds = {"extract": time.perf_counter() - t0}
+    typer.echo(f"fit: extracted {len(feats)} images in {seconds['extract']:.0f} s; fitting {cfg.name} ...")
+    _fit_with_bank(pipe, rows, feats, svm_bank_kind, seed, source, calibration_sample, calibrate_rerank, seconds)
+    typer.echo("fit: seconds per step: " + ", ".join(f"{k} {v:.1f}" for k, v in seconds.items()))
     cal = pipe.calibration
-    typer.echo(f"calibration ({cal.source}): {cal.note}; " + ", ".join(f"{k} {v}" for k, v in cal.report.items()))
+    typer.echo(
+        f"calibration ({cal.source}): {cal.note}; "
+        + ", ".join(f"{k} {v}" for k, v in cal.report.items() if k != "too_small")
+    )
     pipe.save(pipeline_dir(models_dir, cfg.name), {"manifest": str(manifest.resolve())})
     typer.echo(
         f"saved {pipeline_dir(models_dir, cfg.name)} (float dim {pipe.float_dim}, bits {pipe.bits}"
@@ -167,7 +174,15 @@ def fit(
 
 
 def _fit_with_bank(
-    pipe, rows, feats, kind: str, seed: int, source: str, calibration_sample: int = 600, verify: bool = False
+    pipe,
+    rows,
+    feats,
+    kind: str,
+    seed: int,
+    source: str,
+    calibration_sample: int = 600,
+    verify: bool = False,
+    seconds: dict[str, float] | None = None,
 ) -> None:
     """``app.fitting.fit_pipeline``: the pipeline on every row, then the bank from the db rows (the collection
     rule, plus train rows) or from the train rows alone, retrieved against an in-memory index of the db rows
@@ -175,6 +190,7 @@ def _fit_with_bank(
     from app.engine.training.svm_training import Geotagged
     from app.errors import FitRefused
     from app.fitting import fit_pipeline
+    from app.storage.files import sha256_of
 
     db = [i for i, r in enumerate(rows) if r.split == "db"]
     train = [Geotagged(feats[i], r.lat, r.lon, r.group) for i, r in enumerate(rows) if r.split == "train"]
@@ -188,7 +204,8 @@ def _fit_with_bank(
     refs = {i: Geotagged(feats[i], rows[i].lat, rows[i].lon, rows[i].group) for i in db}
     try:
         images = {i: rows[i].image for i in db} if verify else None
-        fit_pipeline(pipe, feats, refs, train, source, kind, seed, calibration_sample, images)
+        hashes = {i: sha256_of(Path(rows[i].image).read_bytes()) for i in db}  # what ingesting them stores
+        fit_pipeline(pipe, feats, refs, train, source, kind, seed, calibration_sample, images, hashes, seconds)
     except FitRefused as e:
         _fail(str(e))
     if pipe.bank is None:
@@ -331,8 +348,15 @@ def _in_words(out: dict) -> str:
     from app.engine.geo import haversine_m
 
     cands, e = out["candidates"], out["estimate"]
-    if not cands:
+    if not cands and e is not None:  # every candidate filtered out by --min-score, the estimate stands
+        return (
+            f"Likely: taken within {e['radius_m']:.0f} m of {e['lat']:.5f},{e['lon']:.5f} (confidence "
+            f"{e['confidence']:.2f}); no candidate scores at least the --min-score asked, so none is shown."
+        )
+    if not cands and out["reason_code"] in ("no_references", "no_features"):
         return f"No match: no reference could be compared with this photo ({out['reason']})."
+    if not cands:
+        return f"No candidate scores at least the --min-score asked ({out['reason']}); lower it to see them."
     best = cands[0]
     name = f"reference {best['reference_id']}" + (f" ({best['label']})" if best["label"] else "")
     if e is not None:
@@ -378,7 +402,10 @@ def _exif_check(gps, answer) -> dict:
         inside = "inside" if est_m <= e.radius_m else "outside"
         parts.append(f"The estimate is {est_m:.0f} m from there, {inside} its stated radius of {e.radius_m:.0f} m.")
     else:
-        parts.append(f"There is no confident estimate ({answer.reason}): trust the ranked candidates.")
+        parts.append(
+            f"There is no confident estimate ({answer.reason}): the ranked candidates are guesses to compare "
+            "with the photo, not answers."
+        )
     return {
         "lat": gps[0],
         "lon": gps[1],
@@ -527,6 +554,8 @@ def worker_cmd(
 
     from app.jobs.writer import WriterBusy, run_worker
     from app.runtime import serving_blas_threads
+    from app.storage.shared_images import ImagesNotShared, check_images_shared
+    from app.storage.store import ReferenceStore
 
     serving_blas_threads()  # encoding one photo at a time: see app.runtime
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
@@ -534,6 +563,13 @@ def worker_cmd(
     def ready(service) -> None:
         typer.echo(f"worker: {data_dir} ({service.pipeline.config.name}), {service.store.count('pending')} pending")
 
+    store = ReferenceStore(data_dir)
+    try:
+        check_images_shared(store)  # on PostgreSQL: one images folder for every host
+    except ImagesNotShared as e:
+        _fail(str(e))
+    finally:
+        store.close()
     try:
         run_worker(
             data_dir,

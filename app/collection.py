@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from app.engine.calibration import Calibration
 from app.engine.configs import DEFAULT_CONFIG
 from app.engine.index.references import ReferenceIndex
 from app.engine.pipeline import Pipeline, PipelineSource
@@ -148,6 +149,7 @@ class Collection:
         self.reload_error: str | None = None  # why the last attempt to load a newer generation failed
         self._first_pending_at: float | None = None  # when the oldest change not in a snapshot was applied
         self.rebuilt = False  # loaded by a full rebuild: a snapshot is due as soon as a writer can take it
+        self._calibration: tuple[tuple[int, int], Calibration] | None = None  # (pipeline, version) -> the rule
         self.index, self.version = self._load()
 
     @classmethod
@@ -281,6 +283,30 @@ class Collection:
     @property
     def size(self) -> int:
         return self.index.size
+
+    def calibration(self, pipeline: Pipeline | None = None) -> Calibration:
+        """The rule that judges this collection's answers: ``pipeline``'s calibration when it was fitted on
+        this collection (``Calibration.for_collection``), else the conservative rule saying why. Looked up
+        again when the pipeline or the collection's version changes (one indexed query of at most 600
+        hashes)."""
+        pipeline = pipeline or self.pipeline
+        cal = pipeline.calibration
+        if not cal.calibrated or not cal.references:
+            return cal.for_collection(0)
+        key = (id(pipeline), self.version)
+        cached = self._calibration
+        if cached is not None and cached[0] == key:
+            return cached[1]
+        judged = cal.for_collection(len(self.store.existing_ids(cal.references)))
+        self._calibration = (key, judged)
+        return judged
+
+    def calibration_summary(self) -> str:
+        """``calibration``'s note, and what the collection needs when no answer of it can be confident yet
+        (/ready, so that a small collection's answers are not taken for a fault)."""
+        cal = self.calibration()
+        needs = cal.confidence_note(self.size)
+        return cal.note + (f"; {needs}" if needs else "")
 
     def check_mode(self, mode: str | None) -> str:
         return self.index.check_mode(mode)

@@ -9,6 +9,7 @@ the evaluation measured was not what `fit` built.
 
 from __future__ import annotations
 
+import time
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict
 from pathlib import Path
@@ -24,6 +25,7 @@ from app.engine.pipeline import Features, Pipeline
 from app.engine.svm_bank import KINDS, BankParams, SvmBank
 from app.engine.training.svm_training import BANK_SOURCES, Geotagged, fit_bank_from, index_of
 from app.errors import FitRefused
+from app.runtime import fit_threads
 
 #: Where an evaluation's bank learns, per fold (never "none": the evaluation's ``svm_bank=off`` says that).
 EVAL_BANK_SOURCES = ("train", "collection")
@@ -85,25 +87,37 @@ def fit_pipeline(
     seed: int = 0,
     calibration_sample: int | None = None,
     images: Mapping[int, Path] | None = None,
+    hashes: Mapping[int, str] | None = None,
+    seconds: dict[str, float] | None = None,
 ) -> Pipeline:
     """Fit ``pipe`` (codebook, PCA-whitening, binariser) on ``features`` (every photo it learns from), then,
     unless ``source`` is ``none``, its SVM bank from ``refs`` (the references, by id) and ``train`` (geotagged
     photos that are not references), then its confidence rule and ``p_within_25m`` on ``refs``
     (``calibrate_collection``, at most ``calibration_sample`` of them located; with ``images``, the references'
-    photos, also the rule for verified answers): what `geoloc fit` and the first start of an empty data dir
-    both run."""
+    photos, also the rule for verified answers; ``hashes``, the sha256 of each reference's photo, recorded with
+    the calibration): what `geoloc fit` and the first start of an empty data dir both run. ``seconds`` gets
+    each step's time (``codebook, PCA, binariser``, ``SVM bank``, ``calibration``): where a fit's time goes."""
     check_bank_kind(kind)
-    pipe.fit(list(features), seed=seed)
-    if source != "none":
-        pipe.bank = train_bank(pipe, refs, list(train), source, kind, seed)
-    pipe.calibration = calibrate_collection(
-        pipe,
-        refs,
-        [t.features for t in train],
-        CALIBRATION_SAMPLE if calibration_sample is None else calibration_sample,
-        seed=seed,
-        images=images,
-    )
+    seconds = {} if seconds is None else seconds
+    with fit_threads():  # one BLAS and OpenMP thread: the same fit on any machine (app.runtime)
+        t0 = time.perf_counter()
+        pipe.fit(list(features), seed=seed)
+        seconds["codebook, PCA, binariser"] = time.perf_counter() - t0
+        if source != "none":
+            t0 = time.perf_counter()
+            pipe.bank = train_bank(pipe, refs, list(train), source, kind, seed)
+            seconds["SVM bank"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        pipe.calibration = calibrate_collection(
+            pipe,
+            refs,
+            [t.features for t in train],
+            CALIBRATION_SAMPLE if calibration_sample is None else calibration_sample,
+            seed=seed,
+            images=images,
+            hashes=hashes,
+        )
+        seconds["calibration"] = time.perf_counter() - t0
     return pipe
 
 
@@ -218,6 +232,7 @@ def calibrate_collection(
     seed: int = 0,
     images: Mapping[int, Path] | None = None,
     verify_sample: int = VERIFY_CALIBRATION_SAMPLE,
+    hashes: Mapping[int, str] | None = None,
 ) -> Calibration:
     """The confidence rule and ``p_within_25m`` for ``pipe`` (fitted, with its bank), fitted on the collection
     ``refs`` itself.
@@ -237,7 +252,10 @@ def calibrate_collection(
     ``images`` (reference id -> its photo): the first ``verify_sample`` held-out references are located
     twice more with verification by the configuration's matcher (their place present and absent), and a
     second rule is fitted on those verified answers (``Calibration.verified``), which /locate applies to
-    answers with ``rerank``: verification's evidence then counts in ``p_within_25m`` and the confidence."""
+    answers with ``rerank``: verification's evidence then counts in ``p_within_25m`` and the confidence.
+
+    ``hashes`` (reference id -> the sha256 of its photo): recorded as ``Calibration.references`` (those of the
+    located sample), so that a data dir judged by this pipeline can tell whether the figures are its own."""
     from app.locate import ESTIMATE_CANDIDATES, MIN_LOCAL_FEATURES, Excluding, locate_features
 
     ids = sorted(refs)
@@ -246,7 +264,7 @@ def calibrate_collection(
     if len(held) < MIN_QUERIES:
         return Calibration.conservative(
             f"the collection is too small to calibrate ({len(held)} references sampled; at least {MIN_QUERIES} needed)",
-            {"sampled": len(held)},
+            {"sampled": len(held), "too_small": True},
         )
     by_group: dict[str, list[int]] = {}
     for i in ids:
@@ -293,6 +311,7 @@ def calibrate_collection(
                 if s is not None:
                     verified_samples.append(s)
     cal = fit_calibration(samples, seed)
+    cal.references = sorted({hashes[i] for i in held if i in hashes}) if hashes else []
     cal.report["absent_radius_m"] = absent_radius_m
     cal.report["sampled"] = len(held)
     cal.report["auxiliary_fits"] = len(parts)

@@ -199,8 +199,10 @@ def locate_features(
     cluster_radius_m: float = 25.0,
     codes: Codes | None = None,
     features_cache: dict[int, object] | None = None,
+    calibration: Calibration | None = None,
 ) -> LocateAnswer:
     """Search, verify, fuse, shape. ``query_rgb`` is needed only for verification (``options.rerank``).
+    ``calibration``: the rule that judges this collection (``Collection.calibration``), else the pipeline's.
     ``codes``: the features already encoded by ``pipeline`` (calibration and the evaluation locate one photo
     twice, its place present and absent: the second search reuses the first's codes). ``features_cache``:
     the references' matcher features kept across calls (``verify_candidate_pairs``)."""
@@ -257,7 +259,7 @@ def locate_features(
         fused_ids,
     )
     # A verified answer is judged by the rule fitted on verified answers, when the collection has one.
-    calibration = pipeline.calibration.for_answer(bool(options.rerank))
+    calibration = (calibration or pipeline.calibration).for_answer(bool(options.rerank))
     if mode != index.check_mode(None) and calibration.calibrated:
         # The calibration located its sample in the default mode: another mode's scores (Hamming similarities
         # in binary mode) are on another scale, and reading them through it would invent probabilities.

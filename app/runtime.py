@@ -73,7 +73,7 @@ def serving_blas_threads() -> int | None:
     call OpenBLAS's worker threads spin, busy, for about 2^28 cycles before they sleep, and that spinning
     falls on the next query's SIFT and CNN. Measured on 2 cores (``lite2-hybrid-384``, 1600 px photos, the
     service in-process): 234 ms of CPU and 118 ms of wall time per /locate with the default threads, 110 ms
-    and 70 ms with one. Fitting keeps every thread (``all_blas_threads``)."""
+    and 70 ms with one. A fit has its own fixed count (``fit_threads``)."""
     import numpy  # noqa: F401  (threadpoolctl limits the BLAS libraries already loaded: numpy's)
     from threadpoolctl import threadpool_info, threadpool_limits
 
@@ -96,11 +96,23 @@ def _openblas_controller():
     return getattr(threadpoolctl, "OpenBLASController", None)
 
 
-def all_blas_threads():
-    """A context in which BLAS may use every usable core again (a fit inside a serving process: PCA and
-    k-means are large matrix products), restoring the serving limit after it."""
+#: BLAS and OpenMP threads of a fit's numerical steps (``fit_threads``).
+FIT_THREADS = 1
+
+
+def fit_threads():
+    """A context in which BLAS (numpy, scipy, faiss) and OpenMP (scikit-learn's k-means, faiss) use
+    ``FIT_THREADS`` threads, whatever the machine: the fit's k-means, PCA-whitening, ITQ, SVM bank and
+    calibration run inside it.
+
+    Why one thread, on every machine (issue 34): a parallel reduction sums in an order set by the thread
+    count, so the same manifest fitted with 1 and with 2 BLAS threads gave another PCA (another float in the
+    last place is enough to move a k-means assignment, a threshold, a ranked id), and the README's demo
+    figures differed from one machine to the next. It is also faster where cores are busy: OpenMP's threads
+    spin at every one of mini-batch k-means's small parallel steps, and on 2 loaded cores a fit's k-means
+    took minutes with 2 threads (18.8 s against 6.8 s with one on 40,000 descriptors, the same centres).
+    Feature extraction (onnxruntime, OpenCV) keeps its own threads: it is per image, and gives the same
+    features with any count (tests/test_fit_reproducible.py)."""
     from threadpoolctl import threadpool_limits
 
-    from app.settings import usable_cpus
-
-    return threadpool_limits(limits=usable_cpus(), user_api="blas")
+    return threadpool_limits(limits=FIT_THREADS)

@@ -116,7 +116,10 @@ class GeolocService:
         view.check_mode(options.mode)
         if features.config is not None and features.config != view.pipeline.config.name:
             features = view.pipeline.extract(img.rgb)
-        answer = locate_features(view.pipeline, view, self.refs, features, options, img.rgb, self.limits)
+        calibration = col.calibration(view.pipeline)
+        answer = locate_features(
+            view.pipeline, view, self.refs, features, options, img.rgb, self.limits, calibration=calibration
+        )
         answer.index_size, answer.index_generation = view.index.size, view.generation
         answer.index_version = col.version if col.generation == view.generation else 0
         answer.extent = col.store.extent()

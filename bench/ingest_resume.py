@@ -19,7 +19,7 @@ import time
 from pathlib import Path
 
 from app.engine.configs import DEFAULT_CONFIG
-from app.jobs.ingest.progress import Progress
+from app.engine.progress import Progress
 from app.jobs.ingest.run import IngestOptions, IngestRun
 from app.jobs.ingest.sources import open_source
 from app.service import GeolocService

@@ -38,18 +38,26 @@ def restored_blas():
     assert _blas_threads() == before
 
 
-def test_serving_uses_one_blas_thread_and_a_fit_gets_every_core(restored_blas):
+def _openmp_threads() -> set[int]:
+    from threadpoolctl import threadpool_info
+
+    return {i["num_threads"] for i in threadpool_info() if i["user_api"] == "openmp"}
+
+
+def test_serving_uses_one_blas_thread_and_a_fit_one_blas_and_openmp_thread(restored_blas):
+    """A fit's numerics run on FIT_THREADS threads whatever the machine (the same fit everywhere, issue 34)."""
+    import sklearn.cluster  # noqa: F401  (loads scikit-learn's OpenMP runtime)
     from threadpoolctl import threadpool_limits
 
-    from app.runtime import all_blas_threads, serving_blas_threads
-    from app.settings import usable_cpus
+    from app.runtime import FIT_THREADS, fit_threads, serving_blas_threads
 
-    with threadpool_limits(limits=None):  # undone at the end, as the fixture checks
-        assert serving_blas_threads() == 1
+    with threadpool_limits(limits=2):  # a machine with 2 threads for everything; undone at the end
+        serving_blas_threads()
         assert _blas_threads() == {1}
-        with all_blas_threads():
-            assert _blas_threads() == {usable_cpus()}
+        with fit_threads():
+            assert _blas_threads() == {FIT_THREADS} and _openmp_threads() == {FIT_THREADS}
         assert _blas_threads() == {1}, "the serving limit is back after the fit"
+        assert _openmp_threads() == {2}
 
 
 def test_blas_threads_can_be_set(monkeypatch, restored_blas):
@@ -62,26 +70,26 @@ def test_blas_threads_can_be_set(monkeypatch, restored_blas):
         assert serving_blas_threads() == 2 and _blas_threads() == {2}
 
 
-def test_a_fit_on_another_thread_gets_every_core(restored_blas):
+def test_a_fit_on_another_thread_gets_its_threads(restored_blas):
     """The server sets the limit on its main thread and fits on its loader thread (the first start): the
-    fit's threads must rise there too (threadpoolctl lets only one thread drive OpenBLAS's shared pool)."""
+    fit's limit must hold there too (threadpoolctl lets only one thread drive OpenBLAS's shared pool)."""
     import threading
 
+    import sklearn.cluster  # noqa: F401
     from threadpoolctl import threadpool_limits
 
-    from app.runtime import all_blas_threads, serving_blas_threads
-    from app.settings import usable_cpus
+    from app.runtime import FIT_THREADS, fit_threads, serving_blas_threads
 
-    seen: list[set[int]] = []
+    seen: list[tuple[set[int], set[int]]] = []
 
     def fit() -> None:
-        with all_blas_threads():
-            seen.append(_blas_threads())
-        seen.append(_blas_threads())
+        with fit_threads():
+            seen.append((_blas_threads(), _openmp_threads()))
+        seen.append((_blas_threads(), _openmp_threads()))
 
-    with threadpool_limits(limits=None):
+    with threadpool_limits(limits=2):
         serving_blas_threads()
         t = threading.Thread(target=fit)
         t.start()
         t.join()
-        assert seen == [{usable_cpus()}, {1}], seen
+        assert seen == [({FIT_THREADS}, {FIT_THREADS}), ({1}, {2})], seen

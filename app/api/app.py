@@ -22,6 +22,7 @@ from app.jobs.writer import Writer
 from app.runtime import serving_blas_threads
 from app.service import GeolocService
 from app.settings import Settings, usable_cpus
+from app.storage.shared_images import ImagesNotShared, check_images_shared
 
 log = logging.getLogger("geoloc.api")
 #: The page (issue: drop a photo, see where it was taken). Leaflet and Swagger UI are copied into vendor/ by
@@ -91,6 +92,11 @@ def _load(app: FastAPI, stop: threading.Event) -> None:
                 s.locate_concurrency,  # the extraction slots: app/service.py, extraction_slots
                 s.thumbnail_px,
             )
+            try:
+                check_images_shared(service.store)  # on PostgreSQL: one images folder for every host
+            except ImagesNotShared:
+                service.store.close()
+                raise
             if s.worker == "inprocess":
                 _run_writer(app, service)
             if service.store.engine == "postgres":  # a replica: catch up as other hosts commit changes

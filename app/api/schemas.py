@@ -231,3 +231,6 @@ class ReadyOut(BaseModel):
     #: How this process loaded its index: from a ``snapshot`` (plus the changes after it), or ``rebuilt`` from
     #: the database's codes (a replica starting cold with no snapshot it can trust).
     index_loaded: str | None = None
+    #: Which rule judges this collection's answers (its own calibration, or the conservative rule and why),
+    #: and what a collection that cannot give a confident answer yet needs.
+    calibration: str | None = None

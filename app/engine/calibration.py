@@ -50,6 +50,13 @@ ABSENT_WEIGHT = 1.0
 C = 0.5
 CONSERVATIVE_SUPPORT = 3
 CONSERVATIVE_SHARE = 0.8
+#: A calibration judges a collection that holds at least this share of the references it located.
+SAME_COLLECTION_SHARE = 0.5
+#: About how many references (photos and crops, several per place) a collection needs before its own
+#: calibration finds a level at which answers are confident: measured on penn-campus-gps by refitting
+#: subsets of whole captures (``python -m bench.calibration_size``, docs/RESULTS.md): none of 7 refits of
+#: 22-123 references found one, 1 of 4 of 160-243, both of 320 and 389.
+CONFIDENT_FROM_REFERENCES = 300
 
 # The reason codes a client can branch on (documented in the README and in /locate's schema).
 NO_FEATURES = "no_features"
@@ -102,6 +109,9 @@ class Calibration:
     #: nested ``Calibration``'s fields; None when the fit did not verify (``--calibrate-rerank``): verified
     #: answers then read this rule's global columns only.
     verified: dict | None = None
+    #: The sha256 of each reference photo the calibration located: what tells a data dir whether these
+    #: figures are its own (``for_collection``).
+    references: list[str] = field(default_factory=list)
 
     @classmethod
     def conservative(cls, note: str, report: dict | None = None) -> Calibration:
@@ -110,6 +120,39 @@ class Calibration:
     @property
     def calibrated(self) -> bool:
         return self.source == "collection"
+
+    def for_collection(self, present: int) -> Calibration:
+        """This rule, when the collection holds at least ``SAME_COLLECTION_SHARE`` of the ``references`` it was
+        fitted on (``present`` of them); else the conservative rule, saying why.
+
+        Why: a data dir that reads the models dir's pipeline (any ``geoloc ingest --data-dir D``) used to be
+        judged by the demo collection's figures: 20 penn photos read "not in this collection (best 4 %)"
+        for a candidate 0 m from the truth. A collection is judged by its own calibration or by none."""
+        if not self.calibrated:
+            return self
+        if not self.references:
+            return Calibration.conservative(
+                "this pipeline's calibration does not record which collection it was fitted on (fitted before "
+                "it did): run `geoloc refit` to calibrate this collection on its own references"
+            )
+        if present >= SAME_COLLECTION_SHARE * len(self.references):
+            return self
+        return Calibration.conservative(
+            f"the pipeline's calibration was fitted on another collection ({present} of the "
+            f"{len(self.references)} references it located are in this one): run `geoloc refit` to calibrate "
+            "this collection on its own references"
+        )
+
+    def confidence_note(self, references: int) -> str | None:
+        """What a collection that cannot give a confident answer yet needs (None when it can): the refit
+        summary and /ready say it, so that a small collection's answers are not read as a fault."""
+        small = self.report.get("too_small") or (self.calibrated and self.confident_p > 1.0)
+        if not small:
+            return None
+        return (
+            f"no answer can be confident in this collection yet: it needs about {CONFIDENT_FROM_REFERENCES} "
+            f"references (it has {references}), several of each place, then `geoloc refit`"
+        )
 
     def for_answer(self, verified: bool) -> Calibration:
         """The rule that reads this answer's evidence: the verified one for a verified answer, when the
@@ -183,7 +226,7 @@ class Calibration:
         return Decision(
             False,
             AMBIGUOUS,
-            f"ambiguous: the best group's chance of lying within 25 m is {answer_p:.1%}, {needs}",
+            f"the best group's chance of lying within 25 m is {answer_p:.1%}, {needs}",  # the code says ambiguous
             p,
             answer_p,
         )
@@ -233,7 +276,7 @@ def fit_calibration(samples: list[Sample], seed: int = 0) -> Calibration:
         return Calibration.conservative(
             f"the collection is too small to calibrate ({len(present)} references sampled, {positives} right "
             f"candidates among their answers; at least {MIN_QUERIES} and {MIN_POSITIVES} needed)",
-            report,
+            {**report, "too_small": True},
         )
     names = samples[0].evidence.names
     x = np.vstack([s.evidence.columns(names) for s in samples if len(s.within)])

@@ -27,6 +27,7 @@ from app.engine.calibration import reliability
 from app.engine.configs import PipelineConfig
 from app.engine.geo import haversine_m
 from app.engine.pipeline import Features, Pipeline
+from app.engine.progress import tracked
 from app.engine.training.svm_training import Geotagged, index_of
 from app.errors import ManifestCannotBeEvaluated
 from app.evaluation.datasets import Row, read_manifest
@@ -129,7 +130,7 @@ def extract_all(pipeline: Pipeline, rows: list[Row], workers: int = 2, desc: str
         return Extracted(pipeline.extract(img.rgb), decode_ms)
 
     with ThreadPoolExecutor(max_workers=workers) as pool:
-        return list(tqdm(pool.map(one, rows), total=len(rows), desc=desc, unit="img"))
+        return list(tracked(pool.map(one, rows), len(rows), desc))
 
 
 def extract_cached(pipeline: Pipeline, rows: list[Row], cache_dir: Path | None, workers: int = 2) -> list[Extracted]:

@@ -31,13 +31,13 @@ from app.engine.configs import get_config
 from app.engine.errors import GeolocError
 from app.engine.imageio import ImageLimits
 from app.engine.pipeline import Features, Pipeline
+from app.engine.progress import Progress
 from app.engine.training.svm_training import NothingToTrainOn
 from app.errors import FitRefused, ServiceError
-from app.jobs.ingest.progress import Progress
 from app.jobs.ingest.sources import Source, SourceItem, open_source
 from app.permissions import private_dir
-from app.runtime import all_blas_threads
 from app.storage.database import DB_NAME
+from app.storage.files import sha256_of
 from app.storage.store import ReferenceStore
 
 log = logging.getLogger("geoloc.first_start")
@@ -65,6 +65,7 @@ class FitPhoto:
     lat: float
     lon: float
     group: str
+    sha256: str  # of the file's bytes: what the ingest stores, and the calibration records
 
 
 def needed(data_dir: Path) -> bool:
@@ -180,7 +181,8 @@ def _extract(
 
     def one(item: SourceItem) -> FitPhoto | None:
         try:
-            img = pipe.decode(item.path.read_bytes(), limits)  # the pixels ingest and /locate will see
+            data = item.path.read_bytes()
+            img = pipe.decode(data, limits)  # the pixels ingest and /locate will see
         except (OSError, GeolocError) as e:
             log.warning("%s: not used for the fit (%s)", item.path, e)
             return None
@@ -190,7 +192,8 @@ def _extract(
             return None
         lat, lon = position
         features = pipe.extract(img.rgb)
-        return FitPhoto(features, lat, lon, capture_group(lat, lon, item.captured_at or img.captured_at))
+        group = capture_group(lat, lon, item.captured_at or img.captured_at)
+        return FitPhoto(features, lat, lon, group, sha256_of(data))
 
     out: list[FitPhoto] = []
     with ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
@@ -221,10 +224,15 @@ def _fit(
         raise FirstStartError(f"no photos in {source.path}: put geotagged photos (EXIF GPS) there")
     log.info("first start: fitting the %s pipeline on %d photos from %s", cfg.name, len(items), source.path)
     every = max(1, len(items) // 10)
+    t0 = time.perf_counter()
 
     def step(n: int) -> None:
         if n % every == 0 or n == len(items):
-            say(f"first start: fitting the pipeline: step 1 of {STEPS}, extracting features ({n}/{len(items)} photos)")
+            rate = f", {n / (time.perf_counter() - t0):.1f} photos/s" if n else ""
+            say(
+                f"first start: fitting the pipeline: step 1 of {STEPS}, extracting features "
+                f"({n}/{len(items)} photos{rate})"
+            )
 
     step(0)
     pipe = Pipeline(cfg, models_dir=Path(models_dir))
@@ -238,13 +246,17 @@ def _fit(
     say(f"first start: fitting the pipeline: step 2 of {STEPS}, codebook, PCA and SVM bank on {len(photos)} photos")
     refs = {i: Geotagged(p.features, p.lat, p.lon, p.group) for i, p in enumerate(photos)}
     source_name = bank_source(cfg, None)
+    hashes = {i: p.sha256 for i, p in enumerate(photos)}
+    seconds: dict[str, float] = {}
+    features = [p.features for p in photos]
     try:
-        with all_blas_threads():  # the server serves with one BLAS thread (app.runtime)
-            fit_pipeline(pipe, [p.features for p in photos], refs, [], source_name, seed=seed)
+        fit_pipeline(pipe, features, refs, [], source_name, seed=seed, hashes=hashes, seconds=seconds)
     except (FitRefused, NothingToTrainOn) as e:  # too small or too uniform for a bank: serve without one, say so
         log.warning("first start: no SVM bank (%s); the pipeline is fitted without one", e)
-        pipe.bank = None
         source_name = "none"
+        pipe.bank = None  # and calibrated on these photos all the same: never judged by another's figures
+        fit_pipeline(pipe, features, refs, [], source_name, seed=seed, hashes=hashes, seconds=seconds)
+    log.info("first start: fitted in %s", ", ".join(f"{k} {v:.1f} s" for k, v in seconds.items()))
     target = save_generation(
         store.data_dir, pipe, 0, {"first_start": str(source.path), "fit_photos": len(photos), "svm_bank": source_name}
     )

@@ -34,10 +34,11 @@ from app.engine.configs import DEFAULT_CONFIG, get_config
 from app.engine.errors import GeolocError
 from app.engine.imageio import ImageLimits
 from app.engine.pipeline import Features, Pipeline, PipelineSource
+from app.engine.progress import tracked
 from app.errors import FitRefused, RefitError, StorageUnavailable
 from app.fitting import bank_source, calibrate_collection, check_bank_kind, train_bank
 from app.jobs.writer import write_snapshot_if_free
-from app.runtime import all_blas_threads
+from app.runtime import fit_threads
 from app.storage.generations import ReindexTarget
 from app.storage.store import ReferenceStore
 
@@ -100,7 +101,7 @@ def _extract(pipe: Pipeline, paths: Sequence[Path], limits: ImageLimits, workers
             return None
 
     with ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
-        return list(tqdm(pool.map(one, paths), total=len(paths), desc=desc, unit="img", disable=None))
+        return list(tracked(pool.map(one, paths), len(paths), desc))
 
 
 def fit_generation(
@@ -160,14 +161,20 @@ def fit_generation(
     if options.calibrate_rerank:
         images = {int(i): p for i, p in zip(picked, paths, strict=True) if p is not None}
     pipe.calibration = calibrate_collection(
-        pipe, refs, [t.features for t in train], options.calibration_sample, seed=options.seed, images=images
+        pipe,
+        refs,
+        [t.features for t in train],
+        options.calibration_sample,
+        seed=options.seed,
+        images=images,
+        hashes={i: rows[i].sha256 for i, _ in kept},
     )
     seconds["calibration"] = time.perf_counter() - t1
     extra = {"refit_sample": len(kept), "svm_bank_source": source}
     target = save_generation(store.data_dir, pipe, generation + 1, extra)
-    summary = RefitSummary(
-        target.generation, target.pipeline, name, fitted_on=len(kept), bank=source, calibration=pipe.calibration.note
-    )
+    needs = pipe.calibration.confidence_note(len(ids))
+    note = pipe.calibration.note + (f"; {needs}" if needs else "")
+    summary = RefitSummary(target.generation, target.pipeline, name, fitted_on=len(kept), bank=source, calibration=note)
     summary.seconds.update(seconds)
     return target, summary
 
@@ -283,7 +290,7 @@ def refit(
         summary = RefitSummary(target.generation, target.pipeline, target.config, resumed=True)
         log.info("continuing the interrupted re-index into generation %d", target.generation)
     else:
-        with all_blas_threads():  # every core, also where a serving process (one BLAS thread) runs this
+        with fit_threads():  # one BLAS and OpenMP thread: the same fit on any machine (app.runtime)
             target, summary = fit_generation(store, models_dir, options, limits)
     already = store.start_reindex(target)
     t0 = time.perf_counter()

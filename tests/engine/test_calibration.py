@@ -180,3 +180,27 @@ def test_a_verified_answer_is_judged_by_the_verified_rule_which_survives_a_resta
     assert back.verified["names"] == cal.verified["names"]  # a tuple again, as it was saved
     # Without a verified rule a verified answer reads the plain rule's global columns.
     assert fit_calibration(plain).for_answer(True).names == GLOBAL_NAMES
+
+
+def test_an_ambiguous_reason_does_not_repeat_its_code():
+    """The page showed "ambiguous: ambiguous: ..." (the code, then words that began with it; issue 34)."""
+    rng = np.random.default_rng(0)
+    cal = fit_calibration([_sample(rng, present) for present in [True] * 60 + [False] * 60])
+    cal.confident_p = 0.9999  # nothing is confident: the present places are ambiguous
+    d = _decide(cal, rng, True)
+    assert d.code == AMBIGUOUS and not d.reason.lower().startswith("ambiguous"), d.reason
+    assert "chance of lying within 25 m" in d.reason
+
+
+def test_a_calibration_judges_only_the_collection_it_was_fitted_on():
+    rng = np.random.default_rng(0)
+    cal = fit_calibration([_sample(rng, present) for present in [True] * 60 + [False] * 60])
+    cal.references = [f"{i:064x}" for i in range(40)]
+    assert cal.for_collection(40) is cal and cal.for_collection(20) is cal  # its own (a few deleted)
+    other = cal.for_collection(3)
+    assert not other.calibrated and "fitted on another collection (3 of the 40" in other.note
+    cal.references = []  # fitted before calibrations recorded their references
+    assert not cal.for_collection(40).calibrated
+    assert cal.confidence_note(120) is None
+    cal.confident_p = 1.01  # never confident
+    assert "it needs about" in cal.confidence_note(20) and "(it has 20)" in cal.confidence_note(20)

@@ -2,7 +2,7 @@
 
 import io
 
-from app.jobs.ingest.progress import Progress
+from app.engine.progress import Progress
 
 
 def test_lines_every_thousand_images_and_at_the_end():

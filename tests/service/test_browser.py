@@ -254,6 +254,8 @@ def test_an_answer_without_estimate(browser, server, tile_png, viewport, tmp_pat
     assert re.search(r"spread over \d", page.inner_text("#explain"))
     assert "from candidate 1" in page.locator("#candidates li").nth(1).inner_text()
     assert page.locator("#map path.leaflet-interactive").count() == 0  # no estimate circle
+    # The dashed rectangle (the collection's extent) has its line in the legend (issue 34).
+    assert page.locator("#map path.extent").count() == 1 and page.locator("#legend-extent").is_visible()
     check_markers = markers(page)
     one = next(m for m in check_markers if m["n"] == "1")
     assert all(one["z"] > m["z"] for m in check_markers if m is not one)
@@ -268,6 +270,8 @@ def test_an_answer_without_estimate(browser, server, tile_png, viewport, tmp_pat
     page.click("#locate-btn")
     page.wait_for_selector("#locate-error:not([hidden])")
     assert "not a JPEG" in page.inner_text("#locate-error")
+    # Beside the refusal, the caption no longer says the file "can still be located" (issue 34).
+    assert "can still be located" not in page.inner_text("#preview-box"), page.inner_text("#preview-box")
     assert not page.errors, page.errors
 
 
@@ -328,6 +332,42 @@ def test_no_match(browser, server, tile_png):
     assert page.locator("#legend").is_hidden()
     screenshot(page, "locate-no-match-phone.png")
     no_horizontal_scroll(page)
+    assert not page.errors, page.errors
+
+
+def test_markers_a_few_metres_apart_name_each_other(browser, server, tile_png):
+    """Two candidates 6 m apart: their markers overlap at the popup's zoom (issue 34: markers 4 and 8 hid
+    each other unseen), so each popup names the other; one 300 m away is not named."""
+    ref = server.client.get("/references?limit=1").json()["items"][0]
+    spots = [(0.0, 0.61), (6.0, 0.58), (300.0, 0.55)]  # metres north of the reference, score
+    answer = {
+        "candidates": [
+            {
+                "reference_id": ref["id"], "lat": ref["lat"] + m / 111_320, "lon": ref["lon"], "score": s,
+                "distance_m": None, "label": None, "captured_at": None, "heading": None, "inliers": None,
+                "p_within_25m": None,
+            }
+            for m, s in spots
+        ],
+        "estimate": None,
+        "reason": "the candidates disagree on the place",
+        "reason_code": "ambiguous",
+        "mode": "float",
+        "config": "hybrid-bin",
+        "features": {"extracted": 1200, "kept": 900},
+        "timings_ms": {"total": 12.0},
+        "index": {"size": len(server.rows), "version": 1},
+    }  # fmt: skip
+    page = open_page(browser, server, "desktop", tile_png)
+    page.route("**/locate", lambda route: route.fulfill(status=200, json=answer))
+    page.set_input_files("#locate-file", str(server.query))
+    page.click("#locate-btn")
+    page.wait_for_selector("#answer:not([hidden])")
+    page.click("#candidates li:nth-child(2) button")
+    page.wait_for_selector(".leaflet-popup-content")
+    popup = page.inner_text(".leaflet-popup-content")
+    assert popup.startswith("2. ") and "Overlapping markers (within 12 m): 1" in popup, popup
+    assert "3" not in popup.split("Overlapping markers", 1)[1], popup
     assert not page.errors, page.errors
 
 
@@ -428,7 +468,7 @@ def test_a_photo_without_features(browser, server, tile_png, tmp_path):
     page.wait_for_selector("#answer:not([hidden])", timeout=60_000)
     assert page.inner_text("#level") == "No match"
     assert page.inner_text("#headline") == "This photo has nothing to recognise a place by."
-    assert "No features" in page.inner_text("#features-used")
+    assert page.inner_text("#answer").count("blank, dark or blurred") == 1, "said once (issue 34)"
     assert page.locator("#candidates li").count() == 0 and page.locator("#map .num-marker").count() == 0
     assert not page.errors, page.errors
 

@@ -15,8 +15,10 @@ import sys
 import time
 from pathlib import Path
 
+import httpx
 import pytest
 
+from app.apikey import key_path, read_key
 from tests.conftest import PENN
 from tests.service.conftest import CONFIG, Server, wait_job
 
@@ -220,7 +222,7 @@ def test_check_backup_and_restore_on_postgres(tmp_path, fitted_models, hosts_env
     assert out.returncode == 0 and "backed up 30 references (30 images" in out.stdout, out.stdout + out.stderr
     assert (tmp_path / "bk" / "database.dump").stat().st_size > 0
     # An image lost from the shared folder is a problem the check names.
-    victim = sorted(Path(hosts_env["GEOLOC_IMAGES_DIR"]).iterdir())[0]
+    victim = sorted(p for p in Path(hosts_env["GEOLOC_IMAGES_DIR"]).iterdir() if not p.name.startswith("."))[0]
     victim.unlink()
     out = run("check", *where, *models)
     assert out.returncode == 1 and "image file is missing" in out.stderr, out.stdout + out.stderr
@@ -320,7 +322,8 @@ def test_a_poison_reference_leaves_both_replicas_serving(tmp_path, fitted_models
     """Issue 30: a strip of 49000 x 32 pixels stored pending (as an older version accepted it) killed the
     writer, then the next host to take the role, 19 s later. Now it fails alone with its reason: both hosts
     keep serving and the rest of its batch is indexed."""
-    from tests.service.test_hardening_shapes import STRIPS, _add_pending
+    from tests.service.test_hardening_shapes import _add_pending
+    from tools.crafted_images import STRIPS
 
     for name, value in hosts_env.items():
         monkeypatch.setenv(name, value)
@@ -338,3 +341,33 @@ def test_a_poison_reference_leaves_both_replicas_serving(tmp_path, fitted_models
             assert host.client.get("/health").status_code == 200
             assert host.proc.poll() is None
             assert _locate(host, NEW_PHOTOS[1])[0]["reference_id"] == ids[2]
+
+
+def test_a_host_without_the_shared_images_folder_refuses_to_serve(tmp_path, fitted_models, hosts_env):
+    """Two servers on one database, each with its own data dir and GEOLOC_IMAGES_DIR left out: the first
+    serves, the second never gets ready and says why on /ready (uploads there used to be accepted and never
+    found by the writer, issue 34); uploads to it are refused, not lost."""
+    env = {k: v for k, v in hosts_env.items() if k != "GEOLOC_IMAGES_DIR"}
+    with Server(tmp_path / "host-a", fitted_models, extra_env=env) as a:
+        b = Server(tmp_path / "host-b", fitted_models, extra_env=env)
+        try:
+            deadline = time.monotonic() + 120
+            while True:
+                assert time.monotonic() < deadline, b.read_log()
+                try:
+                    r = b.client.get("/ready")
+                except httpx.TransportError:  # not listening yet
+                    time.sleep(0.5)
+                    continue
+                if r.status_code == 503 and "GEOLOC_IMAGES_DIR" in r.json()["message"]:
+                    break
+                assert r.status_code != 200, "the second host serves with an images folder no other host reads"
+                time.sleep(0.5)
+            assert "one shared folder" in r.json()["message"]
+            photo = NEW_PHOTOS[0]
+            b.client.headers["X-API-Key"] = read_key(key_path(tmp_path / "host-b"))
+            up = b.client.post("/references", files=[("image", (photo.name, photo.read_bytes(), "image/jpeg"))])
+            assert up.status_code == 503, up.text
+            assert a.client.get("/ready").status_code == 200
+        finally:
+            b.stop()

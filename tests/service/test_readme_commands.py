@@ -147,11 +147,13 @@ def shell(tmp_path_factory, mini_collection, fitted_models, mini_manifest):
         " M ": f" {mini_manifest} ",
     }
 
-    def run(line: str, job_id: str | None = None) -> subprocess.CompletedProcess:
+    def run(line: str, job_id: str | None = None, ref_id: int | None = None) -> subprocess.CompletedProcess:
         for name, value in placeholders.items():
             line = line.replace(name, value)
         if job_id is not None:
             line = line.replace("JOB_ID", job_id)
+        if ref_id is not None:
+            line = line.replace("REF_ID", str(ref_id))
         script = f'set -eo pipefail\ncd "{REPO}"\n{ACTIVATE}\ncd "{work}"\nKEY=$(geoloc api-key)\n{line}\n'
         return subprocess.run(["bash", "-c", script], capture_output=True, text=True, env=env, timeout=600, cwd=work)
 
@@ -178,21 +180,28 @@ def test_the_set_up_line_is_in_the_readme_and_geoloc_needs_it(shell):
 
 
 def test_every_readme_command_is_run_here_or_elsewhere(shell):
-    """The curl lines in order (a job id from an answer feeds the JOB_ID line), then the geoloc lines."""
+    """The curl lines in order (a job id from an answer feeds the JOB_ID line, a reference it added the REF_ID
+    lines), then the geoloc lines. The README edits and deletes only a reference it added itself, never one
+    of the demo collection's (issue 34: its PATCH and DELETE named demo reference 12)."""
     lines = [c for c in commands(README) if c.split()[0] in ("curl", "geoloc")]
     curls = [c for c in lines if c.startswith("curl")]
     assert len(curls) >= 14, curls
-    job_id = None
+    assert not [c for c in curls if re.search(r"/references/\d", c)], "a README line names a demo reference"
+    before = {r["id"] for r in shell.server.client.get("/references", params={"limit": 500}).json()["items"]}
+    job_id, ref_id = None, None
     answers: dict[str, str] = {}
     for line in curls:
-        p = shell(line, job_id)
+        p = shell(line, job_id, ref_id)
         assert p.returncode == 0, (line, p.stdout, p.stderr)
         status, body = _status_and_body(p)
         assert 200 <= status < 300, (line, status, body)
         if "/references" in line and "-F image=" in line:
             assert status == 202, (line, body)
-            job_id = json.loads(body)["job_id"]
+            job_id, ref_id = json.loads(body)["job_id"], json.loads(body)["reference_ids"][0]
         answers[line] = body
+    assert ref_id not in before
+    after = {r["id"] for r in shell.server.client.get("/references", params={"limit": 500}).json()["items"]}
+    assert before <= after and ref_id not in after, "the README's DELETE removed the reference it added"
     located = json.loads(next(b for line, b in answers.items() if "/locate" in line))
     assert located["candidates"] and located["config"] == CONFIG
     assert json.loads(next(b for line, b in answers.items() if "JOB_ID" in line))["id"] == job_id
@@ -261,3 +270,36 @@ def test_the_readme_example_answer_has_the_fields_of_a_real_one(shell):
     table = section.split("| field | what it is |", 1)[1]
     for field in [*example, *example["candidates"][0]]:
         assert f"`{field}`" in table or f"`.{field}`" in table or f"[].{field}`" in table, field
+
+
+def test_the_readme_synopsis_shows_each_numeric_default_the_command_has():
+    """`[--workers 2]` was shown where the default is 1 (issue 34): every `[--option NUMBER]` of a synopsis
+    line is the option's real default."""
+    import typer.main
+
+    from app.cli import app
+
+    group = typer.main.get_command(app)
+    checked = []
+    for line in commands(README):
+        words = line.split()
+        if words[0] != "geoloc" or len(words) < 2 or words[1] not in group.commands:
+            continue
+        params = {o: p for p in group.commands[words[1]].params for o in p.opts}
+        for name, value in re.findall(r"\[(--[a-z-]+) (\d+(?:\.\d+)?)\]", line):
+            if name in params and params[name].default is not None:  # None: the value is an example
+                assert float(params[name].default) == float(value), (line, name, params[name].default)
+                checked.append(f"{words[1]} {name}")
+    assert "ingest --workers" in checked and "locate --top-k" in checked, checked
+
+
+def test_the_readme_recipe_for_another_configuration_fills_its_data_dir_and_git_ignores_it():
+    """The hybrid-bin recipe served an empty collection (no ingest shown) from an untracked index-bin/ (issue
+    34): it ingests into the data dir it serves, and git ignores that folder."""
+    text = " ".join(README.split())
+    recipe = text.split("serve another one on its own data dir", 1)[1].split("geoloc serve", 1)[0]
+    assert "make fit CONFIG=hybrid-bin" in recipe
+    assert re.search(r"geoloc ingest [^`]*--config hybrid-bin --data-dir index-bin", recipe), recipe
+    assert "GEOLOC_CONFIG=hybrid-bin GEOLOC_DATA_DIR=index-bin" in recipe
+    ignored = subprocess.run(["git", "check-ignore", "-q", "index-bin/references.sqlite"], cwd=REPO)
+    assert ignored.returncode == 0, "index-bin/ is not ignored by git"

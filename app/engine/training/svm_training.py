@@ -26,12 +26,12 @@ from collections.abc import Iterable
 from dataclasses import asdict, dataclass
 
 import numpy as np
-from tqdm import tqdm
 
 from app.engine.errors import GeolocError
 from app.engine.geo import haversine_m
 from app.engine.index.references import ReferenceIndex
 from app.engine.pipeline import Features, Pipeline
+from app.engine.progress import tracked
 from app.engine.svm_bank import BankParams, SvmBank, labels_from_scores, match_scores
 
 KEEP_FRACTIONS = (0.3, 0.5, 0.7, 0.85)  # candidate operating points for the threshold
@@ -135,7 +135,7 @@ def build_training_set(
     neg_r = neg_radius_m or negative_radius(lat, lon, pos_radius_m)
     scored = []
     n_pos_refs = n_neg_refs = 0
-    for t in tqdm(train, desc="svm labels", unit="img", leave=False):
+    for t in tracked(train, len(train), "svm labels"):
         if t.features.n_local == 0:
             continue
         ids, d = retrieve(t, top_n)

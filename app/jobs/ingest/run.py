@@ -36,7 +36,7 @@ from app.engine.errors import (
     UnreadableImage,
     UnsupportedImageFormat,
 )
-from app.jobs.ingest.progress import Progress
+from app.engine.progress import Progress
 from app.jobs.ingest.sources import Source, SourceItem
 from app.jobs.writer import Writer
 from app.service import GeolocService

@@ -220,6 +220,8 @@ async function locate() {
   } catch (e) {
     status("locate", "");
     showError("locate", e.message);
+    // The caption had promised that a photo the browser cannot draw "can still be located".
+    if ($("preview").hidden) $("preview-caption").textContent = "Your photo (the service could not read it either: see below)";
   } finally {
     $("locate-btn").disabled = false;
   }
@@ -344,7 +346,8 @@ function renderAnswer(res) {
   $("level").className = `level ${level}`;
   $("headline").textContent = words.headline;
   $("explain").textContent = words.explain;
-  $("features-used").textContent = featuresInWords(res.features);
+  // A photo without features is said so once, by the verdict.
+  $("features-used").textContent = res.reason_code === "no_features" ? "" : featuresInWords(res.features);
   technical(res);
   $("answer").hidden = false;
 }
@@ -411,10 +414,15 @@ function renderLocate(res) {
   drawLocate(res);
 }
 
-// Markers at one spot hide each other: each popup names the others there.
+// Markers at one spot hide each other, and so do markers a few metres apart (24 px icons cover 11 m at
+// the zoom a candidate's Map button opens, 18): each popup names the others there and those that close.
+const OVERLAP_M = 12;
 function sameSpot(cands, i) {
-  const here = cands.map((c, j) => j).filter((j) => j !== i && haversine(cands[i], cands[j]) < 1);
-  return here.length ? `Also at this spot: ${here.map((j) => j + 1).join(", ")}` : "";
+  const others = cands.map((c, j) => [j, haversine(cands[i], c)]).filter(([j]) => j !== i);
+  const here = others.filter(([, d]) => d < 1).map(([j]) => j + 1);
+  const near = others.filter(([, d]) => d >= 1 && d < OVERLAP_M).map(([j]) => j + 1);
+  return [here.length ? `Also at this spot: ${here.join(", ")}` : "",
+    near.length ? `Overlapping markers (within ${OVERLAP_M} m): ${near.join(", ")}` : ""];
 }
 
 // Marker 1 is drawn last and with the largest z-index offset, so it is on top of any later candidate at
@@ -427,6 +435,7 @@ function drawLocate(res) {
   const est = res.estimate;
   $("legend").hidden = n === 0;
   $("legend-est").hidden = !est;
+  $("legend-extent").hidden = true;
   const bounds = L.latLngBounds(res.candidates.map((c) => [c.lat, c.lon]));
   if (est) {
     const circle = L.circle([est.lat, est.lon], { radius: est.radius_m, color: "#c92a2a", weight: 2, fillOpacity: 0.12 })
@@ -442,6 +451,7 @@ function drawLocate(res) {
       { color: "#1c5fa8", weight: 2, dashArray: "6 4", fill: false, interactive: false, className: "extent" })
       .addTo(layer);
     bounds.extend(box.getBounds());
+    $("legend-extent").hidden = false;
   }
   candidateMarkers = res.candidates.map((c, i) => {
     const name = refName(c.reference_id, c.label).title;
@@ -452,7 +462,7 @@ function drawLocate(res) {
       alt: `Candidate ${i + 1}`,
       riseOnHover: true,
     }).bindPopup(el("div", {}, ...lines(`${i + 1}. ${name}`, whereFrom(c, i, res) || "best match",
-      sameSpot(res.candidates, i))));
+      ...sameSpot(res.candidates, i))));
   });
   candidateMarkers.slice().reverse().forEach((m) => m.addTo(layer));
   if (bounds.isValid()) map.fitBounds(bounds, { padding: [30, 30], maxZoom: 18 });

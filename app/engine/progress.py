@@ -1,4 +1,4 @@
-"""Progress of a long ingestion: a tqdm bar on a terminal, one plain line per thousand images otherwise.
+"""Progress of a long ingestion or fit: a tqdm bar on a terminal, one plain line per so many images otherwise.
 
 Why two forms: a bar redrawn in place is what a person at a terminal wants, but in a log file (cron, CI,
 ``nohup``) it is noise, while a line every 1,000 images with the rate and the ETA is what a log needs.
@@ -8,9 +8,12 @@ from __future__ import annotations
 
 import sys
 import time
-from typing import TextIO
+from collections.abc import Iterable, Iterator
+from typing import TextIO, TypeVar
 
 from tqdm import tqdm
+
+T = TypeVar("T")
 
 
 def _duration(seconds: float) -> str:
@@ -64,3 +67,15 @@ class Progress:
             self._bar.close()
         elif self.done % self.every:
             self._line()  # the last partial thousand
+
+
+def tracked(items: Iterable[T], total: int, desc: str, stream: TextIO | None = None) -> Iterator[T]:
+    """``items``, counted: a bar on a terminal, else a line with the rate every tenth of ``total`` (a fit's
+    extraction and SVM labelling, which a log used to show as nothing, or as thousands of redrawn bars)."""
+    progress = Progress(total, desc=desc, every=max(1, total // 10), stream=stream)
+    try:
+        for item in items:
+            yield item
+            progress.update(1)
+    finally:
+        progress.close()
