@@ -33,6 +33,13 @@ from app.engine.svm_bank import SvmBank
 from app.engine.vlad import Codebook, vlad
 
 PIPELINE_MANIFEST = "pipeline.json"
+#: A decode keeps at least this many times the sides a pipeline's branches read (issue 33). At 1 (decoding
+#: at the branches' scale, JPEG DCT scaling to between 1x and 2x), a 1600 px JPEG was read at 800 px, the same
+#: pixels as a PNG at 533 px (box reduce by 3) and its 12 MP original at 504 (DCT 1/8): three pictures for
+#: one photo, and hybrid R@1 on whole photos fell from 0.45 to 0.325. At 2 a 1600 px photo is decoded whole
+#: whatever its container, a 12 MP one at 1/4 (JPEG) or by a box of 4 (PNG), and the branches' area filters
+#: do the rest.
+DECODE_OVERSAMPLE = 2
 PIPELINE_FORMAT = 1
 
 
@@ -155,19 +162,26 @@ class Pipeline:
     # -- stage 0: decode ------------------------------------------------------------------------------
     @property
     def decode_sides(self) -> tuple[int, int]:
-        """(long side, short side) the branches need from a decoded image: the local extractor's long side
-        and the global model's short side. A JPEG is decoded at the smallest DCT scale that keeps both
-        (a 1600 px photo at 800 px, a 12 MP one at 1008), so decoding at full size is never wasted."""
+        """(long side, short side) the branches read from a decoded image: the local extractor's long side
+        and the global model's short side. ``decode`` keeps ``DECODE_OVERSAMPLE`` times each."""
         c = self.config
         long_side = c.local_long_side if c.local else 0
         short_side = c.cnn_short_side if c.uses_global_model else 0
         return long_side, short_side
 
     def decode(self, data: bytes, limits: ImageLimits | None = None) -> LoadedImage:
-        """Decode an image for this pipeline (``load_image`` with ``limits``, at the scale ``decode_sides``
-        needs): the one decode of queries, references, fitting and evaluation, so all see the same pixels."""
+        """Decode an image for this pipeline (``load_image`` with ``limits``, keeping at least
+        ``DECODE_OVERSAMPLE`` times the sides ``decode_sides`` reads): the one decode of queries, references,
+        fitting and evaluation, so all see the same pixels. Each branch then resizes with its own area
+        filter from at least twice its size, so the container's reduction (JPEG's DCT scaling, PNG's box
+        reduce, or none) no longer decides which pixels a branch sees (issue 33)."""
         long_side, short_side = self.decode_sides
-        return load_image(data, limits, decode_long_side=max(long_side, 1), decode_short_side=short_side)
+        return load_image(
+            data,
+            limits,
+            decode_long_side=max(long_side * DECODE_OVERSAMPLE, 1),
+            decode_short_side=short_side * DECODE_OVERSAMPLE,
+        )
 
     # -- stage 1: features ----------------------------------------------------------------------------
     def extract(self, rgb: np.ndarray) -> Features:

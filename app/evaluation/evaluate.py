@@ -26,7 +26,7 @@ from app.engine.artifacts import atomic_write_bytes
 from app.engine.calibration import reliability
 from app.engine.configs import PipelineConfig
 from app.engine.geo import haversine_m
-from app.engine.pipeline import Features, Pipeline
+from app.engine.pipeline import DECODE_OVERSAMPLE, Features, Pipeline
 from app.engine.training.svm_training import Geotagged, index_of
 from app.errors import ManifestCannotBeEvaluated
 from app.evaluation.datasets import Row, read_manifest
@@ -138,7 +138,8 @@ def extract_cached(pipeline: Pipeline, rows: list[Row], cache_dir: Path | None, 
     if cache_dir is None:
         return extract_all(pipeline, rows, workers)
     # The decode scale is part of the key: features of a pipeline-scale decode differ from a 1600 px one.
-    key = hashlib.sha256((pipeline.config.extraction_key() + f"decode={pipeline.decode_sides}").encode())
+    decode = f"decode={pipeline.decode_sides}x{DECODE_OVERSAMPLE}"
+    key = hashlib.sha256((pipeline.config.extraction_key() + decode).encode())
     for r in rows:
         st = r.image.stat()
         key.update(f"{r.image}:{st.st_size}:{st.st_mtime_ns}".encode())
