@@ -170,6 +170,7 @@ def _fit_with_bank(
     """``app.fitting.fit_pipeline``: the pipeline on every row, then the bank from the db rows (the collection
     rule, plus train rows) or from the train rows alone, retrieved against an in-memory index of the db rows
     encoded by the pipeline just fitted."""
+    from app.engine.learned_whitening import Place
     from app.engine.training.svm_training import Geotagged
     from app.errors import FitRefused
     from app.fitting import fit_pipeline
@@ -186,7 +187,8 @@ def _fit_with_bank(
     refs = {i: Geotagged(feats[i], rows[i].lat, rows[i].lon, rows[i].group) for i in db}
     try:
         images = {i: rows[i].image for i in db} if verify else None
-        fit_pipeline(pipe, feats, refs, train, source, kind, seed, calibration_sample, images)
+        places = [Place(r.lat, r.lon, r.group) for r in rows]
+        fit_pipeline(pipe, feats, refs, train, source, kind, seed, calibration_sample, images, places)
     except FitRefused as e:
         _fail(str(e))
     if pipe.bank is None:

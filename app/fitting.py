@@ -20,6 +20,7 @@ from app.engine.calibration import MIN_QUERIES, Calibration, Sample, fit_calibra
 from app.engine.configs import PipelineConfig
 from app.engine.geo import haversine_m
 from app.engine.index.references import ReferenceIndex
+from app.engine.learned_whitening import Place
 from app.engine.pipeline import Features, Pipeline
 from app.engine.svm_bank import KINDS, BankParams, SvmBank
 from app.engine.training.svm_training import BANK_SOURCES, Geotagged, fit_bank_from, index_of
@@ -85,15 +86,17 @@ def fit_pipeline(
     seed: int = 0,
     calibration_sample: int | None = None,
     images: Mapping[int, Path] | None = None,
+    places: Sequence[Place | None] | None = None,
 ) -> Pipeline:
     """Fit ``pipe`` (codebook, PCA-whitening, binariser) on ``features`` (every photo it learns from), then,
     unless ``source`` is ``none``, its SVM bank from ``refs`` (the references, by id) and ``train`` (geotagged
     photos that are not references), then its confidence rule and ``p_within_25m`` on ``refs``
     (``calibrate_collection``, at most ``calibration_sample`` of them located; with ``images``, the references'
     photos, also the rule for verified answers): what `geoloc fit` and the first start of an empty data dir
-    both run."""
+    both run. ``places``: where each of ``features`` was taken (a configuration with learned whitening
+    learns from their GPS pairs)."""
     check_bank_kind(kind)
-    pipe.fit(list(features), seed=seed)
+    pipe.fit(list(features), seed=seed, places=places)
     if source != "none":
         pipe.bank = train_bank(pipe, refs, list(train), source, kind, seed)
     pipe.calibration = calibrate_collection(
@@ -259,11 +262,13 @@ def calibrate_collection(
     samples, verified_samples, verified_refs = [], [], 0
     for k, part in enumerate(parts):
         out = {g for i in part for g in [refs[i].group]}
-        fit_on = [refs[i].features for i in ids if refs[i].group not in out] + list(extra)
+        kept = [i for i in ids if refs[i].group not in out]
+        fit_on = [refs[i].features for i in kept] + list(extra)
         if len(fit_on) < 2:
             continue
+        places = [Place(refs[i].lat, refs[i].lon, refs[i].group) for i in kept] + [None] * len(extra)
         aux = Pipeline(pipe.config, pipe.global_model, models_dir=pipe.models_dir)
-        aux.fit(fit_on, seed=seed + 1 + k, codebook=pipe.codebook)
+        aux.fit(fit_on, seed=seed + 1 + k, codebook=pipe.codebook, places=places)
         aux.bank, aux.bank_select = pipe.bank, pipe.bank_select
         if to_verify:
             aux._matcher = pipe.matcher  # one matcher (a learned one loads its networks once) for every part

@@ -11,7 +11,7 @@ import json
 import os
 import threading
 import time
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -26,6 +26,7 @@ from app.engine.dense import gem_pool, join_sampled
 from app.engine.errors import IncompatibleArtifact, ModelNotReady
 from app.engine.extractors import build_extractor
 from app.engine.imageio import ImageLimits, LoadedImage, load_image
+from app.engine.learned_whitening import LearnedWhitening, Place
 from app.engine.models.base import GlobalModel, Matcher
 from app.engine.models.registry import build_global_model, build_matcher, global_model_entry
 from app.engine.pca import PcaWhitening, l2_normalize
@@ -106,7 +107,7 @@ class Pipeline:
         config: PipelineConfig,
         global_model: GlobalModel | None = None,
         codebook: Codebook | None = None,
-        pca: PcaWhitening | None = None,
+        pca: PcaWhitening | LearnedWhitening | None = None,
         binariser: Binariser | None = None,
         manifest: dict | None = None,
         bank: SvmBank | None = None,
@@ -277,10 +278,13 @@ class Pipeline:
         seed: int = 0,
         progress: Iterable | None = None,
         codebook: Codebook | None = None,
+        places: Sequence[Place | None] | None = None,
     ) -> None:
         """Fit codebook, then PCA-whitening, then the binariser, each on the previous stage's output.
         ``codebook``: take this one instead of fitting one (the calibration's auxiliary fits, which leave
-        references out of the whitening, reuse the served pipeline's codebook: k-means is most of a fit's time)."""
+        references out of the whitening, reuse the served pipeline's codebook: k-means is most of a fit's time).
+        ``places``: where each of ``features`` was taken (None where unknown); a configuration with learned
+        whitening needs them (its matching pairs are the photos within ``lw_pos_radius_m`` of each other)."""
         c = self.config
         if not features:
             raise ModelNotReady(f"nothing to fit {c.name} on: no db or train images were given")
@@ -297,10 +301,28 @@ class Pipeline:
                 raise ModelNotReady("no local features in the training images: cannot fit a codebook")
             self.codebook = Codebook.fit(np.vstack(sample), c.k, c.codebook, seed=seed)
         vectors = np.stack([self.aggregate(f) for f in features])
-        self.pca = PcaWhitening.fit(vectors, c.pca_dim, c.whiten_power, seed) if c.pca_dim else None
+        self.pca = self._fit_whitening(vectors, places, seed) if c.pca_dim else None
         reduced = self.pca.transform(vectors) if self.pca is not None else vectors
         self.binariser = Binariser.fit(reduced, c.bits, c.binary, seed) if c.binary else None
         self.manifest = {"n_train_images": len(features), "seed": seed}
+
+    def _fit_whitening(
+        self, vectors: np.ndarray, places: Sequence[Place | None] | None, seed: int
+    ) -> PcaWhitening | LearnedWhitening:
+        c = self.config
+        if c.whitening == "pca":
+            return PcaWhitening.fit(vectors, c.pca_dim, c.whiten_power, seed)
+        if places is None:
+            raise ModelNotReady(f"configuration {c.name} learns its whitening from GPS pairs: give the places")
+        return LearnedWhitening.fit(
+            vectors,
+            places,
+            c.pca_dim,
+            pos_radius_m=c.lw_pos_radius_m,
+            neg_radius_m=c.lw_neg_radius_m,
+            pre_dim=c.lw_pre_dim,
+            shrinkage=c.lw_shrinkage,
+        )
 
     # -- persistence ----------------------------------------------------------------------------------
     def save(self, directory: Path, extra: dict | None = None) -> None:
@@ -347,7 +369,7 @@ class Pipeline:
             c,
             global_model=global_model,
             codebook=Codebook.load(directory) if c.local else None,
-            pca=PcaWhitening.load(directory) if c.pca_dim else None,
+            pca=_load_whitening(c, directory),
             binariser=Binariser.load(directory) if c.binary else None,
             manifest=manifest,
             bank=SvmBank.load(directory) if SvmBank.exists(directory) else None,
@@ -363,6 +385,12 @@ class Pipeline:
             if a is not None:
                 parts.append(str(a.manifest.get("data_hash")))
         return ":".join(parts)
+
+
+def _load_whitening(c: PipelineConfig, directory: Path) -> PcaWhitening | LearnedWhitening | None:
+    if not c.pca_dim:
+        return None
+    return LearnedWhitening.load(directory) if c.whitening == "learned" else PcaWhitening.load(directory)
 
 
 def pipeline_dir(models_dir: Path, config_name: str) -> Path:

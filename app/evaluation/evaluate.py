@@ -26,6 +26,7 @@ from app.engine.artifacts import atomic_write_bytes
 from app.engine.calibration import reliability
 from app.engine.configs import PipelineConfig
 from app.engine.geo import haversine_m
+from app.engine.learned_whitening import Place
 from app.engine.pipeline import DECODE_OVERSAMPLE, Features, Pipeline
 from app.engine.training.svm_training import Geotagged, index_of
 from app.errors import ManifestCannotBeEvaluated
@@ -261,7 +262,8 @@ def evaluate(
         db_idx = [i for i, r in enumerate(rows) if r.group not in qset and r.split != "train"]
         fit_idx = db_idx + [i for i, r in enumerate(rows) if r.split == "train"]
         pipe = Pipeline(config, base.global_model, models_dir=models_dir)  # one session for every fold
-        pipe.fit([extracted[i].features for i in fit_idx], seed=seed + f)
+        places = [Place(rows[i].lat, rows[i].lon, rows[i].group) for i in fit_idx]  # never a query's
+        pipe.fit([extracted[i].features for i in fit_idx], seed=seed + f, places=places)
         progress = tqdm(db_idx, desc=f"fold {f + 1}/{len(query_sets)} encode db", unit="img", leave=False)
         index = index_of(pipe, db_idx, (extracted[i].features for i in progress))
         if svm_bank != "off":

@@ -30,6 +30,7 @@ import numpy as np
 from app.engine.configs import get_config
 from app.engine.errors import GeolocError
 from app.engine.imageio import ImageLimits
+from app.engine.learned_whitening import Place
 from app.engine.pipeline import Features, Pipeline
 from app.engine.training.svm_training import NothingToTrainOn
 from app.errors import FitRefused, ServiceError
@@ -240,7 +241,8 @@ def _fit(
     source_name = bank_source(cfg, None)
     try:
         with all_blas_threads():  # the server serves with one BLAS thread (app.runtime)
-            fit_pipeline(pipe, [p.features for p in photos], refs, [], source_name, seed=seed)
+            places = [Place(p.lat, p.lon, p.group) for p in photos]
+            fit_pipeline(pipe, [p.features for p in photos], refs, [], source_name, seed=seed, places=places)
     except (FitRefused, NothingToTrainOn) as e:  # too small or too uniform for a bank: serve without one, say so
         log.warning("first start: no SVM bank (%s); the pipeline is fitted without one", e)
         pipe.bank = None
