@@ -84,6 +84,7 @@ def test_the_same_photo_is_read_the_same_whatever_its_container():
     confidences. Now a PNG of a JPEG's pixels reaches the branches as the very same pixels, and the original
     within a few grey levels of them, at the sizes the default configuration reads."""
     assert DECODE_OVERSAMPLE >= 2
+
     class _Model:  # decoding needs no model: only the configuration's sizes
         dim = 720
 
