@@ -187,6 +187,7 @@ def _fit_with_bank(
     """``app.fitting.fit_pipeline``: the pipeline on every row, then the bank from the db rows (the collection
     rule, plus train rows) or from the train rows alone, retrieved against an in-memory index of the db rows
     encoded by the pipeline just fitted."""
+    from app.engine.learned_whitening import Place
     from app.engine.training.svm_training import Geotagged
     from app.errors import FitRefused
     from app.fitting import fit_pipeline
@@ -205,7 +206,11 @@ def _fit_with_bank(
     try:
         images = {i: rows[i].image for i in db} if verify else None
         hashes = {i: sha256_of(Path(rows[i].image).read_bytes()) for i in db}  # what ingesting them stores
-        fit_pipeline(pipe, feats, refs, train, source, kind, seed, calibration_sample, images, hashes, seconds)
+        places = [Place(r.lat, r.lon, r.group) for r in rows]
+        fit_pipeline(
+            pipe, feats, refs, train, source, kind, seed, calibration_sample, images,
+            hashes=hashes, seconds=seconds, places=places,
+        )  # fmt: skip
     except FitRefused as e:
         _fail(str(e))
     if pipe.bank is None:

@@ -21,6 +21,7 @@ from app.engine.calibration import MIN_QUERIES, Calibration, Sample, fit_calibra
 from app.engine.configs import PipelineConfig
 from app.engine.geo import haversine_m
 from app.engine.index.references import ReferenceIndex
+from app.engine.learned_whitening import Place
 from app.engine.pipeline import Features, Pipeline
 from app.engine.svm_bank import KINDS, BankParams, SvmBank
 from app.engine.training.svm_training import BANK_SOURCES, Geotagged, fit_bank_from, index_of
@@ -89,6 +90,7 @@ def fit_pipeline(
     images: Mapping[int, Path] | None = None,
     hashes: Mapping[int, str] | None = None,
     seconds: dict[str, float] | None = None,
+    places: Sequence[Place | None] | None = None,
 ) -> Pipeline:
     """Fit ``pipe`` (codebook, PCA-whitening, binariser) on ``features`` (every photo it learns from), then,
     unless ``source`` is ``none``, its SVM bank from ``refs`` (the references, by id) and ``train`` (geotagged
@@ -96,12 +98,14 @@ def fit_pipeline(
     (``calibrate_collection``, at most ``calibration_sample`` of them located; with ``images``, the references'
     photos, also the rule for verified answers; ``hashes``, the sha256 of each reference's photo, recorded with
     the calibration): what `geoloc fit` and the first start of an empty data dir both run. ``seconds`` gets
-    each step's time (``codebook, PCA, binariser``, ``SVM bank``, ``calibration``): where a fit's time goes."""
+    each step's time (``codebook, PCA, binariser``, ``SVM bank``, ``calibration``): where a fit's time goes.
+    ``places``: where each of ``features`` was taken (a configuration with learned whitening learns from
+    their GPS pairs)."""
     check_bank_kind(kind)
     seconds = {} if seconds is None else seconds
     with fit_threads():  # one BLAS and OpenMP thread: the same fit on any machine (app.runtime)
         t0 = time.perf_counter()
-        pipe.fit(list(features), seed=seed)
+        pipe.fit(list(features), seed=seed, places=places)
         seconds["codebook, PCA, binariser"] = time.perf_counter() - t0
         if source != "none":
             t0 = time.perf_counter()
@@ -277,11 +281,13 @@ def calibrate_collection(
     samples, verified_samples, verified_refs = [], [], 0
     for k, part in enumerate(parts):
         out = {g for i in part for g in [refs[i].group]}
-        fit_on = [refs[i].features for i in ids if refs[i].group not in out] + list(extra)
+        kept = [i for i in ids if refs[i].group not in out]
+        fit_on = [refs[i].features for i in kept] + list(extra)
         if len(fit_on) < 2:
             continue
+        places = [Place(refs[i].lat, refs[i].lon, refs[i].group) for i in kept] + [None] * len(extra)
         aux = Pipeline(pipe.config, pipe.global_model, models_dir=pipe.models_dir)
-        aux.fit(fit_on, seed=seed + 1 + k, codebook=pipe.codebook)
+        aux.fit(fit_on, seed=seed + 1 + k, codebook=pipe.codebook, places=places)
         aux.bank, aux.bank_select = pipe.bank, pipe.bank_select
         if to_verify:
             aux._matcher = pipe.matcher  # one matcher (a learned one loads its networks once) for every part

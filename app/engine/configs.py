@@ -46,6 +46,15 @@ class PipelineConfig(BaseModel):
     #: Codes: PCA-whitened floats (pca_dim None = full dimension, no PCA) and/or binary codes.
     pca_dim: int | None = 256
     whiten_power: float = 0.5
+    #: ``pca``: PCA-whitening (``whiten_power``); ``learned``: whitening learned from the fitting photos' GPS
+    #: pairs (app/engine/learned_whitening.py: matching pairs within ``lw_pos_radius_m``, non-matching beyond
+    #: ``lw_neg_radius_m``), after an unwhitened PCA to ``lw_pre_dim``, the pair covariance shrunk by
+    #: ``lw_shrinkage``. Both give ``pca_dim`` dimensions.
+    whitening: Literal["pca", "learned"] = "pca"
+    lw_pos_radius_m: float = 25.0
+    lw_neg_radius_m: float = 100.0
+    lw_pre_dim: int = 512
+    lw_shrinkage: float = 0.1
     float_codes: bool = True
     binary: Literal["sign", "itq"] | None = None
     bits: int = 256
@@ -255,6 +264,13 @@ for _config in [
         name="lite2-hybrid-384",
         description="lite2-hybrid on the fewest pixels that still win: RootSIFT at 384 px (long side), "
         "EfficientNet-Lite2 at 336 px (short side)",
+        **{**_LITE2_HYBRID, "local_long_side": 384, "cnn_short_side": 336},
+    ),
+    PipelineConfig(
+        name="lite2-hybrid-384-lw",
+        description="lite2-hybrid-384 with whitening learned from the collection's GPS pairs (references within "
+        "25 m as matching pairs; Radenovic, Tolias and Chum 2018) in place of PCA-whitening",
+        whitening="learned",
         **{**_LITE2_HYBRID, "local_long_side": 384, "cnn_short_side": 336},
     ),
     PipelineConfig(

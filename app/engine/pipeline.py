@@ -11,7 +11,7 @@ import json
 import os
 import threading
 import time
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor, wait
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -26,6 +26,7 @@ from app.engine.dense import gem_pool, join_sampled
 from app.engine.errors import IncompatibleArtifact, ModelNotReady
 from app.engine.extractors import build_extractor
 from app.engine.imageio import ImageLimits, LoadedImage, load_image
+from app.engine.learned_whitening import LearnedWhitening, Place
 from app.engine.models.base import GlobalModel, Matcher
 from app.engine.models.registry import build_global_model, build_matcher, global_model_entry
 from app.engine.pca import PcaWhitening, l2_normalize
@@ -33,6 +34,13 @@ from app.engine.svm_bank import SvmBank
 from app.engine.vlad import Codebook, vlad
 
 PIPELINE_MANIFEST = "pipeline.json"
+#: A decode keeps at least this many times the sides a pipeline's branches read (issue 33). At 1 (decoding
+#: at the branches' scale, JPEG DCT scaling to between 1x and 2x), a 1600 px JPEG was read at 800 px, the same
+#: pixels as a PNG at 533 px (box reduce by 3) and its 12 MP original at 504 (DCT 1/8): three pictures for
+#: one photo, and hybrid R@1 on whole photos fell from 0.45 to 0.325. At 2 a 1600 px photo is decoded whole
+#: whatever its container, a 12 MP one at 1/4 (JPEG) or by a box of 4 (PNG), and the branches' area filters
+#: do the rest.
+DECODE_OVERSAMPLE = 2
 PIPELINE_FORMAT = 1
 
 
@@ -107,7 +115,7 @@ class Pipeline:
         config: PipelineConfig,
         global_model: GlobalModel | None = None,
         codebook: Codebook | None = None,
-        pca: PcaWhitening | None = None,
+        pca: PcaWhitening | LearnedWhitening | None = None,
         binariser: Binariser | None = None,
         manifest: dict | None = None,
         bank: SvmBank | None = None,
@@ -163,19 +171,26 @@ class Pipeline:
     # -- stage 0: decode ------------------------------------------------------------------------------
     @property
     def decode_sides(self) -> tuple[int, int]:
-        """(long side, short side) the branches need from a decoded image: the local extractor's long side
-        and the global model's short side. A JPEG is decoded at the smallest DCT scale that keeps both
-        (a 1600 px photo at 800 px, a 12 MP one at 1008), so decoding at full size is never wasted."""
+        """(long side, short side) the branches read from a decoded image: the local extractor's long side
+        and the global model's short side. ``decode`` keeps ``DECODE_OVERSAMPLE`` times each."""
         c = self.config
         long_side = c.local_long_side if c.local else 0
         short_side = c.cnn_short_side if c.uses_global_model else 0
         return long_side, short_side
 
     def decode(self, data: bytes, limits: ImageLimits | None = None) -> LoadedImage:
-        """Decode an image for this pipeline (``load_image`` with ``limits``, at the scale ``decode_sides``
-        needs): the one decode of queries, references, fitting and evaluation, so all see the same pixels."""
+        """Decode an image for this pipeline (``load_image`` with ``limits``, keeping at least
+        ``DECODE_OVERSAMPLE`` times the sides ``decode_sides`` reads): the one decode of queries, references,
+        fitting and evaluation, so all see the same pixels. Each branch then resizes with its own area
+        filter from at least twice its size, so the container's reduction (JPEG's DCT scaling, PNG's box
+        reduce, or none) no longer decides which pixels a branch sees (issue 33)."""
         long_side, short_side = self.decode_sides
-        return load_image(data, limits, decode_long_side=max(long_side, 1), decode_short_side=short_side)
+        return load_image(
+            data,
+            limits,
+            decode_long_side=max(long_side * DECODE_OVERSAMPLE, 1),
+            decode_short_side=short_side * DECODE_OVERSAMPLE,
+        )
 
     # -- stage 1: features ----------------------------------------------------------------------------
     def extract(self, rgb: np.ndarray) -> Features:
@@ -275,10 +290,13 @@ class Pipeline:
         seed: int = 0,
         progress: Iterable | None = None,
         codebook: Codebook | None = None,
+        places: Sequence[Place | None] | None = None,
     ) -> None:
         """Fit codebook, then PCA-whitening, then the binariser, each on the previous stage's output.
         ``codebook``: take this one instead of fitting one (the calibration's auxiliary fits, which leave
-        references out of the whitening, reuse the served pipeline's codebook: k-means is most of a fit's time)."""
+        references out of the whitening, reuse the served pipeline's codebook: k-means is most of a fit's time).
+        ``places``: where each of ``features`` was taken (None where unknown); a configuration with learned
+        whitening needs them (its matching pairs are the photos within ``lw_pos_radius_m`` of each other)."""
         c = self.config
         if not features:
             raise ModelNotReady(f"nothing to fit {c.name} on: no db or train images were given")
@@ -295,10 +313,28 @@ class Pipeline:
                 raise ModelNotReady("no local features in the training images: cannot fit a codebook")
             self.codebook = Codebook.fit(np.vstack(sample), c.k, c.codebook, seed=seed)
         vectors = np.stack([self.aggregate(f) for f in features])
-        self.pca = PcaWhitening.fit(vectors, c.pca_dim, c.whiten_power, seed) if c.pca_dim else None
+        self.pca = self._fit_whitening(vectors, places, seed) if c.pca_dim else None
         reduced = self.pca.transform(vectors) if self.pca is not None else vectors
         self.binariser = Binariser.fit(reduced, c.bits, c.binary, seed) if c.binary else None
         self.manifest = {"n_train_images": len(features), "seed": seed}
+
+    def _fit_whitening(
+        self, vectors: np.ndarray, places: Sequence[Place | None] | None, seed: int
+    ) -> PcaWhitening | LearnedWhitening:
+        c = self.config
+        if c.whitening == "pca":
+            return PcaWhitening.fit(vectors, c.pca_dim, c.whiten_power, seed)
+        if places is None:
+            raise ModelNotReady(f"configuration {c.name} learns its whitening from GPS pairs: give the places")
+        return LearnedWhitening.fit(
+            vectors,
+            places,
+            c.pca_dim,
+            pos_radius_m=c.lw_pos_radius_m,
+            neg_radius_m=c.lw_neg_radius_m,
+            pre_dim=c.lw_pre_dim,
+            shrinkage=c.lw_shrinkage,
+        )
 
     # -- persistence ----------------------------------------------------------------------------------
     def save(self, directory: Path, extra: dict | None = None) -> None:
@@ -345,7 +381,7 @@ class Pipeline:
             c,
             global_model=global_model,
             codebook=Codebook.load(directory) if c.local else None,
-            pca=PcaWhitening.load(directory) if c.pca_dim else None,
+            pca=_load_whitening(c, directory),
             binariser=Binariser.load(directory) if c.binary else None,
             manifest=manifest,
             bank=SvmBank.load(directory) if SvmBank.exists(directory) else None,
@@ -361,6 +397,12 @@ class Pipeline:
             if a is not None:
                 parts.append(str(a.manifest.get("data_hash")))
         return ":".join(parts)
+
+
+def _load_whitening(c: PipelineConfig, directory: Path) -> PcaWhitening | LearnedWhitening | None:
+    if not c.pca_dim:
+        return None
+    return LearnedWhitening.load(directory) if c.whitening == "learned" else PcaWhitening.load(directory)
 
 
 def pipeline_dir(models_dir: Path, config_name: str) -> Path:

@@ -26,7 +26,8 @@ from app.engine.artifacts import atomic_write_bytes
 from app.engine.calibration import reliability
 from app.engine.configs import PipelineConfig
 from app.engine.geo import haversine_m
-from app.engine.pipeline import Features, Pipeline
+from app.engine.learned_whitening import Place
+from app.engine.pipeline import DECODE_OVERSAMPLE, Features, Pipeline
 from app.engine.progress import tracked
 from app.engine.training.svm_training import Geotagged, index_of
 from app.errors import ManifestCannotBeEvaluated
@@ -139,7 +140,8 @@ def extract_cached(pipeline: Pipeline, rows: list[Row], cache_dir: Path | None, 
     if cache_dir is None:
         return extract_all(pipeline, rows, workers)
     # The decode scale is part of the key: features of a pipeline-scale decode differ from a 1600 px one.
-    key = hashlib.sha256((pipeline.config.extraction_key() + f"decode={pipeline.decode_sides}").encode())
+    decode = f"decode={pipeline.decode_sides}x{DECODE_OVERSAMPLE}"
+    key = hashlib.sha256((pipeline.config.extraction_key() + decode).encode())
     for r in rows:
         st = r.image.stat()
         key.update(f"{r.image}:{st.st_size}:{st.st_mtime_ns}".encode())
@@ -261,7 +263,8 @@ def evaluate(
         db_idx = [i for i, r in enumerate(rows) if r.group not in qset and r.split != "train"]
         fit_idx = db_idx + [i for i, r in enumerate(rows) if r.split == "train"]
         pipe = Pipeline(config, base.global_model, models_dir=models_dir)  # one session for every fold
-        pipe.fit([extracted[i].features for i in fit_idx], seed=seed + f)
+        places = [Place(rows[i].lat, rows[i].lon, rows[i].group) for i in fit_idx]  # never a query's
+        pipe.fit([extracted[i].features for i in fit_idx], seed=seed + f, places=places)
         progress = tqdm(db_idx, desc=f"fold {f + 1}/{len(query_sets)} encode db", unit="img", leave=False)
         index = index_of(pipe, db_idx, (extracted[i].features for i in progress))
         if svm_bank != "off":

@@ -30,6 +30,7 @@ import numpy as np
 from app.engine.configs import get_config
 from app.engine.errors import GeolocError
 from app.engine.imageio import ImageLimits
+from app.engine.learned_whitening import Place
 from app.engine.pipeline import Features, Pipeline
 from app.engine.progress import Progress
 from app.engine.training.svm_training import NothingToTrainOn
@@ -249,13 +250,14 @@ def _fit(
     hashes = {i: p.sha256 for i, p in enumerate(photos)}
     seconds: dict[str, float] = {}
     features = [p.features for p in photos]
+    places = [Place(p.lat, p.lon, p.group) for p in photos]  # a configuration with learned whitening uses them
     try:
-        fit_pipeline(pipe, features, refs, [], source_name, seed=seed, hashes=hashes, seconds=seconds)
+        fit_pipeline(pipe, features, refs, [], source_name, seed=seed, hashes=hashes, seconds=seconds, places=places)
     except (FitRefused, NothingToTrainOn) as e:  # too small or too uniform for a bank: serve without one, say so
         log.warning("first start: no SVM bank (%s); the pipeline is fitted without one", e)
         source_name = "none"
         pipe.bank = None  # and calibrated on these photos all the same: never judged by another's figures
-        fit_pipeline(pipe, features, refs, [], source_name, seed=seed, hashes=hashes, seconds=seconds)
+        fit_pipeline(pipe, features, refs, [], source_name, seed=seed, hashes=hashes, seconds=seconds, places=places)
     log.info("first start: fitted in %s", ", ".join(f"{k} {v:.1f} s" for k, v in seconds.items()))
     target = save_generation(
         store.data_dir, pipe, 0, {"first_start": str(source.path), "fit_photos": len(photos), "svm_bank": source_name}

@@ -33,6 +33,7 @@ from app.encoding.items import Encoded
 from app.engine.configs import DEFAULT_CONFIG, get_config
 from app.engine.errors import GeolocError
 from app.engine.imageio import ImageLimits
+from app.engine.learned_whitening import Place
 from app.engine.pipeline import Features, Pipeline, PipelineSource
 from app.engine.progress import tracked
 from app.errors import FitRefused, RefitError, StorageUnavailable
@@ -139,12 +140,13 @@ def fit_generation(
     kept = [(i, f) for i, f in zip(picked, feats, strict=True) if f is not None]
     if len(kept) < 2:
         raise RefitError("fewer than 2 stored references could be read to fit on")
-    pipe.fit([f for _, f in kept], seed=options.seed)
-    seconds = {"fit": time.perf_counter() - t0}
     refs = {
         i: Geotagged(f, rows[i].lat, rows[i].lon, capture_group(rows[i].lat, rows[i].lon, rows[i].captured_at))
         for i, f in kept
     }
+    places = [Place(refs[i].lat, refs[i].lon, refs[i].group) for i, _ in kept]
+    pipe.fit([f for _, f in kept], seed=options.seed, places=places)
+    seconds = {"fit": time.perf_counter() - t0}
     train = []
     if source != "none":
         t1 = time.perf_counter()
