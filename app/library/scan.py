@@ -31,8 +31,8 @@ from typing import TypeVar
 
 from app.domain import LocateOptions
 from app.engine.errors import GeolocError
+from app.engine.progress import Progress
 from app.evaluation.datasets import ManifestError, read_manifest
-from app.jobs.ingest.progress import Progress
 from app.jobs.ingest.run import IngestOptions, ingest
 from app.jobs.ingest.sources import Source, SourceItem
 from app.library.photos import PhotoMeta, read_meta, same_stat, walk_photos
