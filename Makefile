@@ -17,7 +17,7 @@ LEAFLET := app/web/static/vendor/leaflet/leaflet.js
 SWAGGER := app/web/static/vendor/swagger-ui/swagger-ui-bundle.js
 NPM_STAMP := web/node_modules/.geoloc-installed
 FOLDS ?= 5
-# A query-split photo: neither it nor its crops are in the demo collection (its top candidate is right).
+# A query-split photo: neither it nor its crops are in the demo collection (a confident estimate at the very spot).
 DEMO_QUERY ?= $(SHARED)/data/penn-campus-gps/photos/img_00001.jpg
 # The honest hard case: a query-split photo whose best candidate is the wrong place (no confident estimate).
 HARD_QUERY ?= $(SHARED)/data/penn-campus-gps/photos/img_00008.jpg
