@@ -24,7 +24,7 @@ import httpx
 from PIL import Image
 
 from app.settings import usable_cpus
-from bench.common import REPO, is_photo, machine, penn_rows, post_references, write_section
+from bench.common import MANIFEST, REPO, is_photo, machine, penn_rows, post_references, write_section
 from bench.locate_memory import ensure_models
 from tools.crafted_images import STRIPS, encoded, noise, tiff_with_frames
 from tools.process_memory import MiB, PeakRss, rss_bytes
@@ -113,12 +113,13 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--models-dir", type=Path, default=REPO / "models")
     ap.add_argument("--config", default="hybrid-nobank", help="the hybrid's extraction, no SVM bank to fit")
+    ap.add_argument("--manifest", type=Path, default=MANIFEST, help="where the penn photos and crops are listed")
     ap.add_argument("--only", default="", help="run the shapes whose name contains this text (all by default)")
     ap.add_argument("--write", action="store_true", help="write the figures into docs/BENCHMARKS.md")
     args = ap.parse_args()
     if args.only and args.write:
         ap.error("--write writes every shape's row: run it without --only")
-    rows = penn_rows()
+    rows = penn_rows(args.manifest)
     photos = [r for r in rows if is_photo(r)]
     crops = [r for r in rows if r.image.parent.name == "crops" and r.split == "db"]
     seed = [(r.image.name, r.image.read_bytes(), r.lat, r.lon) for r in crops[:16]]

@@ -39,6 +39,9 @@ def test_ingest_speed_local_and_ray(fitted_models):
     assert "| photos | 2 |" in out and "| crops | 3 |" in out and "Per-image cost" in out
 
 
-def test_crafted_uploads_reports_peak_and_answer_time(fitted_models):
-    out = bench("bench.crafted_uploads", "--models-dir", str(fitted_models), "--config", CONFIG, "--only", "49000x32")
+def test_crafted_uploads_reports_peak_and_answer_time(fitted_models, mini_manifest):
+    out = bench(
+        "bench.crafted_uploads", "--models-dir", str(fitted_models), "--config", CONFIG, "--only", "49000x32",
+        "--manifest", str(mini_manifest),
+    )  # fmt: skip
     assert "| 49000x32 png | 422 |" in out and "Worst of all shapes" in out
