@@ -42,6 +42,8 @@ def thumbnail(image: Path, size: int, limits: ImageLimits) -> bytes:
     """The JPEG thumbnail (long side ``size``) of a stored image: pixels only, no EXIF, XMP, ICC or comment.
     Raises FileNotFoundError when the image is gone, and the decode's errors for one that cannot be read.
     The shape rule of uploads does not apply: the reference is already stored (``ImageLimits.stored``)."""
+    if not image.exists():  # a thumbnail kept for an image gone would hide what `geoloc check` reports
+        raise FileNotFoundError(image)
     path = thumbnail_path(image, size)
     try:
         return path.read_bytes()

@@ -23,6 +23,7 @@ from pathlib import Path
 import httpx
 import pytest
 
+from app.storage.files import THUMBNAILS
 from tests.conftest import PENN
 from tests.service.conftest import CONFIG, Server, wait_job
 
@@ -190,10 +191,13 @@ def test_the_data_dir_is_private_to_its_owner(tmp_path, fitted_models, crops):
             _upload(server.client, crops[:3])
             _wait_snapshot(data, 3)
             files = [data / DB, data / f"{DB}-wal", data / f"{DB}-shm", data / "worker.lock", data / "index.json"]
-            files += list(data.glob("*.faiss")) + list((data / "images").iterdir())
+            images = [p for p in (data / "images").iterdir() if p.is_file()]
+            thumbnails = data / "images" / THUMBNAILS  # made at encoding: a folder per size
+            files += list(data.glob("*.faiss")) + images + list(thumbnails.rglob("*.jpg"))
+            assert len(images) == 3 and len(list(thumbnails.rglob("*.jpg"))) == 3
             for p in files:
                 assert _mode(p) == 0o600, f"{p.name}: {_mode(p):o}"
-            for d in (data, data / "images"):
+            for d in (data, data / "images", thumbnails, *(p for p in thumbnails.iterdir() if p.is_dir())):
                 assert _mode(d) == 0o700, f"{d}: {_mode(d):o}"
     finally:
         os.umask(old)
