@@ -215,6 +215,7 @@ class GeolocService:
         Results made by a pipeline the data dir no longer uses (a re-fit switched while they were encoded)
         are not recorded: their rows stay pending, and this process loads the new generation before
         returning, so the next batch is encoded by it."""
+        kept = self._keep_thumbnails(results)  # before the rows: a finished job's thumbnail is there
         by_pipeline: dict[str | None, list] = {}
         for r in results:
             if not r.retry:
@@ -225,19 +226,23 @@ class GeolocService:
             recorded = self.store.complete(final, fingerprint)
             stale |= fingerprint is not None and not recorded and any(e is None for *_, e in final)
             done += recorded
+        for ref_id, path in kept.items():  # deleted meanwhile, or left pending: no thumbnail outlives its row
+            if ref_id not in done:
+                path.unlink(missing_ok=True)
         if stale and self.store.get_meta("fingerprint") != self.pipeline.fingerprint:
             self.collection.refresh_generation(wait=True)
         self.collection.catch_up()
-        self._keep_thumbnails(results, set(done))
         return done
 
-    def _keep_thumbnails(self, results: Sequence[Encoded], done: set[int]) -> None:
-        """The thumbnails the encoder made, for the references now indexed (a delete since removes its own)."""
+    def _keep_thumbnails(self, results: Sequence[Encoded]) -> dict[int, Path]:
+        """Keep the thumbnails the encoder made (``app.thumbnails``); returns where, by reference id."""
+        kept = {}
         for r in results:
-            if r.thumbnail is not None and r.ref_id in done:
-                path = self.store.image_path(r.ref_id)
-                if path is not None:
-                    keep_thumbnail(path, self.thumbnail_px, r.thumbnail)
+            if r.thumbnail is not None and r.error is None and not r.retry:
+                image = self.store.image_path(r.ref_id)
+                if image is not None and (path := keep_thumbnail(image, self.thumbnail_px, r.thumbnail)):
+                    kept[r.ref_id] = path
+        return kept
 
     # -- the rest ---------------------------------------------------------------------------------------
     def delete(self, ref_id: int) -> str | None:

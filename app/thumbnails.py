@@ -86,8 +86,9 @@ def thumbnail_of(rgb: np.ndarray, size: int) -> bytes:
     return buf.getvalue()
 
 
-def keep_thumbnail(image: Path, size: int, data: bytes) -> None:
-    """Keep a thumbnail made elsewhere (at encoding: ``app.encoding.items.encode_data``) for ``image``."""
+def keep_thumbnail(image: Path, size: int, data: bytes) -> Path | None:
+    """Keep a thumbnail made elsewhere (at encoding: ``app.encoding.items.encode_data``) for ``image``;
+    returns its path, or None when it could not be written."""
     path = thumbnail_path(image, size)
     try:
         private_dir(path.parent.parent)
@@ -95,3 +96,5 @@ def keep_thumbnail(image: Path, size: int, data: bytes) -> None:
         write_image_file(path, data, sync=False)  # a cache: a lost one is made again on demand
     except OSError as e:  # a full or read-only disk costs the cache, not the encoding
         log.warning("thumbnail not kept in %s: %s", path.parent, e)
+        return None
+    return path
