@@ -16,7 +16,8 @@ import numpy as np
 from app.engine.geo import haversine_m
 
 #: Radius = max(farthest fused candidate + MARGIN_M, RADIUS_FLOOR_M); see ``fuse_position``.
-#: Chosen by ``bench/calibrate_answers.py --eval out/eval/hybrid.json --coverage 0.8`` (the served default, with
+#: Chosen by ``bench/calibrate_answers.py --eval out/eval/hybrid.json --coverage 0.8`` (a probe kept in history:
+#: ``git show 00671a8:bench/calibrate_answers.py``; the served default, with
 #: its collection-trained SVM bank; 5 folds, penn-campus-gps): cross-validated, the truth lies within the stated
 #: radius for 81 % of confident answers.
 MARGIN_M = 40.0
@@ -51,7 +52,8 @@ def fuse_position(
 ) -> Estimate:
     """``scores`` are in [0, 1], best first. ``temperature`` sets how fast weight falls with score: at
     0.06 a candidate 0.06 below the best weighs 37 % as much. The defaults come from
-    ``bench/calibrate_estimate.py --eval out/eval/hybrid.json`` (the 5-fold penn-campus-gps evaluation of
+    ``bench/calibrate_estimate.py --eval out/eval/hybrid.json`` (a probe kept in history at 00671a8; the
+    5-fold penn-campus-gps evaluation of
     the default configuration, target 70 % within 25 m), cross-validated (chosen on four folds' queries,
     measured on the fifth): confident on 27 % of queries and within 25 m on 70 % of those. The previous
     defaults (0.005, 0.8), chosen on 16 training captures, were confident on 62 % and right on only 45 %
