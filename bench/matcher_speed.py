@@ -26,8 +26,8 @@ import time
 from pathlib import Path
 
 from app.engine.imageio import ImageLimits, load_image
-from app.engine.models.lighterglue import LighterGlueMatcher
-from app.engine.rerank import SiftMnnMatcher
+from app.engine.matchers.lighterglue import LighterGlueMatcher
+from app.engine.matchers.sift_mnn import SiftMnnMatcher
 from app.locate import verify_candidate_pairs
 from bench.common import REPO, machine, median_ms, write_section
 

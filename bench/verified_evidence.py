@@ -41,7 +41,7 @@ from app.fitting import calibration_sample, near_ids
 class CachingMatcher:
     """The matcher with each image's features and each pair's outcome computed once: every query is
     verified twice (place present and absent) against candidates that recur across queries. It has
-    ``match_many`` only: ``verify_candidate_pairs`` calls that whenever a matcher has it."""
+    ``features`` and ``match_many`` only: all that ``verify_candidate_pairs`` calls."""
 
     def __init__(self, inner):
         self.inner, self.features_of, self.pairs, self.computed = inner, {}, {}, 0
@@ -55,8 +55,7 @@ class CachingMatcher:
     def match_many(self, query, candidates) -> list:
         todo = [c for c in candidates if (query[1], c[1]) not in self.pairs]
         if todo:
-            many = getattr(self.inner, "match_many", None)
-            got = many(query[2], [c[2] for c in todo]) if many else [self.inner.match(query[2], c[2]) for c in todo]
+            got = self.inner.match_many(query[2], [c[2] for c in todo])
             self.computed += len(todo)
             self.pairs.update({(query[1], c[1]): v for c, v in zip(todo, got, strict=True)})
         return [self.pairs[(query[1], c[1])] for c in candidates]

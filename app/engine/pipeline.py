@@ -27,7 +27,8 @@ from app.engine.errors import IncompatibleArtifact, ModelNotReady
 from app.engine.extractors import build_extractor
 from app.engine.imageio import ImageLimits, LoadedImage, load_image
 from app.engine.learned_whitening import LearnedWhitening, Place
-from app.engine.models.base import GlobalModel, Matcher
+from app.engine.matchers.base import Matcher
+from app.engine.models.base import GlobalModel
 from app.engine.models.registry import build_global_model, build_matcher, global_model_entry
 from app.engine.pca import PcaWhitening, l2_normalize
 from app.engine.svm_bank import SvmBank
@@ -163,7 +164,8 @@ class Pipeline:
 
     @property
     def matcher(self) -> Matcher:
-        """The configuration's matcher (``rerank``), built on first use: most requests never verify."""
+        """The configuration's matcher (verification, /locate's ``rerank``), built on first use: most requests
+        never verify."""
         if self._matcher is None:
             self._matcher = build_matcher(self.config.matcher, self.models_dir)
         return self._matcher

@@ -10,7 +10,8 @@ from typer.testing import CliRunner
 
 from app.engine.configs import DEFAULT_CONFIG, get_config
 from app.engine.imageio import ImageLimits, load_image
-from app.engine.models.lighterglue import MODEL_FILENAME, KeypointFeatures, LighterGlueMatcher
+from app.engine.matchers.lighterglue import LighterGlueMatcher
+from app.engine.models.lighterglue import MODEL_FILENAME, KeypointFeatures
 from app.engine.models.registry import BUILDS, MATCHERS, build_matcher, files_for
 from tests.conftest import PENN, penn_photo
 

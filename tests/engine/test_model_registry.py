@@ -130,8 +130,8 @@ def test_an_unknown_model_is_named(tmp_path):
 
 
 def test_the_default_matcher_is_a_registry_entry():
+    from app.engine.matchers.sift_mnn import SiftMnnMatcher
     from app.engine.pipeline import Pipeline
-    from app.engine.rerank import SiftMnnMatcher
 
     pipe = Pipeline(get_config("sift-mbvlad"))
     assert get_config("hybrid").matcher == "sift-mnn"

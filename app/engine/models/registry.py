@@ -15,7 +15,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from app.engine.errors import ModelNotReady
-from app.engine.models.base import GlobalModel, Matcher
+from app.engine.matchers.base import Matcher
+from app.engine.models.base import GlobalModel
 
 
 class UnknownModel(ModelNotReady):
@@ -168,13 +169,13 @@ def _register_efficientnet_lite(variant: int, mid_dim: int) -> None:
 
 
 def _sift_mnn(models_dir: Path | None) -> Matcher:
-    from app.engine.rerank import SiftMnnMatcher
+    from app.engine.matchers.sift_mnn import SiftMnnMatcher
 
     return SiftMnnMatcher()
 
 
 def _xfeat_lighterglue(models_dir: Path | None) -> Matcher:
-    from app.engine.models.lighterglue import LighterGlueMatcher
+    from app.engine.matchers.lighterglue import LighterGlueMatcher
 
     if models_dir is None:
         raise ModelNotReady("the xfeat-lighterglue matcher needs the models dir (its files live there)")
