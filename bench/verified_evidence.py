@@ -30,8 +30,8 @@ from app.domain import LocateOptions
 from app.engine.calibration import Sample, answer_probability, fit_calibration
 from app.engine.configs import DEFAULT_CONFIG, get_config
 from app.engine.evidence import GLOBAL_NAMES, VERIFIED_NAMES, Evidence
-from app.engine.models.registry import build_matcher
 from app.engine.pipeline import Pipeline
+from app.engine.registry import Kind, create
 from app.engine.training.svm_training import Geotagged, index_of
 from app.evaluation.datasets import read_manifest
 from app.evaluation.evaluate import RowReferences, assign_folds, extract_cached
@@ -80,7 +80,7 @@ def record(args) -> list[dict]:
     rows = read_manifest(args.manifest)
     base = Pipeline(config, models_dir=args.models_dir)
     extracted = extract_cached(base, rows, args.cache, 2)
-    matcher = build_matcher(args.matcher, args.models_dir)
+    matcher = create(Kind.MATCHER, args.matcher, args.models_dir)
     if hasattr(matcher, "load"):
         matcher.load()
     matcher = CachingMatcher(matcher)

@@ -19,9 +19,9 @@ import time
 from pathlib import Path
 
 from app.engine.configs import get_config
-from app.engine.extractors import build_extractor
 from app.engine.imageio import load_image
 from app.engine.pipeline import Pipeline
+from app.engine.registry import Kind, create
 from bench.common import REPO, median_ms
 
 
@@ -44,9 +44,15 @@ def main() -> None:
     overrides = dict(o.split("=", 1) for o in args.overrides)
     sift_cfg, xfeat_cfg = get_config("hybrid"), get_config("hybrid-xfeat").with_overrides(overrides)
     stages = {
-        "rootsift": build_extractor("sift", max_keypoints=sift_cfg.max_keypoints, long_side=sift_cfg.local_long_side),
-        "xfeat": build_extractor(
-            "xfeat", args.models_dir, max_keypoints=xfeat_cfg.max_keypoints, long_side=xfeat_cfg.local_long_side
+        "rootsift": create(
+            Kind.LOCAL_EXTRACTOR, "sift", max_keypoints=sift_cfg.max_keypoints, long_side=sift_cfg.local_long_side
+        ),
+        "xfeat": create(
+            Kind.LOCAL_EXTRACTOR,
+            "xfeat",
+            args.models_dir,
+            max_keypoints=xfeat_cfg.max_keypoints,
+            long_side=xfeat_cfg.local_long_side,
         ),
     }
     if args.extract:

@@ -129,7 +129,7 @@ def connect(address: str, num_cpus: int | None = None, timeout_s: float = START_
 def model_files(source: PipelineSource) -> dict[str, Path]:
     """What an actor needs to load ``source``: the fitted pipeline folder and the ONNX models its
     configuration uses, by their path relative to a models dir."""
-    from app.engine.models.registry import files_for
+    from app.engine.registry import files_for
 
     config = get_config(source.config)
     files = {name: source.models_dir / name for name in files_for(config)}

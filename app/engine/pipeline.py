@@ -24,13 +24,12 @@ from app.engine.codes import Binariser
 from app.engine.configs import PipelineConfig, get_config
 from app.engine.dense import gem_pool, join_sampled
 from app.engine.errors import IncompatibleArtifact, ModelNotReady
-from app.engine.extractors import build_extractor
 from app.engine.imageio import ImageLimits, LoadedImage, load_image
 from app.engine.learned_whitening import LearnedWhitening, Place
 from app.engine.matchers.base import Matcher
 from app.engine.models.base import GlobalModel
-from app.engine.models.registry import build_global_model, build_matcher, global_model_entry
 from app.engine.pca import PcaWhitening, l2_normalize
+from app.engine.registry import Kind, create, plugin
 from app.engine.svm_bank import SvmBank
 from app.engine.vlad import Codebook, vlad
 
@@ -132,7 +131,7 @@ class Pipeline:
                 raise ModelNotReady(
                     f"configuration {config.name} needs the {config.global_model} model: give the models dir"
                 )
-            global_model = build_global_model(config.global_model, models_dir)
+            global_model = create(Kind.GLOBAL_MODEL, config.global_model, models_dir)
         self.global_model = global_model if config.uses_global_model else None
         self.models_dir = models_dir
         self._matcher: Matcher | None = None
@@ -147,8 +146,12 @@ class Pipeline:
         self.bank_select = "positive"  # or "negative" (the thesis ablation)
         self.source: PipelineSource | None = None  # set when loaded from disk (see PipelineSource)
         self._local = (
-            build_extractor(
-                config.local, models_dir, max_keypoints=config.max_keypoints, long_side=config.local_long_side
+            create(
+                Kind.LOCAL_EXTRACTOR,
+                config.local,
+                models_dir,
+                max_keypoints=config.max_keypoints,
+                long_side=config.local_long_side,
             )
             if config.local
             else None
@@ -167,7 +170,7 @@ class Pipeline:
         """The configuration's matcher (verification, /locate's ``rerank``), built on first use: most requests
         never verify."""
         if self._matcher is None:
-            self._matcher = build_matcher(self.config.matcher, self.models_dir)
+            self._matcher = create(Kind.MATCHER, self.config.matcher, self.models_dir)
         return self._matcher
 
     # -- stage 0: decode ------------------------------------------------------------------------------
@@ -279,7 +282,7 @@ class Pipeline:
             return self.pca.dim
         d = self.codebook.k * self.codebook.dim if self.codebook is not None else 0
         uses_gem = self.config.cnn_global_weight > 0 or self.config.local is None
-        return d + (global_model_entry(self.config.global_model).dim if uses_gem else 0)
+        return d + (plugin(Kind.GLOBAL_MODEL, self.config.global_model).dim if uses_gem else 0)
 
     @property
     def bits(self) -> int | None:

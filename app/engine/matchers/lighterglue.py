@@ -29,6 +29,7 @@ from app.engine.models.lighterglue import (
 )
 from app.engine.models.xfeat import MODEL_FILENAME as XFEAT_FILENAME
 from app.engine.models.xfeat import XFeat
+from app.engine.registry import Kind, Plugin, register
 
 
 class LighterGlueMatcher(Matcher[KeypointFeatures]):
@@ -74,3 +75,6 @@ class LighterGlueMatcher(Matcher[KeypointFeatures]):
 
     def match(self, query: KeypointFeatures, candidate: KeypointFeatures) -> Verification:
         return self.match_many(query, [candidate])[0]
+
+
+register(Plugin(Kind.MATCHER, "xfeat-lighterglue", LighterGlueMatcher, (XFEAT_FILENAME, MODEL_FILENAME)))

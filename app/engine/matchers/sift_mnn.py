@@ -8,12 +8,14 @@ Why RootSIFT: it is the most distinctive descriptor the pipelines have, and what
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
 from app.engine.local_features import RootSift
 from app.engine.matchers.base import Matcher, Verification
 from app.engine.matchers.geometry import verify
+from app.engine.registry import Kind, Plugin, register
 
 #: Verification resolution and keypoint cap: 800 px and 1,500 RootSIFT keypoints. Reference features are
 #: recomputed from the stored image (about 0.1 s per full photo); all 1,500 would take 193 KB stored, three
@@ -60,3 +62,10 @@ class SiftMnnMatcher(Matcher[PixelFeatures]):
 
     def match(self, query: PixelFeatures, candidate: PixelFeatures) -> Verification:
         return verify_features(query, candidate)
+
+
+def _sift_mnn(models_dir: Path | None) -> SiftMnnMatcher:
+    return SiftMnnMatcher()
+
+
+register(Plugin(Kind.MATCHER, "sift-mnn", _sift_mnn))

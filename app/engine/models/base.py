@@ -59,8 +59,8 @@ class OnnxModel:
 class GlobalModel(Protocol):
     """A pretrained network that turns an image into a dense (H, W, C) feature map. A pipeline GeM-pools it
     into the global descriptor and samples it at keypoints for the feature-level hybrid
-    (``app.engine.dense``), so a model only has to produce the map. Registered by name in
-    ``app.engine.models.registry``; a configuration names it (``PipelineConfig.global_model``)."""
+    (``app.engine.dense``), so a model only has to produce the map. Registered by name by its module
+    (``app.engine.registry``, ``Kind.GLOBAL_MODEL``); a configuration names it (``PipelineConfig.global_model``)."""
 
     #: Channels of the dense map (the global descriptor's length before PCA).
     dim: int
