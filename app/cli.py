@@ -17,6 +17,7 @@ try:  # typer's own click (typer 0.29 vendors it); older typers use click itself
     from typer._click import exceptions as usage
 except ImportError:  # pragma: no cover
     from click import exceptions as usage
+from app.engine.models.ort import set_session_threads
 from app.library.commands import library_app
 from app.runtime import tune_malloc
 from app.settings import Settings
@@ -99,7 +100,7 @@ def models_build(
         if missing and all((models_dir / f).is_file() for f in build.files):
             typer.echo(f"{name}: {', '.join(build.files)} already built")
             continue
-        typer.echo(build.build(models_dir, given.get(build.source) if build.source else None, None))
+        typer.echo(build.build(models_dir, given.get(build.source) if build.source else None, _S.build_cache))
 
 
 @models_app.command("list")
@@ -808,6 +809,7 @@ def main(argv: list[str] | None = None) -> None:
     """Every failure ends in one line on stderr and an exit code of ``EXIT_CODES``; ``--debug`` (anywhere on
     the line) adds the traceback. Click's own usage errors, its multi-line boxes included, are one line too."""
     tune_malloc()
+    set_session_threads(_S.ort_threads)
     args = list(sys.argv[1:] if argv is None else argv)
     debug = "--debug" in args
     args = [a for a in args if a != "--debug"]

@@ -20,8 +20,10 @@ from pathlib import Path
 
 from app.engine.configs import get_config
 from app.engine.imageio import load_image
+from app.engine.models.ort import set_session_threads
 from app.engine.pipeline import Pipeline
 from app.engine.registry import Kind, create
+from app.settings import Settings
 from bench.common import REPO, median_ms
 
 
@@ -40,6 +42,8 @@ def main() -> None:
     ap.add_argument("--extract", action="store_true", help="also time Pipeline.extract of both configurations")
     ap.add_argument("--set", dest="overrides", action="append", default=[], help="vary hybrid-xfeat: k=v")
     args = ap.parse_args()
+    settings = Settings()
+    set_session_threads(settings.ort_threads)
 
     overrides = dict(o.split("=", 1) for o in args.overrides)
     sift_cfg, xfeat_cfg = get_config("hybrid"), get_config("hybrid-xfeat").with_overrides(overrides)
@@ -73,7 +77,7 @@ def main() -> None:
     h, w = rgbs[0].shape[:2]
     print(
         f"{len(rgbs)} photos ({w}x{h} px first), {args.repeat} runs each, interleaved; "
-        f"{xfeat_cfg.name}; GEOLOC_ORT_THREADS={os.environ.get('GEOLOC_ORT_THREADS', 'unset (all cores)')}, "
+        f"{xfeat_cfg.name}; onnxruntime threads {settings.ort_threads or 'all cores'} (GEOLOC_ORT_THREADS), "
         f"{os.cpu_count()} cores"
     )
     med = {k: median_ms(v) for k, v in times.items()}

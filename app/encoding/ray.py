@@ -170,8 +170,10 @@ class EncoderActor:
     def __init__(self, pipeline: PipelineSource | PipelinePackage, limits: ImageLimits, threads: int = 1):
         import cv2
 
+        from app.engine.models.ort import set_session_threads
+
         # before any session is built: onnxruntime and OpenCV use exactly the CPUs this actor holds
-        os.environ["GEOLOC_ORT_THREADS"] = str(threads)
+        set_session_threads(threads)
         cv2.setNumThreads(threads)
         self.tmp: Path | None = None
         if isinstance(pipeline, PipelinePackage):

