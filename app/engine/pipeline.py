@@ -52,7 +52,7 @@ class Features:
     xy: np.ndarray | None  # (N, 2) keypoint positions as fractions of width/height
     global_: np.ndarray | None  # (C,) GeM of the global model's dense map, L2-normalised
     timings_ms: dict[str, float] = field(default_factory=dict)
-    orb_raw: np.ndarray | None = None  # packed ORB bits, for geometric re-ranking
+    orb_raw: np.ndarray | None = None  # packed ORB bits, for Hamming matching
     config: str | None = None  # the configuration that extracted them (a re-fit may change it)
 
     @property
