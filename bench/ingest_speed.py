@@ -4,7 +4,7 @@ per-image cost split, and what that projects for 1,000,000 images on a cluster.
 Why in one process, interleaved: this machine is shared and its load changes by the minute, so every
 repetition runs the three engines back to back on fresh data dirs holding the same images, and the
 figures are medians over repetitions with ratios against the local path measured alongside. A worker is
-1 CPU with onnxruntime and OpenCV on 1 thread (the local path too: one thread, ``GEOLOC_ORT_THREADS=1``).
+1 CPU with onnxruntime and OpenCV on 1 thread (the local path too: one onnxruntime thread, ``set_session_threads(1)``).
 Pool start-up (loading the models in each actor) is timed apart from images/s.
 
     .venv/bin/python -m bench.ingest_speed [--models-dir models] [--config hybrid] [--photos 24]
@@ -29,7 +29,7 @@ from pathlib import Path
 
 # Before numpy and any session are loaded: the local path is one worker too (1 CPU), as Ray's actors are
 # (Ray sets OMP_NUM_THREADS to the CPUs an actor holds; BLAS would otherwise spin on both cores here).
-for _var in ("GEOLOC_ORT_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
 import cv2  # noqa: E402
@@ -39,9 +39,11 @@ from app.encoding import EncodeItem, LocalEngine, encode_and_complete  # noqa: E
 from app.encoding.items import Encoded  # noqa: E402
 from app.engine.configs import DEFAULT_CONFIG  # noqa: E402
 from app.engine.imageio import load_image  # noqa: E402
+from app.engine.models.ort import set_session_threads  # noqa: E402
 from app.service import GeolocService  # noqa: E402
 from bench.common import REPO, write_section  # noqa: E402
 
+set_session_threads(1)  # before any session: one onnxruntime thread, as an actor holding 1 CPU
 PENN = REPO.parent / "shared" / "data" / "penn-campus-gps"
 DOC = REPO / "docs" / "BENCHMARKS.md"
 STAGES = ("read", "decode", "features", "cnn", "aggregation", "insert")

@@ -14,10 +14,9 @@ from pathlib import Path
 import httpx
 
 from app.engine.configs import PipelineConfig
-from app.engine.extractors import build_extractor
 from app.engine.geo import haversine_m
 from app.engine.imageio import ImageLimits, load_image
-from app.engine.models.registry import build_global_model
+from app.engine.registry import Kind, create
 from app.evaluation.datasets import Row
 from app.settings import Settings
 from bench.common import is_photo, median_ms, percentiles, post_references
@@ -59,10 +58,14 @@ class Floor:
 
     def __init__(self, models_dir: Path, config: PipelineConfig):
         self.config = config
-        self.global_model = build_global_model(config.global_model, models_dir)
+        self.global_model = create(Kind.GLOBAL_MODEL, config.global_model, models_dir)
         self.global_model.load()
-        self.local = build_extractor(
-            config.local, models_dir, max_keypoints=config.max_keypoints, long_side=config.local_long_side
+        self.local = create(
+            Kind.LOCAL_EXTRACTOR,
+            config.local,
+            models_dir,
+            max_keypoints=config.max_keypoints,
+            long_side=config.local_long_side,
         )
         self.limits: ImageLimits = Settings().image_limits()
 

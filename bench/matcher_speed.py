@@ -26,8 +26,9 @@ import time
 from pathlib import Path
 
 from app.engine.imageio import ImageLimits, load_image
-from app.engine.models.lighterglue import LighterGlueMatcher
-from app.engine.rerank import SiftMnnMatcher
+from app.engine.matchers.lighterglue import LighterGlueMatcher
+from app.engine.matchers.sift_mnn import SiftMnnMatcher
+from app.engine.models.ort import set_session_threads
 from app.locate import verify_candidate_pairs
 from bench.common import REPO, machine, median_ms, write_section
 
@@ -53,12 +54,12 @@ def main() -> None:
     ap.add_argument("--queries", type=int, default=8)
     ap.add_argument("--k", type=int, default=10, help="candidates verified per query")
     ap.add_argument("--keypoints", type=int, default=0, help="LighterGlue keypoints (0: the matcher's default)")
-    ap.add_argument("--threads", type=int, default=2, help="onnxruntime threads (GEOLOC_ORT_THREADS)")
+    ap.add_argument("--threads", type=int, default=2, help="onnxruntime threads (Settings.ort_threads)")
     ap.add_argument("--write-docs", action="store_true", help="write the matcher section of docs/BENCHMARKS.md")
     args = ap.parse_args()
     started = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
     load_before = os.getloadavg()[0]
-    os.environ["GEOLOC_ORT_THREADS"] = str(args.threads)
+    set_session_threads(args.threads)
 
     photos = sorted(args.photos.glob("*.jpg"))
     refs = _Files(photos)

@@ -25,8 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
-from app.engine import rerank
 from app.engine.imageio import load_image
+from app.engine.matchers import fusion, geometry, sift_mnn
 from app.evaluation.datasets import read_manifest
 
 WEIGHTS = (0.05, 0.1, 0.2, 0.3, 0.5, 1.0)
@@ -70,12 +70,12 @@ def _mean(a: np.ndarray) -> float:
     return float(np.mean(a)) if len(a) else float("nan")
 
 
-def stored_form(f: rerank.PixelFeatures, keypoints: int) -> rerank.PixelFeatures:
+def stored_form(f: sift_mnn.PixelFeatures, keypoints: int) -> sift_mnn.PixelFeatures:
     """What ingest could keep: the strongest ``keypoints`` (the extractor sorts by response), pixel
     positions rounded, RootSIFT components (in [0, 1]) quantised to uint8 and back."""
     xy = np.round(f.xy[:keypoints])
     d = np.round(f.descriptors[:keypoints] * 255).astype(np.uint8).astype(np.float32) / 255
-    return rerank.PixelFeatures(xy.astype(np.float32), d)
+    return sift_mnn.PixelFeatures(xy.astype(np.float32), d)
 
 
 def stored_check(result: dict, manifest: Path, n_queries: int, keypoints: int, seed: int = 0) -> None:
@@ -84,13 +84,13 @@ def stored_check(result: dict, manifest: Path, n_queries: int, keypoints: int, s
     by_name = {r.image.name: i for i, r in enumerate(rows)}
     rng = np.random.default_rng(seed)
     sample = rng.choice(len(result["queries"]), size=min(n_queries, len(result["queries"])), replace=False)
-    feats: dict[int, rerank.PixelFeatures] = {}
+    feats: dict[int, sift_mnn.PixelFeatures] = {}
     ms, kp, rec, sto, lab = [], [], [], [], []
 
-    def vf(i: int) -> rerank.PixelFeatures:
+    def vf(i: int) -> sift_mnn.PixelFeatures:
         if i not in feats:
             t0 = time.perf_counter()
-            feats[i] = rerank.features_for_verification(load_image(rows[i].image.read_bytes()).rgb)
+            feats[i] = sift_mnn.features_for_verification(load_image(rows[i].image.read_bytes()).rgb)
             ms.append((time.perf_counter() - t0) * 1000)
             kp.append(len(feats[i]))
         return feats[i]
@@ -100,7 +100,7 @@ def stored_check(result: dict, manifest: Path, n_queries: int, keypoints: int, s
         qf = vf(by_name[q["image"]])
         for ref, _score, right in q["verification"]["retrieval"][:10]:
             r = vf(ref)
-            a, b = rerank.verify_features(qf, r), rerank.verify_features(qf, stored_form(r, keypoints))
+            a, b = sift_mnn.verify_features(qf, r), sift_mnn.verify_features(qf, stored_form(r, keypoints))
             rec.append(a.inliers)
             sto.append(b.inliers)
             lab.append(right)
@@ -142,13 +142,13 @@ def auc(scores: np.ndarray, labels: np.ndarray) -> float:
 
 def chosen_inliers(h: np.ndarray, f: np.ndarray, n: np.ndarray, h_share: float) -> tuple[np.ndarray, np.ndarray]:
     """The core's rule on recorded counts: (inliers of the chosen model, chose H)."""
-    fitted = (n >= rerank.MIN_MATCHES_TO_FIT) & (f > 0)
+    fitted = (n >= geometry.MIN_MATCHES_TO_FIT) & (f > 0)
     use_h = fitted & (h >= h_share * f)
     return np.where(fitted, np.where(use_h, h, f), 0), use_h
 
 
 def fused(score: np.ndarray, inl: np.ndarray, weight: float, scale: float, floor: float) -> np.ndarray:
-    """``rerank.fused_score`` on arrays."""
+    """``fusion.fused_score`` on arrays."""
     return score + weight * (1 - np.exp(-np.maximum(inl - floor, 0) / scale))
 
 
@@ -201,13 +201,13 @@ def analyse(result: dict) -> None:
         f"{lab[head].mean():.1%} of them right)"
     )
     inl, use_h = chosen_inliers(P["h"], P["f"], P["n"], 0.8)
-    raw_f = np.where(P["n"] >= rerank.MIN_MATCHES_TO_FIT, P["f"], 0)
+    raw_f = np.where(P["n"] >= geometry.MIN_MATCHES_TO_FIT, P["f"], 0)
     base = recall(P, -P["rank"].astype(float), k_max)
     print(f"no rerank: R@1 {base[0]:.3f}  R@5 {base[1]:.3f}")
     fitted = head & (inl > 0)
     right, wrong = fitted & P["correct"], fitted & ~P["correct"]
     print(
-        f"fitted pairs (>= {rerank.MIN_MATCHES_TO_FIT} tentative matches): {fitted.sum() / head.sum():.0%} of "
+        f"fitted pairs (>= {geometry.MIN_MATCHES_TO_FIT} tentative matches): {fitted.sum() / head.sum():.0%} of "
         f"verified pairs; chosen-model inliers right median {_pct(inl[right], 50):.0f} (p90 "
         f"{_pct(inl[right], 90):.0f}), wrong median {_pct(inl[wrong], 50):.0f} (p90 "
         f"{_pct(inl[wrong], 90):.0f}, p99 {_pct(inl[wrong], 99):.0f})"
@@ -221,7 +221,7 @@ def analyse(result: dict) -> None:
     else:  # a matcher that gives wrong pairs many inliers (a learned one on lookalike facades)
         print(f"\nno floor of {FLOORS} reaches the wrong pairs' p99 ({wrong_p99:.0f} inliers)")
 
-    w, s, fl = rerank.FUSION_WEIGHT, rerank.FUSION_SCALE, rerank.FUSION_FLOOR
+    w, s, fl = fusion.FUSION_WEIGHT, fusion.FUSION_SCALE, fusion.FUSION_FLOOR
     fz = fused(P["score"], inl, w, s, fl)
     print(f"\nthe defaults (weight {w}, scale {s:.0f}, floor {fl}) on all queries:")
     for k in sorted({5, k_max}):

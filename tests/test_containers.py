@@ -36,7 +36,7 @@ def test_dockerfile_shape():
     assert ops.index("USER") > max(i for i, op in enumerate(ops) if op == "RUN")  # nothing runs as root after
     assert any(op == "COPY" and rest.startswith("--from=weights") for op, rest in ins)
     build = next(rest for op, rest in ins if op == "RUN" and "geoloc models build --from /tmp/weights" in rest)
-    assert "--only" not in build and "BUILDS" in build  # every registered model (XFeat too), checked after
+    assert "--only" not in build and "geoloc models list --models-dir /app/models --check" in build  # checked after
     assert "HEALTHCHECK" in ops and "/ready" in DOCKERFILE
     cmd = next(rest for op, rest in ins if op == "CMD")
     assert "serve" in cmd and "0.0.0.0" in cmd

@@ -129,7 +129,7 @@ def connect(address: str, num_cpus: int | None = None, timeout_s: float = START_
 def model_files(source: PipelineSource) -> dict[str, Path]:
     """What an actor needs to load ``source``: the fitted pipeline folder and the ONNX models its
     configuration uses, by their path relative to a models dir."""
-    from app.engine.models.registry import files_for
+    from app.engine.registry import files_for
 
     config = get_config(source.config)
     files = {name: source.models_dir / name for name in files_for(config)}
@@ -170,8 +170,10 @@ class EncoderActor:
     def __init__(self, pipeline: PipelineSource | PipelinePackage, limits: ImageLimits, threads: int = 1):
         import cv2
 
+        from app.engine.models.ort import set_session_threads
+
         # before any session is built: onnxruntime and OpenCV use exactly the CPUs this actor holds
-        os.environ["GEOLOC_ORT_THREADS"] = str(threads)
+        set_session_threads(threads)
         cv2.setNumThreads(threads)
         self.tmp: Path | None = None
         if isinstance(pipeline, PipelinePackage):

@@ -24,11 +24,12 @@ class PipelineConfig(BaseModel):
 
     name: str
     description: str
-    #: Local handcrafted features, or None for a CNN-only pipeline.
-    local: Literal["sift", "orb", "xfeat"] | None = "sift"
+    #: The local-feature extractor (a registry name, ``app.engine.registry``), or None for a global-only
+    #: pipeline.
+    local: str | None = "sift"
     local_long_side: int = 640
     max_keypoints: int = 1000
-    #: The global model (a registry name, ``app.engine.models.registry``): its dense map is sampled at the
+    #: The global model (a registry name, ``app.engine.registry``): its dense map is sampled at the
     #: keypoints (hybrid, ``cnn_local_weight``) and/or GeM-pooled into a global descriptor
     #: (``cnn_global_weight``). The ``cnn_*`` fields are that model's settings (the names predate the
     #: registry and stay, so pipelines fitted before it load unchanged).
@@ -66,7 +67,7 @@ class PipelineConfig(BaseModel):
     #: only the features it keeps; False aggregates every feature. Ignored without local features. The
     #: default is True so that the definitions fitted before this field existed stay equal (Pipeline.load).
     svm_bank: bool = True
-    #: The matcher that verifies the top candidates (``rerank``), by registry name.
+    #: The matcher that verifies the top candidates (verification, /locate's ``rerank``), by registry name.
     matcher: str = "sift-mnn"
 
     #: Fields that change what ``Pipeline.extract`` returns (the evaluation caches features by them).
@@ -294,7 +295,7 @@ DEFAULT_CONFIG = "lite2-hybrid-384"
 
 
 def register_config(config: PipelineConfig) -> None:
-    """Add a named configuration (a plug-in model's, next to its registry entry)."""
+    """Add a named configuration (a plug-in's, from its own module, beside its ``app.engine.registry.register``)."""
     CONFIGS[config.name] = config
 
 

@@ -2,7 +2,7 @@
 and bilinear sampling at local keypoints (the feature-level hybrid).
 
 Why apart from the models: these are the pipeline's choices, not the model's, so a new global model
-(``app.engine.models.registry``) only has to produce an (H, W, C) map and gets pooling and sampling free.
+(``app.engine.registry``) only has to produce an (H, W, C) map and gets pooling and sampling free.
 """
 
 from __future__ import annotations

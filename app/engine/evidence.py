@@ -28,6 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from app.engine.geo import haversine_m
+from app.engine.matchers.base import Verification
 
 #: The estimate's softmax temperature and group radius (``app.engine.estimate.fuse_position``'s defaults).
 TEMPERATURE = 0.06
@@ -74,7 +75,7 @@ def gather(
     lats: np.ndarray,
     lons: np.ndarray,
     scores: np.ndarray,
-    verification: Mapping[int, object | None] | None = None,
+    verification: Mapping[int, Verification | None] | None = None,
     ids: Sequence[int] | None = None,
 ) -> Evidence:
     """The evidence of the fused candidates (``lats``, ``lons``, ``scores`` best first). ``verification``
@@ -111,9 +112,9 @@ def gather(
         if ids is None or len(ids) != n:
             raise ValueError("verified evidence needs the candidates' reference ids")
         v = [verification.get(int(i)) for i in ids]
-        inl = np.array([getattr(x, "inliers", 0) or 0 for x in v], np.float64)
-        matches = np.array([getattr(x, "n_matches", 0) or 0 for x in v], np.float64)
-        conf = np.array([getattr(x, "mean_confidence", 0.0) or 0.0 for x in v], np.float64)
+        inl = np.array([x.inliers if x else 0 for x in v], np.float64)
+        matches = np.array([x.n_matches if x else 0 for x in v], np.float64)
+        conf = np.array([(x.mean_confidence or 0.0) if x else 0.0 for x in v], np.float64)
         cols += [np.log1p(inl), inl / np.maximum(matches, 1.0), np.log1p(matches), conf]
         names = GLOBAL_NAMES + VERIFIED_NAMES
     return Evidence(names, np.column_stack(cols))

@@ -1,18 +1,22 @@
 """Handcrafted local features: SIFT turned into RootSIFT, and ORB.
 
-One small class per extractor with its default configuration (the hloc shape); ``extractors`` registers
-them by name beside the learned ones. Both work on a copy of
-the image resized to ``long_side`` and keep the strongest ``max_keypoints``: the cap bounds time and the
-VLAD cost, and the strongest responses are the repeatable ones. Keypoint positions are returned as
+One small class per extractor with its default configuration (the hloc shape), registered by name here
+(``app.engine.registry``) as the learned ones are in their modules. Both work on a copy of the image
+resized to ``long_side`` and keep the strongest ``max_keypoints``: the cap bounds time and the VLAD cost,
+and the strongest responses are the repeatable ones. Keypoint positions are returned as
 fractions of the image size so that other stages (the CNN map) can sample at them whatever their size.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
+from typing import Protocol
 
 import cv2
 import numpy as np
+
+from app.engine.registry import Kind, Plugin, register
 
 
 @dataclass(frozen=True)
@@ -23,6 +27,20 @@ class LocalFeatures:
 
     def __len__(self) -> int:
         return len(self.xy)
+
+
+class LocalExtractor(Protocol):
+    """What a pipeline's local-feature extractor is: ``conf`` over its ``default_conf``, a descriptor length,
+    and an image in, ``LocalFeatures`` out. Registered by name (``Kind.LOCAL_EXTRACTOR``); a configuration
+    names it (``PipelineConfig.local``)."""
+
+    default_conf: dict
+    conf: dict
+
+    @property
+    def dim(self) -> int: ...
+
+    def __call__(self, rgb: np.ndarray) -> LocalFeatures: ...
 
 
 def _gray_at(rgb: np.ndarray, long_side: int) -> np.ndarray:
@@ -102,3 +120,15 @@ class Orb:
             )
         bits = np.unpackbits(desc, axis=1).astype(np.float32)
         return LocalFeatures(_positions(kps, gray.shape), bits, desc)
+
+
+def _sift(models_dir: Path | None, **conf) -> RootSift:
+    return RootSift(**conf)
+
+
+def _orb(models_dir: Path | None, **conf) -> Orb:
+    return Orb(**conf)
+
+
+register(Plugin(Kind.LOCAL_EXTRACTOR, "sift", _sift))
+register(Plugin(Kind.LOCAL_EXTRACTOR, "orb", _orb))

@@ -24,12 +24,12 @@ from app.engine.codes import Binariser
 from app.engine.configs import PipelineConfig, get_config
 from app.engine.dense import gem_pool, join_sampled
 from app.engine.errors import IncompatibleArtifact, ModelNotReady
-from app.engine.extractors import build_extractor
 from app.engine.imageio import ImageLimits, LoadedImage, load_image
 from app.engine.learned_whitening import LearnedWhitening, Place
-from app.engine.models.base import GlobalModel, Matcher
-from app.engine.models.registry import build_global_model, build_matcher, global_model_entry
+from app.engine.matchers.base import Matcher
+from app.engine.models.base import GlobalModel
 from app.engine.pca import PcaWhitening, l2_normalize
+from app.engine.registry import Kind, create, plugin
 from app.engine.svm_bank import SvmBank
 from app.engine.vlad import Codebook, vlad
 
@@ -52,7 +52,7 @@ class Features:
     xy: np.ndarray | None  # (N, 2) keypoint positions as fractions of width/height
     global_: np.ndarray | None  # (C,) GeM of the global model's dense map, L2-normalised
     timings_ms: dict[str, float] = field(default_factory=dict)
-    orb_raw: np.ndarray | None = None  # packed ORB bits, for geometric re-ranking
+    orb_raw: np.ndarray | None = None  # packed ORB bits, for Hamming matching
     config: str | None = None  # the configuration that extracted them (a re-fit may change it)
 
     @property
@@ -131,7 +131,7 @@ class Pipeline:
                 raise ModelNotReady(
                     f"configuration {config.name} needs the {config.global_model} model: give the models dir"
                 )
-            global_model = build_global_model(config.global_model, models_dir)
+            global_model = create(Kind.GLOBAL_MODEL, config.global_model, models_dir)
         self.global_model = global_model if config.uses_global_model else None
         self.models_dir = models_dir
         self._matcher: Matcher | None = None
@@ -146,8 +146,12 @@ class Pipeline:
         self.bank_select = "positive"  # or "negative" (the thesis ablation)
         self.source: PipelineSource | None = None  # set when loaded from disk (see PipelineSource)
         self._local = (
-            build_extractor(
-                config.local, models_dir, max_keypoints=config.max_keypoints, long_side=config.local_long_side
+            create(
+                Kind.LOCAL_EXTRACTOR,
+                config.local,
+                models_dir,
+                max_keypoints=config.max_keypoints,
+                long_side=config.local_long_side,
             )
             if config.local
             else None
@@ -163,9 +167,10 @@ class Pipeline:
 
     @property
     def matcher(self) -> Matcher:
-        """The configuration's matcher (``rerank``), built on first use: most requests never verify."""
+        """The configuration's matcher (verification, /locate's ``rerank``), built on first use: most requests
+        never verify."""
         if self._matcher is None:
-            self._matcher = build_matcher(self.config.matcher, self.models_dir)
+            self._matcher = create(Kind.MATCHER, self.config.matcher, self.models_dir)
         return self._matcher
 
     # -- stage 0: decode ------------------------------------------------------------------------------
@@ -277,7 +282,7 @@ class Pipeline:
             return self.pca.dim
         d = self.codebook.k * self.codebook.dim if self.codebook is not None else 0
         uses_gem = self.config.cnn_global_weight > 0 or self.config.local is None
-        return d + (global_model_entry(self.config.global_model).dim if uses_gem else 0)
+        return d + (plugin(Kind.GLOBAL_MODEL, self.config.global_model).dim if uses_gem else 0)
 
     @property
     def bits(self) -> int | None:

@@ -11,7 +11,7 @@ from app.engine.calibration import AMBIGUOUS, NO_MATCH, Calibration, Sample, fit
 from app.engine.estimate import fuse_position
 from app.engine.evidence import GLOBAL_NAMES, VERIFIED_NAMES, gather
 from app.engine.geo import haversine_m
-from app.engine.rerank import Verification
+from app.engine.matchers.base import Verification
 
 LAT0, LON0 = 39.952, -75.193
 

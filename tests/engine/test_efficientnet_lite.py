@@ -13,6 +13,7 @@ import cv2
 import numpy as np
 import pytest
 
+from app.engine import registry
 from app.engine.configs import get_config
 from app.engine.convert.efficientnet_lite_onnx import (
     read_blocks,
@@ -26,7 +27,6 @@ from app.engine.convert.torch_checkpoint import (
     read_state_dict,
 )
 from app.engine.errors import ModelBuildError
-from app.engine.models import registry
 from app.engine.models.efficientnet_lite import HEAD_OUTPUT, LOGITS_OUTPUT, MID_OUTPUT, model_filename
 from tests.conftest import CHECK_IMAGES
 
@@ -141,14 +141,14 @@ def test_a_tampered_wheel_is_refused(lite2_wheel, tmp_path):
 
 def test_the_registry_names_lite2_its_files_and_dims(lite2, models_dir):
     for name, output, dim in [("efficientnet-lite2", HEAD_OUTPUT, 1280), ("efficientnet-lite2-mid", MID_OUTPUT, 720)]:
-        entry = registry.global_model_entry(name)
+        entry = registry.plugin(registry.Kind.GLOBAL_MODEL, name)
         assert entry.files == (model_filename(2, output),) and entry.dim == dim
-        model = registry.build_global_model(name, models_dir)
+        model = registry.create(registry.Kind.GLOBAL_MODEL, name, models_dir)
         assert model.output == output and model.dim == dim
         dense = model.dense(np.full((300, 400, 3), 128, np.uint8), 224)  # 224 x 299 in
         assert dense.shape == ((7, 10, dim) if output == HEAD_OUTPUT else (14, 19, dim))
     built = ("efficientnet_lite2.onnx", "efficientnet_lite2_mid.onnx")
-    assert registry.build_entry("efficientnet-lite2").files == built
+    assert registry.model_build("efficientnet-lite2").files == built
     for config in ("lite2-gem", "hybrid-lite2"):
         assert registry.files_for(get_config(config)) == ["efficientnet_lite2.onnx"]
     for config in ("lite2-mid-gem", "hybrid-lite2-mid"):
@@ -158,7 +158,7 @@ def test_the_registry_names_lite2_its_files_and_dims(lite2, models_dir):
 def test_the_mid_only_graph_gives_the_whole_graphs_mid_map(lite2, models_dir):
     """The smaller file that stops at ``mid`` computes exactly what the whole network's ``mid`` output is."""
     rgb = np.random.default_rng(1).integers(0, 256, (120, 160, 3)).astype(np.uint8)
-    mid_model = registry.build_global_model("efficientnet-lite2-mid", models_dir)
+    mid_model = registry.create(registry.Kind.GLOBAL_MODEL, "efficientnet-lite2-mid", models_dir)
     (whole,) = lite2.run(rgb, [MID_OUTPUT])
     np.testing.assert_allclose(mid_model.run(rgb, [MID_OUTPUT])[0], whole, atol=1e-5)
     sizes = [(models_dir / model_filename(2, output)).stat().st_size for output in (MID_OUTPUT, HEAD_OUTPUT)]

@@ -5,11 +5,11 @@ import pytest
 
 from app.engine.configs import get_config
 from app.engine.errors import ModelNotReady
-from app.engine.extractors import REGISTRY, build_extractor
 from app.engine.imageio import load_image
 from app.engine.local_features import RootSift
 from app.engine.models.xfeat import XFeatFeatures
 from app.engine.pipeline import Pipeline, load_pipeline, pipeline_dir
+from app.engine.registry import Kind, UnknownModel, create, files_for, names
 from app.evaluation.datasets import read_manifest
 from tests.conftest import penn_photo
 
@@ -19,8 +19,13 @@ def rgb():
     return load_image(penn_photo("img_00000.jpg").read_bytes()).rgb
 
 
+def build_extractor(name, models_dir=None, **conf):
+    return create(Kind.LOCAL_EXTRACTOR, name, models_dir, **conf)
+
+
 def test_registry_builds_each_extractor_with_its_default_conf(models_dir, xfeat):
-    assert set(REGISTRY) == {"sift", "orb", "xfeat"}
+    assert set(names(Kind.LOCAL_EXTRACTOR)) == {"sift", "orb", "xfeat"}
+    assert files_for(get_config("orb-mbvlad-bin")) == [] and files_for(get_config("xfeat-mbvlad")) == ["xfeat.onnx"]
     sift = build_extractor("sift", max_keypoints=300)
     assert isinstance(sift, RootSift) and sift.conf == {"max_keypoints": 300, "long_side": 640}
     xf = build_extractor("xfeat", models_dir, long_side=480)
@@ -28,7 +33,7 @@ def test_registry_builds_each_extractor_with_its_default_conf(models_dir, xfeat)
     assert xf.conf == {**XFeatFeatures.default_conf, "long_side": 480}
     with pytest.raises(ModelNotReady, match="models dir"):
         build_extractor("xfeat")
-    with pytest.raises(ValueError, match="unknown local-feature extractor"):
+    with pytest.raises(UnknownModel, match="unknown local extractor 'superpoint'; registered: sift, orb, xfeat"):
         build_extractor("superpoint")
 
 

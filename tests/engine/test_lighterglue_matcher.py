@@ -10,8 +10,9 @@ from typer.testing import CliRunner
 
 from app.engine.configs import DEFAULT_CONFIG, get_config
 from app.engine.imageio import ImageLimits, load_image
-from app.engine.models.lighterglue import MODEL_FILENAME, KeypointFeatures, LighterGlueMatcher
-from app.engine.models.registry import BUILDS, MATCHERS, build_matcher, files_for
+from app.engine.matchers.lighterglue import LighterGlueMatcher
+from app.engine.models.lighterglue import MODEL_FILENAME, KeypointFeatures
+from app.engine.registry import Kind, builds, create, files_for, names
 from tests.conftest import PENN, penn_photo
 
 
@@ -40,8 +41,8 @@ def built(models_dir, xfeat, xfeat_wheel):
 
 
 def test_registered_next_to_sift_mnn_with_its_files():
-    assert list(MATCHERS)[:2] == ["sift-mnn", "xfeat-lighterglue"]
-    assert "xfeat-lighterglue" in BUILDS
+    assert {"sift-mnn", "xfeat-lighterglue"} <= set(names(Kind.MATCHER))
+    assert "xfeat-lighterglue" in builds()
     assert files_for(get_config("hybrid-lg")) == ["squeezenet1_1.onnx", "xfeat.onnx", "xfeat-lighterglue.onnx"]
 
 
@@ -56,7 +57,7 @@ def test_the_pipeline_builds_the_matcher_by_name(built):
     from app.engine.pipeline import Pipeline
 
     assert isinstance(Pipeline(get_config("hybrid-lg"), models_dir=built).matcher, LighterGlueMatcher)
-    assert isinstance(build_matcher("xfeat-lighterglue", built), LighterGlueMatcher)
+    assert isinstance(create(Kind.MATCHER, "xfeat-lighterglue", built), LighterGlueMatcher)
 
 
 class _Refs:

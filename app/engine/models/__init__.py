@@ -1,2 +1,3 @@
-"""Pretrained models as plug-ins: global models (a dense feature map a pipeline pools and samples) and
-matchers (pairwise verification), each one module plus one registry entry (``registry.py``)."""
+"""Pretrained models as plug-ins: global models (a dense feature map a pipeline pools and samples), learned
+local extractors, and the networks matchers run. Each module registers what it provides and how to build its
+files (``app.engine.registry`` imports every module here); nothing here imports its modules."""

@@ -2,7 +2,7 @@
 
 Why one base: two requests may race to load a model, a missing file must say how to build it, and the
 session options (threads, arena, spinning) must be the same for every model, so sessions are only ever
-made by ``app.engine.ort.create_session``. A model subclass names its file and turns arrays into results.
+made by ``app.engine.models.ort.create_session``. A model subclass names its file and turns arrays into results.
 """
 
 from __future__ import annotations
@@ -59,8 +59,8 @@ class OnnxModel:
 class GlobalModel(Protocol):
     """A pretrained network that turns an image into a dense (H, W, C) feature map. A pipeline GeM-pools it
     into the global descriptor and samples it at keypoints for the feature-level hybrid
-    (``app.engine.dense``), so a model only has to produce the map. Registered by name in
-    ``app.engine.models.registry``; a configuration names it (``PipelineConfig.global_model``)."""
+    (``app.engine.dense``), so a model only has to produce the map. Registered by name by its module
+    (``app.engine.registry``, ``Kind.GLOBAL_MODEL``); a configuration names it (``PipelineConfig.global_model``)."""
 
     #: Channels of the dense map (the global descriptor's length before PCA).
     dim: int
@@ -68,12 +68,3 @@ class GlobalModel(Protocol):
     def load(self) -> None: ...
 
     def dense(self, rgb: np.ndarray, short_side: int) -> np.ndarray: ...
-
-
-class Matcher(Protocol):
-    """Pairwise verification of a query against one candidate: features computed once per image, then a
-    match with geometry. Registered by name; a configuration names it (``PipelineConfig.matcher``)."""
-
-    def features(self, rgb: np.ndarray): ...
-
-    def match(self, query, candidate): ...

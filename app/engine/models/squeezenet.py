@@ -1,8 +1,8 @@
 """SqueezeNet 1.1 (ONNX), the default global model: its fire9 map (512 channels) is the dense map a pipeline
 pools (GeM) and samples at keypoints (``app.engine.dense``).
 
-The model follows the one ONNX lifecycle of ``app.engine.models.base`` (load under a lock, predict); it is
-registered by name in ``app.engine.models.registry``.
+The model follows the one ONNX lifecycle of ``app.engine.models.base`` (load under a lock, predict); this
+module registers it (``squeezenet``, ``app.engine.registry``); ``app.engine.convert.squeezenet_onnx`` builds it.
 """
 
 from __future__ import annotations
@@ -13,6 +13,7 @@ import numpy as np
 
 from app.engine.dense import resize_short_side
 from app.engine.models.base import OnnxModel
+from app.engine.registry import Kind, Plugin, register
 
 MODEL_FILENAME = "squeezenet1_1.onnx"
 #: The graph's tensor names (the converter, ``app.engine.convert.squeezenet_onnx``, writes them).
@@ -55,3 +56,7 @@ class SqueezeNet(OnnxModel):
 def softmax(logits: np.ndarray) -> np.ndarray:
     e = np.exp(logits - logits.max())
     return e / e.sum()
+
+
+register(Plugin(Kind.GLOBAL_MODEL, "squeezenet", lambda models_dir: SqueezeNet(models_dir / MODEL_FILENAME),
+                (MODEL_FILENAME,), dim=SqueezeNet.dim))  # fmt: skip

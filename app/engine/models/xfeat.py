@@ -28,6 +28,7 @@ import numpy as np
 
 from app.engine.local_features import LocalFeatures
 from app.engine.models.base import OnnxModel
+from app.engine.registry import Kind, Plugin, register
 
 MODEL_FILENAME = "xfeat.onnx"
 #: The graph's tensor names (the converter, ``app.engine.convert.xfeat_onnx``, writes them).
@@ -208,8 +209,6 @@ class XFeatFeatures:
     the best ``max_keypoints`` keypoints, positions as fractions of the image size, 64-d unit descriptors."""
 
     default_conf = {"max_keypoints": 4096, "long_side": 640, "detection_threshold": 0.05}
-    requires_model = True
-    model_files = (MODEL_FILENAME,)
 
     def __init__(self, models_dir: Path, **conf):
         self.conf = {**self.default_conf, **conf}
@@ -227,3 +226,6 @@ class XFeatFeatures:
             h, w = rgb.shape[:2]
         out = self.model.detect_and_compute(rgb, self.conf["max_keypoints"], self.conf["detection_threshold"])
         return LocalFeatures(out.keypoints / np.array([w, h], np.float32), out.descriptors)
+
+
+register(Plugin(Kind.LOCAL_EXTRACTOR, "xfeat", XFeatFeatures, (MODEL_FILENAME,)))

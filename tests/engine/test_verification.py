@@ -6,14 +6,9 @@ import pytest
 
 from app.engine.geo import haversine_m
 from app.engine.imageio import ImageLimits, load_image
-from app.engine.rerank import (
-    FUSION_FLOOR,
-    MIN_MATCHES_TO_FIT,
-    fit_geometry,
-    fused_score,
-    mutual_matches,
-    verify,
-)
+from app.engine.matchers.fusion import FUSION_FLOOR, fused_score
+from app.engine.matchers.geometry import MIN_MATCHES_TO_FIT, fit_geometry, mutual_matches, verify
+from app.engine.matchers.sift_mnn import SiftMnnMatcher
 from app.locate import order_by_verification, verify_candidates
 from tests.conftest import PENN, penn_photo
 
@@ -172,7 +167,7 @@ def test_a_photos_crops_and_rotations_are_put_first_and_unrelated_photos_keep_th
     ]
     images = [(PENN / r["photo"]).read_bytes() for r in far] + views
     ranked = [(i, 0.6 - 0.01 * i) for i in range(len(images))]  # the unrelated photos first
-    inliers = verify_candidates(query, [i for i, _ in ranked], _Images(images), ImageLimits())
+    inliers = verify_candidates(query, [i for i, _ in ranked], _Images(images), ImageLimits(), SiftMnnMatcher())
     out = [i for i, _ in order_by_verification(ranked, inliers)]
     assert set(out[:3]) == {6, 7, 8}, inliers
     assert all(inliers[i] > 100 for i in (6, 7, 8)), inliers
