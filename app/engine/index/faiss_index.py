@@ -1,76 +1,62 @@
-"""FAISS indexes with stable ids: a float one (inner product) and a binary one (Hamming).
+"""What the FAISS-backed kinds share: stable ids, [0, 1] scores, tombstones, the region filter, files.
 
-Both are wrapped in an ``IDMap2`` so references keep their ids across deletions and rebuilds, and both
-give scores in [0, 1] (cosine mapped to (1 + cos) / 2; 1 - Hamming / bits) so callers can threshold one
-way whatever the mode. Flat is exact and right up to ~100k references; IVF and HNSW trade a little recall
-for speed beyond that. Deletions become tombstones that searches skip (removing a vector from a flat index moves
-every vector after it, a cost that grows with the collection); ``compact`` drops them on a copy when a
-snapshot is written, off the request path.
+Every kind is wrapped in an ``IDMap2`` so references keep their ids across deletions and rebuilds.
+Deletions become tombstones that searches skip (removing a vector from a flat index moves every vector
+after it, a cost that grows with the collection); ``compact`` drops them on a copy when a snapshot is
+written, off the request path. A kind module subclasses ``FaissIndex`` with its ``_make`` (the FAISS
+index it wraps) and registers itself (``app.engine.index.base.register_index_kind``).
 """
 
 from __future__ import annotations
 
-import math
 import os
+from pathlib import Path
+from typing import Any, ClassVar
 
 import faiss
 import numpy as np
+
+from app.engine.index.base import IndexNotTrained
 
 # One query at a time is the service's load: FAISS's OpenMP threads would only fight onnxruntime's and
 # OpenBLAS's for the cores (measured: a 0.05 ms flat search took 3-7 ms after the CNN ran). Batch jobs
 # that search many queries at once may raise it with GEOLOC_FAISS_THREADS.
 faiss.omp_set_num_threads(int(os.environ.get("GEOLOC_FAISS_THREADS", "1")))
 
-FLOAT_KINDS = ("flat", "ivf", "hnsw")
-BINARY_KINDS = ("flat", "ivf", "hnsw")
 
+class FaissIndex:
+    """One FAISS index (float or binary) with stable ids plus the tombstones of removed ids."""
 
-class VectorIndex:
-    """One FAISS index (float or binary) plus the tombstones that HNSW needs."""
+    kind: ClassVar[str]
+    #: Whether ``compact`` may remove vectors in place (flat: one array); else the live ones are re-added.
+    removes_in_place: ClassVar[bool] = False
 
-    def __init__(self, dim: int, binary: bool, kind: str = "flat", hnsw_m: int = 32, nlist: int | None = None):
-        if kind not in FLOAT_KINDS:
-            raise ValueError(f"unknown index kind {kind!r}; choose one of {FLOAT_KINDS}")
+    def __init__(self, dim: int, binary: bool):
         if binary and dim % 8:
             raise ValueError("binary codes need a multiple of 8 bits")
-        self.dim, self.binary, self.kind, self.hnsw_m, self.nlist = dim, binary, kind, hnsw_m, nlist
+        self.dim, self.binary = dim, binary
         self.tombstones: set[int] = set()
-        self._index = None  # built lazily: IVF needs training data before its first add
+        self._index = self._make()
 
-    # -- building -------------------------------------------------------------------------------------
-    def _make(self, train: np.ndarray):
-        n = len(train)
-        nlist = self.nlist or max(1, int(math.sqrt(max(n, 1))))
-        nlist = max(1, min(nlist, n // 39))  # FAISS wants ~39 training points per list
-        if self.binary:
-            if self.kind == "flat":
-                inner = faiss.IndexBinaryFlat(self.dim)
-            elif self.kind == "hnsw":
-                inner = faiss.IndexBinaryHNSW(self.dim, self.hnsw_m)
-            else:
-                quantizer = faiss.IndexBinaryFlat(self.dim)
-                inner = faiss.IndexBinaryIVF(quantizer, self.dim, nlist)
-                inner.own_fields = True
-                quantizer.this.disown()
-                inner.train(train)
-                inner.nprobe = max(1, nlist // 4)
-                inner.make_direct_map()
-            return faiss.IndexBinaryIDMap2(inner)
-        if self.kind == "flat":
-            inner = faiss.IndexFlatIP(self.dim)
-        elif self.kind == "hnsw":
-            inner = faiss.IndexHNSWFlat(self.dim, self.hnsw_m, faiss.METRIC_INNER_PRODUCT)
-            inner.hnsw.efSearch = 64
-        else:
-            quantizer = faiss.IndexFlatIP(self.dim)
-            inner = faiss.IndexIVFFlat(quantizer, self.dim, nlist, faiss.METRIC_INNER_PRODUCT)
-            inner.own_fields = True
-            quantizer.this.disown()
-            inner.train(train)
-            inner.nprobe = max(1, nlist // 4)
-            inner.make_direct_map()
-        return faiss.IndexIDMap2(inner)
+    # -- the kind's part ------------------------------------------------------------------------------
+    def _make(self) -> Any:
+        """The ``IDMap2``-wrapped FAISS index, or None for a kind that is made by ``train``."""
+        raise NotImplementedError
 
+    def params(self) -> dict[str, Any]:
+        """The kind's parameters, for ``stats``."""
+        return {}
+
+    # -- training -------------------------------------------------------------------------------------
+    @property
+    def is_trained(self) -> bool:
+        return self._index is not None and bool(self._index.is_trained)
+
+    def train(self, x: np.ndarray) -> None:
+        if not self.is_trained:
+            self._index.train(self._prepare(x))
+
+    # -- changes --------------------------------------------------------------------------------------
     def _prepare(self, x: np.ndarray) -> np.ndarray:
         x = np.atleast_2d(x)
         if self.binary:
@@ -86,8 +72,11 @@ class VectorIndex:
     def add(self, ids: np.ndarray, x: np.ndarray) -> None:
         ids = np.ascontiguousarray(ids, dtype=np.int64)
         x = self._prepare(x)
-        if self._index is None:
-            self._index = self._make(x)
+        if not self.is_trained:
+            raise IndexNotTrained(
+                f"the {self.kind} index needs training before references are added: fit or refit the pipeline "
+                "(`geoloc fit` / `geoloc refit`), which trains it on the fitting photos' codes"
+            )
         self.tombstones.difference_update(int(i) for i in ids)
         self._index.add_with_ids(x, ids)
 
@@ -108,29 +97,36 @@ class VectorIndex:
         except RuntimeError:
             return False
 
-    def compact(self) -> None:
-        """Drop tombstoned vectors for good (done on a copy, off the request path, when a snapshot is written).
-        Flat indexes remove them in place; IVF and HNSW, which cannot, are rebuilt from their live codes once
-        the dead weight passes 20 %, else keep their tombstones."""
-        if not self.tombstones or self._index is None:
-            return
-        dead = np.fromiter(self.tombstones, np.int64, len(self.tombstones))
-        if self.kind == "flat":
-            self._index.remove_ids(faiss.IDSelectorBatch(dead))
-            self.tombstones = set()
-        elif self.needs_rebuild:
-            live = self.ids()
-            fresh = VectorIndex.rebuild(self, live, self.reconstruct(live))
-            self._index, self.tombstones = fresh._index, set()
-
-    @property
-    def ntotal(self) -> int:
-        """Live vectors (tombstones excluded)."""
-        return 0 if self._index is None else self._index.ntotal - len(self.tombstones)
+    def removed_ids(self) -> np.ndarray:
+        return np.array(sorted(self.tombstones), np.int64)
 
     @property
     def needs_rebuild(self) -> bool:
         return bool(self.tombstones) and len(self.tombstones) > 0.2 * max(self._index.ntotal, 1)
+
+    def compact(self) -> None:
+        """Drop tombstoned vectors for good. Flat indexes remove them in place; the others, which cannot,
+        are emptied (keeping what training learnt) and given their live vectors again once the dead weight
+        passes 20 %, else keep their tombstones."""
+        if not self.tombstones or self._index is None:
+            return
+        if self.removes_in_place:
+            dead = self.removed_ids()
+            self._index.remove_ids(faiss.IDSelectorBatch(dead))
+            self.tombstones = set()
+        elif self.needs_rebuild:
+            live = self.ids()
+            codes = self.reconstruct(live)
+            self._index.reset()
+            self.tombstones = set()
+            if len(live):
+                self._index.add_with_ids(self._prepare(codes), live)
+
+    # -- reading --------------------------------------------------------------------------------------
+    @property
+    def size(self) -> int:
+        """Live vectors (tombstones excluded)."""
+        return 0 if self._index is None else self._index.ntotal - len(self.tombstones)
 
     def ids(self) -> np.ndarray:
         if self._index is None:
@@ -138,7 +134,7 @@ class VectorIndex:
         all_ids = faiss.vector_to_array(self._index.id_map)
         if not self.tombstones:
             return all_ids
-        return all_ids[~np.isin(all_ids, np.fromiter(self.tombstones, np.int64, len(self.tombstones)))]
+        return all_ids[~np.isin(all_ids, self.removed_ids())]
 
     def reconstruct(self, ids) -> np.ndarray:
         """Stored vectors (codes) of ``ids``, in order."""
@@ -148,7 +144,6 @@ class VectorIndex:
             return self._index.reconstruct_batch(np.ascontiguousarray(ids, dtype=np.int64))
         return np.stack([self._index.reconstruct(int(i)) for i in ids])  # binary IDMap2 has no batch call
 
-    # -- searching ------------------------------------------------------------------------------------
     def _to_scores(self, d: np.ndarray) -> np.ndarray:
         if self.binary:
             return 1.0 - d.astype(np.float32) / self.dim
@@ -162,7 +157,7 @@ class VectorIndex:
         nq = len(q)
         scores = np.zeros((nq, k), np.float32)
         out_ids = np.full((nq, k), -1, np.int64)
-        if self._index is None or self.ntotal == 0 or k <= 0:
+        if self._index is None or self.size == 0 or k <= 0:
             return scores, out_ids
         kk = min(k + len(self.tombstones), self._index.ntotal)
         if allowed is not None:
@@ -176,14 +171,13 @@ class VectorIndex:
         s = self._to_scores(d)
         ok = ids >= 0
         if self.tombstones:
-            ok &= ~np.isin(ids, np.fromiter(self.tombstones, np.int64, len(self.tombstones)))
+            ok &= ~np.isin(ids, self.removed_ids())
         for r in range(nq):
             keep = np.flatnonzero(ok[r])[:k]
             scores[r, : len(keep)], out_ids[r, : len(keep)] = s[r, keep], ids[r, keep]
         return scores, out_ids
 
     def score_ids(self, q: np.ndarray, ids: np.ndarray) -> np.ndarray:
-        """Exact scores of one query against given ids (the re-rank step of a two-stage search)."""
         codes = self.reconstruct(ids)
         if self.binary:
             qb = np.unpackbits(self._prepare(q)[0])
@@ -191,29 +185,42 @@ class VectorIndex:
             return self._to_scores(d)
         return self._to_scores(codes @ self._prepare(q)[0])
 
-    # -- persistence ----------------------------------------------------------------------------------
-    def to_bytes(self) -> bytes:
-        if self._index is None:
-            return b""
-        ser = faiss.serialize_index_binary if self.binary else faiss.serialize_index
-        return ser(self._index).tobytes()
+    def stats(self) -> dict[str, Any]:
+        return {
+            "kind": self.kind,
+            "binary": self.binary,
+            "dim": self.dim,
+            "trained": self.is_trained,
+            "size": self.size,
+            "tombstones": len(self.tombstones),
+            **self.params(),
+        }
 
-    def load_bytes(self, data: bytes, tombstones=()) -> None:
-        if not data:
-            self._index = None
-        else:
-            de = faiss.deserialize_index_binary if self.binary else faiss.deserialize_index
-            self._index = de(np.frombuffer(data, dtype=np.uint8))
-        self.tombstones = set(int(t) for t in tombstones)
+    # -- files and copies -----------------------------------------------------------------------------
+    def copy(self) -> FaissIndex:
+        twin = object.__new__(type(self))
+        twin.__dict__.update(self.__dict__)
+        twin.tombstones = set(self.tombstones)
+        if self._index is not None:  # under the collection's lock: one memory copy for float codes
+            if self.binary:  # FAISS cannot clone a binary IDMap2: through its serialised form
+                twin._index = faiss.deserialize_index_binary(self._serialize())
+            else:
+                twin._index = faiss.clone_index(self._index)
+        return twin
+
+    def _serialize(self) -> np.ndarray:
+        return (faiss.serialize_index_binary if self.binary else faiss.serialize_index)(self._index)
+
+    def dump(self, path: Path) -> None:
+        if self._index is None:
+            raise IndexNotTrained(f"the {self.kind} index was never trained: nothing to write")
+        (faiss.write_index_binary if self.binary else faiss.write_index)(self._index, str(path))
+
+    def load(self, path: Path) -> None:
+        """Read what ``dump`` (or the service before the index seam: the same FAISS files) wrote."""
+        self._index = (faiss.read_index_binary if self.binary else faiss.read_index)(str(path))
+        self.tombstones = set()
 
     def memory_bytes_per_vector(self) -> float:
         """Bytes one reference costs in this index (serialised size / count): what bench reports."""
-        return len(self.to_bytes()) / max(self.ntotal, 1)
-
-    @classmethod
-    def rebuild(cls, template: VectorIndex, ids: np.ndarray, codes: np.ndarray) -> VectorIndex:
-        """A fresh index of the same kind from stored codes: drops tombstones, retrains IVF."""
-        fresh = cls(template.dim, template.binary, template.kind, template.hnsw_m, template.nlist)
-        if len(ids):
-            fresh.add(ids, codes)
-        return fresh
+        return 0.0 if self._index is None else len(self._serialize()) / max(self.size, 1)
