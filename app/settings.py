@@ -85,6 +85,12 @@ class Settings(BaseSettings):
     snapshot_every_seconds: float = Field(
         300.0, gt=0, description="...or this long after the first change not in a snapshot"
     )
+    faiss_threads: int = Field(
+        1,
+        ge=1,
+        description="FAISS's OpenMP threads: 1 for the service's one query at a time (more only fight the "
+        "CNN's threads for the cores); batch jobs that search many queries at once may raise it",
+    )
 
     def snapshot_policy(self):
         from app.collection import SnapshotPolicy

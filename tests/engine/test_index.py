@@ -134,3 +134,22 @@ def test_a_reference_index_trains_saves_and_loads_its_trained_parts(tmp_path):
     loaded.add(np.arange(400), xf, xb)
     scores, ids = loaded.search(xf[3], xb[3], 1)
     assert ids[0] == 3
+
+
+def test_search_threads_come_from_settings_not_from_the_environment_at_import():
+    """FAISS's thread count is process state: checked in a fresh interpreter."""
+    import os
+    import subprocess
+    import sys
+
+    code = (
+        "import faiss\n"
+        "import app.engine.index.faiss_index as fi\n"
+        "from app.settings import Settings\n"
+        "assert faiss.omp_get_max_threads() == 1, 'read at import'\n"
+        "fi.set_search_threads(Settings().faiss_threads)\n"
+        "print(faiss.omp_get_max_threads())\n"
+    )
+    env = {**os.environ, "GEOLOC_FAISS_THREADS": "2"}
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "2"

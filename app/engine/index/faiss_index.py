@@ -9,7 +9,6 @@ index it wraps) and registers itself (``app.engine.index.base.register_index_kin
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 from typing import Any, ClassVar
 
@@ -18,10 +17,17 @@ import numpy as np
 
 from app.engine.index.base import IndexNotTrained
 
-# One query at a time is the service's load: FAISS's OpenMP threads would only fight onnxruntime's and
-# OpenBLAS's for the cores (measured: a 0.05 ms flat search took 3-7 ms after the CNN ran). Batch jobs
-# that search many queries at once may raise it with GEOLOC_FAISS_THREADS.
-faiss.omp_set_num_threads(int(os.environ.get("GEOLOC_FAISS_THREADS", "1")))
+#: FAISS's OpenMP threads when nothing says otherwise. One query at a time is the service's load: more
+#: threads would only fight onnxruntime's and OpenBLAS's for the cores (measured: a 0.05 ms flat search took
+#: 3-7 ms after the CNN ran). ``Settings.faiss_threads`` sets it for a process (``set_search_threads``).
+DEFAULT_SEARCH_THREADS = 1
+
+faiss.omp_set_num_threads(DEFAULT_SEARCH_THREADS)
+
+
+def set_search_threads(n: int) -> None:
+    """FAISS's thread count is process state: the process that owns the settings sets it once."""
+    faiss.omp_set_num_threads(max(1, int(n)))
 
 
 class FaissIndex:
