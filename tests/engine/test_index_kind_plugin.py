@@ -3,7 +3,8 @@
 The toy kind is a real FAISS index the service does not ship: an 8-bit scalar quantizer, which needs
 training. The CLI's own ``fit`` must train it (the explicit step, saved with the fitted pipeline), the
 worker adds every reference through it, /locate's use case searches it, a snapshot writes and reloads it,
-and the collection reports it as the serving kind: all found through the registry alone."""
+the collection reports it as the serving kind, and a refit trains the new generation's: all found through
+the registry alone."""
 
 from __future__ import annotations
 
@@ -60,6 +61,7 @@ def test_a_toy_index_kind_fits_ingests_and_locates(toy_config, mini_manifest, tm
     from app.cli import fit
     from app.domain import LocateOptions, Upload
     from app.engine.pipeline import pipeline_dir
+    from app.jobs.refit import RefitOptions, refit
     from app.jobs.worker import IngestWorker
     from app.service import GeolocService
 
@@ -98,6 +100,15 @@ def test_a_toy_index_kind_fits_ingests_and_locates(toy_config, mini_manifest, tm
     assert again.collection.size == len(db)
     own_image_first(again)
     again.store.close()
+
+    # A refit trains the new generation's quantizer on its own codes and keeps it with that pipeline.
+    summary = refit(tmp_path / "data", models, RefitOptions(sample=12, svm_bank="none", seed=3), progress=False)
+    assert summary.generation == 1 and summary.reencoded == len(db)
+    assert (tmp_path / "data" / summary.pipeline / "index-float.faiss").exists()
+    refitted = GeolocService.open(tmp_path / "data", models, TOY_CONFIG.name)
+    assert refitted.collection.generation == 1 and refitted.pipeline.trained_index is not None
+    own_image_first(refitted)
+    refitted.store.close()
 
 
 def test_the_toy_kind_refuses_codes_before_training():
