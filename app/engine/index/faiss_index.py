@@ -104,7 +104,11 @@ class FaissIndex:
             return False
 
     def removed_ids(self) -> np.ndarray:
-        return np.array(sorted(self.tombstones), np.int64)
+        return np.sort(self._dead())
+
+    def _dead(self) -> np.ndarray:
+        """The tombstones, unordered (what every search with tombstones filters by)."""
+        return np.fromiter(self.tombstones, np.int64, len(self.tombstones))
 
     @property
     def needs_rebuild(self) -> bool:
@@ -117,8 +121,7 @@ class FaissIndex:
         if not self.tombstones or self._index is None:
             return
         if self.removes_in_place:
-            dead = self.removed_ids()
-            self._index.remove_ids(faiss.IDSelectorBatch(dead))
+            self._index.remove_ids(faiss.IDSelectorBatch(self._dead()))
             self.tombstones = set()
         elif self.needs_rebuild:
             live = self.ids()
@@ -140,7 +143,7 @@ class FaissIndex:
         all_ids = faiss.vector_to_array(self._index.id_map)
         if not self.tombstones:
             return all_ids
-        return all_ids[~np.isin(all_ids, self.removed_ids())]
+        return all_ids[~np.isin(all_ids, self._dead())]
 
     def reconstruct(self, ids) -> np.ndarray:
         """Stored vectors (codes) of ``ids``, in order."""
@@ -177,7 +180,7 @@ class FaissIndex:
         s = self._to_scores(d)
         ok = ids >= 0
         if self.tombstones:
-            ok &= ~np.isin(ids, self.removed_ids())
+            ok &= ~np.isin(ids, self._dead())
         for r in range(nq):
             keep = np.flatnonzero(ok[r])[:k]
             scores[r, : len(keep)], out_ids[r, : len(keep)] = s[r, keep], ids[r, keep]
