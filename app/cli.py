@@ -63,6 +63,9 @@ def _root(
     ] = False,
 ) -> None:
     """Visual geolocation: build the model, fit, ingest, locate, evaluate, serve."""
+    from app.engine.index.faiss_index import set_search_threads
+
+    set_search_threads(_S.faiss_threads)
 
 
 @models_app.command("build")

@@ -88,7 +88,7 @@ def apply_changes(index: ReferenceIndex, changes: list[Change]) -> None:
 
 
 def index_from_codes(pipeline: Pipeline, ids: np.ndarray, fcodes: list, bcodes: list) -> ReferenceIndex:
-    index = ReferenceIndex(pipeline.config, pipeline.float_dim, pipeline.bits)
+    index = pipeline.new_index()
     if len(ids):
         f = np.stack([np.frombuffer(c, np.float32) for c in fcodes]) if index.float is not None else None
         b = np.stack([np.frombuffer(c, np.uint8) for c in bcodes]) if index.binary is not None else None
@@ -339,15 +339,7 @@ class Collection:
                 if self.stats.snapshot_version == self.version and not self.rebuilt:
                     return False
                 v0, gen0, pipeline = self.version, self.generation, self.pipeline
-                parts = {
-                    k: (idx.to_bytes(), set(idx.tombstones))
-                    for k, idx in (("float", self.index.float), ("binary", self.index.binary))
-                    if idx is not None
-                }
-            copy = ReferenceIndex(pipeline.config, pipeline.float_dim, pipeline.bits)
-            for k, (data, tombs) in parts.items():
-                getattr(copy, k).load_bytes(data, tombs)
-            del parts
+                copy = self.index.copy()
             copy.compact()
             t0 = time.perf_counter()
             if self.store.head()[1] != gen0:  # a re-fit switched meanwhile: this generation is done with

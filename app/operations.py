@@ -111,8 +111,7 @@ def check_data_dir(data_dir: Path, models_dir: Path, config: str | None) -> Chec
 
     changes = store.changes_since(manifest.version)
     apply_changes(index, changes)
-    idx = index.float or index.binary
-    in_index = np.sort(idx.ids()) if idx is not None else np.zeros(0, np.int64)
+    in_index = np.sort(index.ids())
     r.lines.append(
         f"index: snapshot of version {manifest.version} verified, {len(changes)} later changes in the log, "
         f"{len(in_index)} references after replay"

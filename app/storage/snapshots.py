@@ -1,4 +1,8 @@
-"""FAISS snapshots of a collection's index: files named by the index version, a manifest with checksums.
+"""Snapshots of a collection's index: files named by the index version, a manifest with checksums.
+
+Each part of the index (float, binary) is one file its kind writes (``VectorIndex.dump``), the ids it
+removed but still stores beside it in the manifest. Format 2 is the one the service wrote before the index
+seam (the same FAISS files and manifest), so a data dir written by an older version loads unchanged.
 
 Why checksums: a snapshot is a cache of what SQLite holds, and a cache that is silently wrong is worse than
 none (a flipped byte in the middle of a float index still loads, and ranks garbage). So every file's
@@ -23,7 +27,7 @@ import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-from app.engine.artifacts import atomic_write_bytes
+from app.engine.artifacts import atomic_write_bytes, atomic_write_file
 from app.engine.index.references import ReferenceIndex
 from app.engine.pipeline import Pipeline
 from app.storage.identity import Binding, Identity
@@ -145,12 +149,12 @@ def write_snapshot(
     manifest carries the pipeline's fingerprint, so one generation's snapshot is never loaded for another,
     and ``binding`` (``ReferenceStore.binding``), so it is never loaded for another database."""
     files: dict[str, SnapshotFile] = {}
-    for kind, idx in (("float", index.float), ("binary", index.binary)):
-        if idx is not None:
-            name = f"{kind}-g{generation}-v{version}.faiss"
-            data = idx.to_bytes()
-            atomic_write_bytes(data_dir / name, data)
-            files[kind] = SnapshotFile(name, len(data), hashlib.sha256(data).hexdigest(), sorted(idx.tombstones))
+    for part, idx in index.parts().items():
+        name = f"{part}-g{generation}-v{version}.faiss"
+        path = data_dir / name
+        atomic_write_file(path, idx.dump)
+        size, sha256 = _file_digest(path)
+        files[part] = SnapshotFile(name, size, sha256, idx.removed_ids().tolist())
     manifest = SnapshotManifest(
         format=FORMAT,
         version=version,
@@ -172,6 +176,13 @@ def write_snapshot(
         if old.name not in keep:
             old.unlink(missing_ok=True)
     return manifest
+
+
+def _file_digest(path: Path) -> tuple[int, str]:
+    """Size and sha256 of a file, read in chunks (an index of 10^7 references is never a second time in RAM)."""
+    with open(path, "rb") as f:
+        digest = hashlib.file_digest(f, "sha256")
+        return f.tell(), digest.hexdigest()
 
 
 def read_manifest(data_dir: Path) -> SnapshotManifest:
@@ -197,16 +208,15 @@ def load_snapshot(
         raise SnapshotInvalid("the snapshot was made with another fitted pipeline")
     if store is not None:
         check_binding(m, store)
-    index = ReferenceIndex(pipeline.config, pipeline.float_dim, pipeline.bits)
+    index = pipeline.new_index()
     try:
-        for kind, idx in (("float", index.float), ("binary", index.binary)):
-            if idx is None:
-                continue
-            entry = m.files[kind]
-            data = (data_dir / entry.file).read_bytes()
-            if len(data) != entry.bytes or hashlib.sha256(data).hexdigest() != entry.sha256:
+        for part, idx in index.parts().items():
+            entry = m.files[part]
+            path = data_dir / entry.file
+            if _file_digest(path) != (entry.bytes, entry.sha256):
                 raise SnapshotInvalid(f"{entry.file} does not match its checksum (corrupt or truncated)")
-            idx.load_bytes(data, entry.tombstones)
+            idx.load(path)
+            idx.remove(entry.tombstones)
     except SnapshotInvalid:
         raise
     except (OSError, KeyError, TypeError, ValueError, RuntimeError) as e:

@@ -129,8 +129,12 @@ def test_health_metrics_openapi(tmp_path, fitted_models):
         ready = s.wait_ready()
         assert s.client.get("/health").json() == {"status": "ok"}
         assert ready["config"] == "hybrid-bin" and ready["worker"] == "in-process"
+        # Which index kind serves each part, and its parameters (``VectorIndex.stats``).
+        binary = ready["index"]["binary"]
+        assert ready["index"]["float"]["kind"] == "flat" and binary["code_bytes"] == binary["dim"] // 8
         s.client.get("/references")
         text = s.client.get("/metrics").text
+        assert 'geoloc_index_kind{kind="flat",m="None",nlist="None",nprobe="None",part="binary"} 1.0' in text
         for name in (
             "geoloc_http_requests_total",
             "geoloc_index_size",

@@ -53,6 +53,7 @@ def ready(request: Request, x_api_key: Annotated[str | None, Header()] = None):
         worker="in-process" if state.worker is not None and (state.writer is None or state.writer.held) else "external",
         database=state.service.store.engine,
         index_loaded="rebuilt" if col.stats.full_rebuilds else "snapshot",
+        index=col.index.stats(),
         calibration=col.calibration_summary(),
     )
 

@@ -7,11 +7,15 @@ both kinds of codes keeps both for every reference, so any of the three modes ca
 
 from __future__ import annotations
 
+from pathlib import Path
+from typing import Any
+
 import numpy as np
 
+from app.engine.artifacts import atomic_write_file
 from app.engine.configs import CONFIGS, PipelineConfig
 from app.engine.errors import GeolocError
-from app.engine.index.vectors import VectorIndex
+from app.engine.index.base import VectorIndex, build_index
 
 
 class UnsupportedMode(GeolocError):
@@ -20,6 +24,11 @@ class UnsupportedMode(GeolocError):
 
 #: Every search mode some configuration can serve.
 SEARCH_MODES = ("float", "binary", "two-stage")
+
+
+def trained_file(part: str) -> str:
+    """The file of a part's trained state in a fitted pipeline's folder (``ReferenceIndex.save_trained``)."""
+    return f"index-{part}.faiss"
 
 
 def unsupported_mode_message(mode: str, config: PipelineConfig) -> str:
@@ -37,16 +46,60 @@ def unsupported_mode_message(mode: str, config: PipelineConfig) -> str:
 
 
 class ReferenceIndex:
+    """The pair a collection searches: a float and/or a binary ``VectorIndex`` of the same references, of
+    the kinds the configuration names, built by ``build_index`` and used through the protocol only."""
+
     def __init__(self, config: PipelineConfig, float_dim: int | None, bits: int | None):
         self.config = config
-        self.float = VectorIndex(float_dim, False, config.float_index) if float_dim else None
-        self.binary = VectorIndex(bits, True, config.binary_index) if bits else None
+        self.float: VectorIndex | None = build_index(config.float_index, float_dim, False) if float_dim else None
+        self.binary: VectorIndex | None = build_index(config.binary_index, bits, True) if bits else None
+
+    def parts(self) -> dict[str, VectorIndex]:
+        """The indexes this one holds, by name (``float``, ``binary``): what snapshots write one file each of."""
+        return {name: idx for name, idx in (("float", self.float), ("binary", self.binary)) if idx is not None}
+
+    def _first(self) -> VectorIndex | None:
+        return self.float or self.binary
 
     @property
     def size(self) -> int:
-        idx = self.float or self.binary
-        return idx.ntotal if idx is not None else 0
+        idx = self._first()
+        return idx.size if idx is not None else 0
 
+    def ids(self) -> np.ndarray:
+        """The live reference ids (both parts hold the same ones)."""
+        idx = self._first()
+        return idx.ids() if idx is not None else np.zeros(0, np.int64)
+
+    # -- training -------------------------------------------------------------------------------------
+    @property
+    def is_trained(self) -> bool:
+        return all(idx.is_trained for idx in self.parts().values())
+
+    def train(self, float_codes: np.ndarray | None, binary_codes: np.ndarray | None) -> None:
+        """Train the parts whose kind needs it (IVF's quantizer) on codes of the fitting photos."""
+        for idx, codes in ((self.float, float_codes), (self.binary, binary_codes)):
+            if idx is not None and not idx.is_trained:
+                idx.train(codes)
+
+    def save_trained(self, directory: Path) -> list[str]:
+        """Write the trained, empty parts that training changed (``index-float.faiss``...) into a fitted
+        pipeline's folder; kinds that need no training write nothing. Returns the file names."""
+        written = []
+        for name, idx in self.parts().items():
+            if not build_index(idx.kind, idx.dim, idx.binary).is_trained:
+                atomic_write_file(directory / trained_file(name), idx.dump)
+                written.append(trained_file(name))
+        return written
+
+    def load_trained(self, directory: Path) -> None:
+        """Read what ``save_trained`` wrote, for the parts that need it and have it."""
+        for name, idx in self.parts().items():
+            path = directory / trained_file(name)
+            if not idx.is_trained and path.exists():
+                idx.load(path)
+
+    # -- changes --------------------------------------------------------------------------------------
     def add(self, ids: np.ndarray, float_codes: np.ndarray | None, binary_codes: np.ndarray | None) -> None:
         if self.float is not None:
             self.float.add(ids, float_codes)
@@ -55,20 +108,30 @@ class ReferenceIndex:
 
     def remove(self, ids) -> int:
         n = 0
-        for idx in (self.float, self.binary):
-            if idx is not None:
-                n = idx.remove(ids)
+        for idx in self.parts().values():
+            n = idx.remove(ids)
         return n
 
     def compact(self) -> None:
-        for idx in (self.float, self.binary):
-            if idx is not None:
-                idx.compact()
+        for idx in self.parts().values():
+            idx.compact()
 
     @property
     def tombstones(self) -> int:
-        idx = self.float or self.binary
-        return len(idx.tombstones) if idx is not None else 0
+        """Removed references still stored (``VectorIndex.removed_ids``), until compaction."""
+        idx = self._first()
+        return len(idx.removed_ids()) if idx is not None else 0
+
+    def copy(self) -> ReferenceIndex:
+        twin = object.__new__(ReferenceIndex)
+        twin.config = self.config
+        twin.float = self.float.copy() if self.float is not None else None
+        twin.binary = self.binary.copy() if self.binary is not None else None
+        return twin
+
+    def stats(self) -> dict[str, dict[str, Any]]:
+        """Each part's kind and parameters (/ready, /metrics)."""
+        return {name: idx.stats() for name, idx in self.parts().items()}
 
     def check_mode(self, mode: str | None) -> str:
         """The mode to use: the configuration's best when None; an error naming the choices otherwise."""

@@ -322,7 +322,7 @@ def index_of(pipeline: Pipeline, ids: np.ndarray, features: Iterable[Features]) 
     """An in-memory index of features encoded by ``pipeline``: what a bank is trained against, built the
     same way by `geoloc fit`, `geoloc refit` and the evaluation's folds."""
     codes = [pipeline.encode_features(f) for f in features]
-    index = ReferenceIndex(pipeline.config, pipeline.float_dim, pipeline.bits)
+    index = pipeline.new_index()
     index.add(
         np.asarray(ids, np.int64),
         np.stack([c.float_ for c in codes]) if pipeline.float_dim else None,

@@ -1,0 +1,1 @@
+"""Index kinds, one module each, found by name (``app.engine.index.base.build_index``)."""
