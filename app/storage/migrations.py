@@ -145,19 +145,16 @@ STEPS: tuple[Step, ...] = (Step(1, "baseline", BASELINE),)
 
 def statements(script: str) -> list[str]:
     """The statements of ``script``, one by one (a driver's ``executescript`` would commit the open
-    transaction first), without the comment lines between them."""
+    transaction first), without the comment lines between them; a ``;`` inside a quoted string stays."""
+    text = "\n".join(line for line in script.splitlines() if not line.strip().startswith("--"))
     out: list[str] = []
-    lines: list[str] = []
-    for line in script.splitlines():
-        if not lines and (not line.strip() or line.strip().startswith("--")):
-            continue
-        lines.append(line)
-        text = "\n".join(lines)
-        if sqlite3.complete_statement(text):
-            out.append(text.strip().rstrip(";").strip())
-            lines = []
-    if "\n".join(lines).strip():
-        out.append("\n".join(lines).strip())
+    buf = ""
+    for piece in text.split(";"):
+        buf += piece + ";"
+        if sqlite3.complete_statement(buf):
+            if buf.strip(" \n;"):
+                out.append(buf.strip().rstrip(";").strip())
+            buf = ""
     return out
 
 
