@@ -162,8 +162,8 @@ def repair_data_dir(data_dir: Path, min_age_s: float = MIN_AGE_S) -> list[str]:
 
 
 def backup_data_dir(data_dir: Path, dest: Path) -> dict:
-    """SQLite: its backup API; PostgreSQL: ``pg_dump`` (``app.storage.postgres.dump_database``). Then, in
-    both, the images the copied rows name (from the shared images folder on PostgreSQL), the data dir's
+    """The storage backend's dump (SQLite's backup API, PostgreSQL's ``pg_dump``: one state while others
+    keep writing). Then the images the copied rows name (from the shared images folder on PostgreSQL), the data dir's
     re-fitted pipelines, its newest snapshot and its API key file."""
     if dest.exists() and any(dest.iterdir()):
         raise OperationRefused(f"{dest} is not empty: back up into a new or empty folder")
