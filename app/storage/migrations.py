@@ -29,8 +29,9 @@ from app.errors import ServiceError
 from app.storage.backend import StorageBackend
 
 
-class Database(Protocol):
-    """What a migration needs of ``app.storage.database.Database`` (which runs ``upgrade`` when it opens)."""
+class Migratable(Protocol):
+    """What a migration needs of ``app.storage.database.Database`` (which runs ``upgrade`` when it opens;
+    a protocol, so the two modules do not import each other)."""
 
     backend: StorageBackend
     db: Any
@@ -158,14 +159,14 @@ def statements(script: str) -> list[str]:
     return out
 
 
-def schema_version(database: Database) -> int:
+def schema_version(database: Migratable) -> int:
     """The database's recorded version (0: none recorded, or no table yet)."""
     if not _has_versions(database):
         return 0
     return int(database.db.execute("SELECT COALESCE(MAX(version), 0) FROM schema_versions").fetchone()[0])
 
 
-def _has_versions(database: Database) -> bool:
+def _has_versions(database: Migratable) -> bool:
     try:
         database.db.execute("SELECT 1 FROM schema_versions LIMIT 1").fetchall()
     except Exception:  # no such table (either backend's error): a database from before migrations
@@ -173,7 +174,7 @@ def _has_versions(database: Database) -> bool:
     return True
 
 
-def upgrade(database: Database, steps: tuple[Step, ...] = STEPS) -> list[int]:
+def upgrade(database: Migratable, steps: tuple[Step, ...] = STEPS) -> list[int]:
     """Apply every step after the recorded version, in one write transaction; returns the versions
     applied (none when the database is current)."""
     _check_order(steps)
