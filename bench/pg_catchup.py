@@ -197,12 +197,12 @@ def _service_queries(store: ReferenceStore, repeat: int) -> dict[str, tuple[floa
     }
     out = {}
     for name, call in calls.items():
-        real = store.db
-        store.db = recorder = _Recorder(real)
+        real = store.database.db  # the connection every part of the store reads through
+        store.database.db = recorder = _Recorder(real)
         try:
             call()
         finally:
-            store.db = real
+            store.database.db = real
         ms = []
         for _ in range(repeat):
             t0 = time.perf_counter()
