@@ -12,9 +12,6 @@ from __future__ import annotations
 from typing import ClassVar
 
 from app.engine import errors as engine
-from app.engine.configs import UnknownConfig
-from app.engine.index.references import UnsupportedMode
-from app.engine.training.svm_training import NothingToTrainOn
 
 
 class ServiceError(engine.GeolocError):
@@ -67,22 +64,27 @@ class FitRefused(ServiceError):
     code = "invalid_request"
 
 
-#: The engine's exception classes to codes (the engine knows nothing of the API). A subclass maps like its
-#: nearest listed base.
-ENGINE_CODES: dict[type[Exception], str] = {
-    engine.UnreadableImage: "unreadable_image",
-    engine.ImageTooSmall: "image_too_small",
-    engine.ImageBadShape: "image_shape",
-    engine.ImageTooLarge: "too_large",
-    engine.UnsupportedImageFormat: "unsupported_image_format",
-    engine.NoGpsInImage: "no_gps_in_image",
-    engine.InvalidPosition: "invalid_position",
-    UnsupportedMode: "unsupported_mode",
-    UnknownConfig: "invalid_request",
-    engine.ModelNotReady: "not_ready",
-    engine.IncompatibleArtifact: "not_ready",
-    engine.ModelBuildError: "not_ready",
-    NothingToTrainOn: "invalid_request",  # fit/eval on a manifest that leaves nothing to fit
+def _name(cls: type) -> str:
+    return f"{cls.__module__}.{cls.__qualname__}"
+
+
+#: The engine's exception classes to codes (the engine knows nothing of the API), by qualified name: the
+#: modules that define some of them load FAISS or scikit-learn, which the storage and the CLI's light
+#: commands never need (a test checks that every name is a class). A subclass maps like its nearest base.
+ENGINE_CODES: dict[str, str] = {
+    _name(engine.UnreadableImage): "unreadable_image",
+    _name(engine.ImageTooSmall): "image_too_small",
+    _name(engine.ImageBadShape): "image_shape",
+    _name(engine.ImageTooLarge): "too_large",
+    _name(engine.UnsupportedImageFormat): "unsupported_image_format",
+    _name(engine.NoGpsInImage): "no_gps_in_image",
+    _name(engine.InvalidPosition): "invalid_position",
+    "app.engine.index.references.UnsupportedMode": "unsupported_mode",
+    "app.engine.configs.UnknownConfig": "invalid_request",
+    _name(engine.ModelNotReady): "not_ready",
+    _name(engine.IncompatibleArtifact): "not_ready",
+    _name(engine.ModelBuildError): "not_ready",
+    "app.engine.training.svm_training.NothingToTrainOn": "invalid_request",  # fit/eval leaving nothing to fit
 }
 
 
@@ -91,6 +93,6 @@ def code_of(exc: BaseException) -> str:
     if isinstance(exc, ServiceError):
         return exc.code
     for cls in type(exc).__mro__:
-        if cls in ENGINE_CODES:
-            return ENGINE_CODES[cls]
+        if (code := ENGINE_CODES.get(_name(cls))) is not None:
+            return code
     return "internal_error"

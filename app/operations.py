@@ -22,10 +22,10 @@ from app.collection import pipeline_source
 from app.engine.configs import DEFAULT_CONFIG
 from app.errors import OperationRefused
 from app.permissions import private_dir, private_tree
-from app.storage.database import DB_NAME, database_url
+from app.storage.backend import StorageBackend
 from app.storage.files import IMAGES
-from app.storage.maintenance import copy_database, image_names
 from app.storage.orphans import MIN_AGE_S, retry_removals, sweep
+from app.storage.settings import storage_backend
 from app.storage.snapshots import (
     MANIFEST,
     SnapshotInvalid,
@@ -54,13 +54,14 @@ def _sample(ids, n: int = 10) -> str:
 
 def check_data_dir(data_dir: Path, models_dir: Path, config: str | None) -> CheckReport:
     r = CheckReport()
-    if database_url() is None and not (data_dir / DB_NAME).exists():
-        r.problems.append(f"{data_dir / DB_NAME} does not exist")
+    backend = storage_backend(data_dir)
+    if not backend.exists():
+        r.problems.append(f"{backend.describe()} does not exist")
         return r
-    store = ReferenceStore(data_dir, read_only=True)
+    store = ReferenceStore(data_dir, read_only=True, backend=backend)
     if not store.holds_tables():
         r.problems.append(
-            f"{data_dir / DB_NAME} holds no tables: its content is still in a -wal file that is not here "
+            f"{backend.describe()} holds no tables: its content is still in a -wal file that is not here "
             "(a copy without it?); copy the data dir with `geoloc backup`"
         )
         return r
@@ -145,9 +146,10 @@ def repair_data_dir(data_dir: Path, min_age_s: float = MIN_AGE_S) -> list[str]:
     """Remove what no longer belongs to anything: queued removals retried, image files no row names and
     temporary files, both older than ``min_age_s`` (younger ones may be uploads in flight). Safe while the
     services run: every unlink is re-checked under the database's write lock. Returns what it did."""
-    if database_url() is None and not (data_dir / DB_NAME).exists():
-        raise OperationRefused(f"{data_dir / DB_NAME} does not exist: nothing to repair")
-    store = ReferenceStore(data_dir)
+    backend = storage_backend(data_dir)
+    if not backend.exists():
+        raise OperationRefused(f"{backend.describe()} does not exist: nothing to repair")
+    store = ReferenceStore(data_dir, backend=backend)
     try:
         removed, failed = retry_removals(store)
         lines = [f"removed {len(removed)} queued image files of deleted references"]
@@ -159,24 +161,17 @@ def repair_data_dir(data_dir: Path, min_age_s: float = MIN_AGE_S) -> list[str]:
 
 
 def backup_data_dir(data_dir: Path, dest: Path) -> dict:
-    """SQLite: its backup API; PostgreSQL: ``pg_dump`` (``app.storage.postgres.dump_database``). Then, in
-    both, the images the copied rows name (from the shared images folder on PostgreSQL), the data dir's
+    """The storage backend's dump (SQLite's backup API, PostgreSQL's ``pg_dump``: one state while others
+    keep writing). Then the images the copied rows name (from the shared images folder on PostgreSQL), the data dir's
     re-fitted pipelines, its newest snapshot and its API key file."""
     if dest.exists() and any(dest.iterdir()):
         raise OperationRefused(f"{dest} is not empty: back up into a new or empty folder")
     private_dir(dest, parents=True)
     os.chmod(dest, 0o700)  # from the start (an existing empty folder too): nothing under it is reachable meanwhile
     (dest / IMAGES).mkdir(parents=True, exist_ok=True)
-    url = database_url()
-    if url is not None:
-        from app.storage.postgres import DUMP_NAME, dump_database
-
-        names = dump_database(url, dest / DUMP_NAME)  # one state, while others keep writing
-        images, snapshots = _store_dirs(data_dir)
-    else:
-        copy_database(data_dir, dest)  # a consistent copy while other processes keep writing
-        names = image_names(dest)
-        images, snapshots = data_dir / IMAGES, data_dir
+    backend = storage_backend(data_dir)
+    names = backend.dump(dest)  # one state, while others keep writing
+    images, snapshots = backend.images_dir, backend.snapshots_dir
     copied = missing = 0
     for name in names:
         try:
@@ -202,7 +197,7 @@ def backup_data_dir(data_dir: Path, dest: Path) -> dict:
         "api_key": holds_key,
         **({"note": KEY_NOTE} if holds_key else {}),
         "source": str(data_dir.resolve()),
-        "database": "postgres" if url is not None else "sqlite",
+        "database": backend.name,
         "written_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
     }
     (dest / BACKUP_MANIFEST).write_text(json.dumps(summary, indent=1))
@@ -213,28 +208,19 @@ def backup_data_dir(data_dir: Path, dest: Path) -> dict:
 def restore_data_dir(source: Path, data_dir: Path) -> dict:
     """Into an empty data dir (and, on PostgreSQL, an empty database: ``pg_restore``, the images into the
     shared images folder). A backup restores on the engine it was made on."""
-    from app.storage.postgres import DUMP_NAME
-
-    url = database_url()
-    db_file = source / (DUMP_NAME if url is not None else DB_NAME)
-    if not (source / BACKUP_MANIFEST).exists() or not db_file.exists():
-        other = "SQLite (unset GEOLOC_DATABASE_URL)" if url is not None else "PostgreSQL (set GEOLOC_DATABASE_URL)"
+    backend = storage_backend(data_dir)
+    if not (source / BACKUP_MANIFEST).exists() or not (source / backend.backup_name).exists():
         raise OperationRefused(
-            f"{source} is not a backup written by `geoloc backup` on this engine (a backup of {other}?)"
+            f"{source} is not a backup written by `geoloc backup` on this storage backend ({backend.name}: "
+            "GEOLOC_DATABASE_URL set for PostgreSQL, unset for SQLite)"
             if (source / BACKUP_MANIFEST).exists()
             else f"{source} is not a backup written by `geoloc backup`"
         )
     if data_dir.exists() and any(p for p in data_dir.iterdir() if p.name != "README.md"):
         raise OperationRefused(f"{data_dir} is not empty: restore into a new or empty data dir")
     private_dir(data_dir, parents=True)
-    if url is not None:
-        from app.storage.postgres import restore_database
-
-        restore_database(url, db_file)
-        images, snapshots = _store_dirs(data_dir, writable=True)  # makes the folders; the restored tables open
-    else:
-        copy_database(source, data_dir)
-        images, snapshots = data_dir / IMAGES, data_dir
+    backend.restore(source)
+    images, snapshots = _store_dirs(data_dir, backend)  # makes the folders; the restored tables open
     shutil.copytree(source / IMAGES, images, dirs_exist_ok=True)
     if (source / PIPELINES).is_dir():
         shutil.copytree(source / PIPELINES, data_dir / PIPELINES, dirs_exist_ok=True)
@@ -247,9 +233,10 @@ def restore_data_dir(source: Path, data_dir: Path) -> dict:
     return json.loads((source / BACKUP_MANIFEST).read_text())
 
 
-def _store_dirs(data_dir: Path, writable: bool = False) -> tuple[Path, Path]:
-    """Where the store keeps its images and its snapshots (shared folders on PostgreSQL, when set)."""
-    store = ReferenceStore(data_dir, read_only=not writable)
+def _store_dirs(data_dir: Path, backend: StorageBackend) -> tuple[Path, Path]:
+    """Where the store keeps its images and its snapshots (shared folders on PostgreSQL, when set), made by
+    a writable open of the restored database (which also migrates it to this version's schema)."""
+    store = ReferenceStore(data_dir, backend=backend)
     try:
         return store.images_dir, store.snapshots_dir
     finally:

@@ -6,9 +6,10 @@ import os
 from pathlib import Path
 
 from pydantic import Field
-from pydantic_settings import BaseSettings, SettingsConfigDict
+from pydantic_settings import SettingsConfigDict
 
 from app.engine.configs import DEFAULT_CONFIG
+from app.storage.settings import StorageSettings
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 
@@ -27,7 +28,9 @@ def usable_cpus() -> int:
         return os.cpu_count() or 1
 
 
-class Settings(BaseSettings):
+class Settings(StorageSettings):
+    """Every ``GEOLOC_*`` setting; the storage's (database URL, shared folders) are ``StorageSettings``'."""
+
     model_config = SettingsConfigDict(env_prefix="GEOLOC_", env_file=None, extra="ignore")
 
     data_dir: Path = Field(REPO_ROOT / "index", description="FAISS snapshots, SQLite metadata, stored images")

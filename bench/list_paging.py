@@ -40,13 +40,8 @@ def _seed(store: ReferenceStore, refs: int, batch: int = 50_000) -> float:
     t0 = time.perf_counter()
     for start in range(0, refs, batch):
         rows = list(_rows(start, min(batch, refs - start), rng))
-        if store.engine == "postgres":
-            with store.db.raw.transaction():
-                store.db.copy_rows("refs", COLUMNS, rows)
-        else:
-            store.db.execute("BEGIN")
-            store.db.executemany(f"INSERT INTO refs ({', '.join(COLUMNS)}) VALUES (?, ?, ?, ?, ?, ?)", rows)
-            store.db.execute("COMMIT")
+        with store.transaction() as db:
+            store.backend.copy_rows(db, "refs", COLUMNS, rows)
     if store.engine == "postgres":
         store.db.execute("ANALYZE refs")
     return time.perf_counter() - t0

@@ -43,7 +43,7 @@ from app.storage.store import NewReference, ReferenceStore
 from tools.postgres_server import PostgresServer
 
 FLOAT_DIM = 256  # the default configuration's float code (hybrid): 1 KB per reference
-#: The columns ``add_many`` fills for a pre-encoded reference (``_insert_each``/``_insert_copied``).
+#: The columns ``add_many`` fills for a pre-encoded reference (``StorageBackend.insert_refs``).
 SEED_COLS = ("sha256", "lat", "lon", "image_ext", "created_at", "float_code", "status")
 
 
@@ -88,11 +88,7 @@ def _seed_rows(store: ReferenceStore, rng: np.random.Generator, start: int, n: i
     ]
     with store.transaction() as db:
         high = db.execute("SELECT COALESCE(MAX(id), 0) FROM refs").fetchone()[0]
-        if store.engine == "postgres":
-            db.copy_rows("refs", SEED_COLS, rows)
-        else:
-            marks = ",".join("?" * len(SEED_COLS))
-            db.executemany(f"INSERT INTO refs({', '.join(SEED_COLS)}) VALUES({marks})", rows)
+        store.backend.copy_rows(db, "refs", SEED_COLS, rows)
         db.execute("INSERT INTO changes(ref_id, op) SELECT id, 'add' FROM refs WHERE id > ? ORDER BY id", (high,))
 
 
@@ -107,7 +103,7 @@ def _seed(data: Path, refs: int, add_rows: int, batch: int, seed_batch: int) -> 
     add_rate = added / (time.perf_counter() - t0) if added else float("nan")
     for start in range(added, refs, seed_batch):
         _seed_rows(store, rng, start, min(seed_batch, refs - start))
-    if store.engine == "postgres":  # what add_many's _analyze_after_bulk does after a load
+    if store.engine == "postgres":  # what add_many's after_bulk_insert does after a load
         store.db.execute("ANALYZE refs, changes")
     return store, add_rate, time.perf_counter() - t0
 
@@ -201,12 +197,12 @@ def _service_queries(store: ReferenceStore, repeat: int) -> dict[str, tuple[floa
     }
     out = {}
     for name, call in calls.items():
-        real = store.db
-        store.db = recorder = _Recorder(real)
+        real = store.database.db  # the connection every part of the store reads through
+        store.database.db = recorder = _Recorder(real)
         try:
             call()
         finally:
-            store.db = real
+            store.database.db = real
         ms = []
         for _ in range(repeat):
             t0 = time.perf_counter()

@@ -100,10 +100,10 @@ def _load(app: FastAPI, stop: threading.Event) -> None:
                 raise
             if s.worker == "inprocess":
                 _run_writer(app, service)
-            if service.store.engine == "postgres":  # a replica: catch up as other hosts commit changes
-                from app.storage.postgres import ChangeListener
-
-                state.listener = ChangeListener(service.store.database_url, service.collection.catch_up).start()
+            # Where other hosts commit changes (PostgreSQL): catch up as they do, not at the next search.
+            listener = service.store.backend.change_listener(service.collection.catch_up)
+            if listener is not None:
+                state.listener = listener.start()
             state.service = service
             state.load_error = None
             log.info("ready: config %s, %d references", service.pipeline.config.name, service.collection.size)
@@ -152,7 +152,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.api_key = apikey.resolve(settings.api_key, settings.no_auth, settings.data_dir)
     app.state.metrics = Metrics()
     app.state.service = None
-    app.state.listener = None  # on PostgreSQL: the change listener (app.storage.postgres.ChangeListener)
+    app.state.listener = None  # the backend's change listener, where it has one (PostgreSQL)
     app.state.writer = None  # the writer role (worker=inprocess), held or waiting for the worker lock
     app.state.worker = None  # its ingestion worker, once this process holds the role
     app.state.load_error = None
@@ -162,7 +162,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_middleware(BodyLimits, settings=settings, routes=ROUTES)
     app.add_middleware(MetricsMiddleware, metrics=app.state.metrics)
     app.add_middleware(security.HtmlPolicy)  # outermost: every answer, refusals included, gets its headers
-    errors.install(app)
+    errors.install(app, settings.backend(settings.data_dir).exceptions)
     for router in ROUTERS:
         app.include_router(router)
     app.mount("/static", StaticFiles(directory=WEB_DIR), name="static")

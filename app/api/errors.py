@@ -21,7 +21,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from app.engine import errors as e
 from app.errors import code_of
-from app.storage.errors import STORAGE_EXCEPTIONS, is_storage_error
+from app.storage.errors import is_storage_error
 
 log = logging.getLogger("geoloc.api")
 
@@ -129,7 +129,10 @@ def error_response(error: str, message: str, status: int | None = None, headers:
 _json = error_response
 
 
-def install(app: FastAPI) -> None:
+def install(app: FastAPI, storage_exceptions: tuple[type[Exception], ...] = ()) -> None:
+    """Every error answers JSON with its code. ``storage_exceptions``: the storage backend's raw error types
+    (``StorageBackend.exceptions``), a 503 when one escapes ``storage_guard``."""
+
     @app.exception_handler(ApiError)
     async def _api(_: Request, exc: ApiError):
         return _json(exc.error, exc.message, exc.status)
@@ -169,7 +172,7 @@ def install(app: FastAPI) -> None:
         return _json("internal_error", f"internal error ({type(exc).__name__}); see the server log")
 
     app.add_exception_handler(OSError, _storage)
-    for kind in STORAGE_EXCEPTIONS:
+    for kind in storage_exceptions:  # the backend's raw errors (app.storage.backend)
         app.add_exception_handler(kind, _storage)
 
     @app.exception_handler(Exception)

@@ -10,66 +10,23 @@ snapshots (the writer role: ``app.jobs.writer``).
 
 from __future__ import annotations
 
-import contextlib
-import fcntl
 import logging
-import os
 import threading
 from collections.abc import Callable
 from pathlib import Path
 
 from app.service import GeolocService
-from app.storage.database import database_url
+from app.storage.backend import WriterLock
 from app.storage.errors import is_storage_error
-from app.storage.postgres import DatabaseWriterLock
+from app.storage.settings import storage_backend
 
 log = logging.getLogger("geoloc.worker")
 
 
-class WorkerLock:
-    """One ingestion worker per data dir: a second one would encode the same rows twice."""
-
-    def __init__(self, data_dir: Path):
-        self.path = Path(data_dir) / "worker.lock"
-        self._fd: int | None = None
-
-    def acquire(self) -> bool:
-        fd = os.open(self.path, os.O_CREAT | os.O_RDWR, 0o600)
-        with contextlib.suppress(OSError):  # private whatever the umask (an older version made it 0644)
-            os.fchmod(fd, 0o600)
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            os.close(fd)
-            return False
-        os.ftruncate(fd, 0)
-        os.write(fd, str(os.getpid()).encode())
-        self._fd = fd
-        return True
-
-    @property
-    def held(self) -> bool:
-        return self._fd is not None
-
-    #: A file lock is held until this process lets it go or dies: it cannot be lost while running.
-    can_be_lost = False
-
-    @property
-    def where(self) -> str:
-        return str(self.path)
-
-    def release(self) -> None:
-        if self._fd is not None:
-            fcntl.flock(self._fd, fcntl.LOCK_UN)
-            os.close(self._fd)
-            self._fd = None
-
-
-def writer_lock(data_dir: Path) -> WorkerLock | DatabaseWriterLock:
-    """The lock that makes one process the writer: the data dir's lock file on SQLite (every process shares
-    that host), the database's advisory lock on PostgreSQL (processes on any host)."""
-    url = database_url()
-    return DatabaseWriterLock(url) if url else WorkerLock(data_dir)
+def writer_lock(data_dir: Path) -> WriterLock:
+    """The lock that makes one process the writer: the storage backend's (the data dir's lock file on
+    SQLite, the database's advisory lock on PostgreSQL)."""
+    return storage_backend(data_dir).writer_lock()
 
 
 class IngestWorker:

@@ -10,17 +10,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from app.storage.database import Database
+from app.storage.database import Part, ids_json
 from app.storage.generations import CODES
-
-CHANGES_SCHEMA = """
--- The index's change log: one row per reference added to or deleted from the index.
-CREATE TABLE IF NOT EXISTS changes (
-    version INTEGER PRIMARY KEY AUTOINCREMENT,
-    ref_id INTEGER NOT NULL,
-    op TEXT NOT NULL CHECK (op IN ('add', 'delete', 'move'))
-);
-"""
 
 
 @dataclass(frozen=True)
@@ -32,25 +23,36 @@ class Change:
     binary_code: bytes | None
 
 
-class ChangeLog(Database):
-    def _log_change(self, db: sqlite3.Connection, ref_id: int, op: str) -> None:
+class ChangeLog(Part):
+    """The ``changes`` table."""
+
+    def log(self, db: sqlite3.Connection, ref_id: int, op: str) -> None:
         """Inside a write transaction: append one change of the index."""
         db.execute("INSERT INTO changes(ref_id, op) VALUES(?, ?)", (ref_id, op))
-        self._notify(db)
+        self.database.backend.notify(db)
+
+    def log_adds(self, db: sqlite3.Connection, ids: list[int]) -> None:
+        """Inside a write transaction: append an add of each of ``ids``, in id order (a bulk insert)."""
+        if ids:
+            db.execute(
+                "INSERT INTO changes(ref_id, op) SELECT value, 'add' FROM json_each(?) ORDER BY value",
+                (ids_json(sorted(ids)),),
+            )
+            self.database.backend.notify(db)
 
     @property
     def version(self) -> int:
         """The index version: the change log's last entry. Pending uploads do not move it. Read under the
         store's lock: on the connection this process shares between threads, a read inside another thread's
         open write transaction would see changes that may yet roll back."""
-        with self._lock:
-            return int(self.db.execute("SELECT COALESCE(MAX(version), 0) FROM changes").fetchone()[0])
+        with self.database.lock:
+            return int(self.database.db.execute("SELECT COALESCE(MAX(version), 0) FROM changes").fetchone()[0])
 
     def changes_since(self, version: int) -> list[Change]:
         """The index changes after ``version``, oldest first, each add with its codes (NULL when the row was
         deleted since: a later delete entry follows). Under the lock, like ``version``."""
-        with self._lock:
-            rows = self.db.execute(
+        with self.database.lock:
+            rows = self.database.db.execute(
                 f"SELECT c.version, c.ref_id, c.op, {CODES} FROM changes c "
                 "LEFT JOIN refs r ON r.id = c.ref_id AND r.status = 'indexed' AND c.op = 'add' "
                 "LEFT JOIN switched_codes s ON s.ref_id = r.id "
@@ -61,9 +63,9 @@ class ChangeLog(Database):
 
     def all_codes(self) -> tuple[int, np.ndarray, list[bytes | None], list[bytes | None]]:
         """Every indexed row's codes and the index version they make up, read in one consistent snapshot."""
-        with self.read_snapshot() as db:
+        with self.database.read_snapshot() as db:
             version = int(db.execute("SELECT COALESCE(MAX(version), 0) FROM changes").fetchone()[0])
-            rows = self.fetch_bulk(
+            rows = self.database.backend.fetch_bulk(
                 db,
                 f"SELECT r.id, {CODES} FROM refs r LEFT JOIN switched_codes s ON s.ref_id = r.id "
                 "WHERE r.status='indexed' ORDER BY r.id",
@@ -71,5 +73,5 @@ class ChangeLog(Database):
         return version, np.array([r[0] for r in rows], np.int64), [r[1] for r in rows], [r[2] for r in rows]
 
     def indexed_ids(self) -> np.ndarray:
-        rows = self.db.execute("SELECT id FROM refs WHERE status='indexed' ORDER BY id").fetchall()
+        rows = self.database.db.execute("SELECT id FROM refs WHERE status='indexed' ORDER BY id").fetchall()
         return np.array([r[0] for r in rows], np.int64)

@@ -4,21 +4,12 @@ they surface as ``StorageUnavailable`` so callers answer "try again later" witho
 from __future__ import annotations
 
 import errno
-import os
 import sqlite3
 import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
 
 from app.errors import StorageUnavailable
-
-#: The raw exception types of the storage's database library: what an API maps to "storage unavailable"
-#: when one escapes ``storage_guard`` (callers outside storage never import sqlite3 themselves).
-STORAGE_EXCEPTIONS: tuple[type[Exception], ...] = (sqlite3.Error,)
-if os.environ.get("GEOLOC_DATABASE_URL", "").strip():  # the optional driver, imported only when used (150 ms)
-    import psycopg
-
-    STORAGE_EXCEPTIONS += (psycopg.Error,)
 
 
 def _psycopg():

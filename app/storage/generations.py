@@ -19,27 +19,17 @@ from pathlib import Path
 import numpy as np
 
 from app.errors import StaleReindex
-from app.storage.database import Database, blob
+from app.storage.database import Part, blob
 
+#: A fresh ``next_codes`` after the switch renamed the filled one (the same table as the baseline's).
 NEXT_CODES = """
-CREATE TABLE IF NOT EXISTS next_codes (
+CREATE TABLE next_codes (
     ref_id INTEGER PRIMARY KEY,
     float_code BLOB,
     binary_code BLOB,
     error TEXT
-);
-"""
-GENERATIONS_SCHEMA = (
-    NEXT_CODES
-    + """
-CREATE TABLE IF NOT EXISTS switched_codes (
-    ref_id INTEGER PRIMARY KEY,
-    float_code BLOB,
-    binary_code BLOB,
-    error TEXT
-);
-"""
 )
+"""
 #: A reference's codes of the generation in use: its row in ``switched_codes`` when there is one.
 CODES = (
     "CASE WHEN s.ref_id IS NULL THEN r.float_code ELSE s.float_code END, "
@@ -67,11 +57,13 @@ class ReindexTarget:
         return cls(int(d["generation"]), d["pipeline"], d["config"], d["fp"])
 
 
-class Generations(Database):
+class Generations(Part):
+    """The ``next_codes`` and ``switched_codes`` tables and the generation's meta keys."""
+
     def head(self) -> tuple[int, int]:
         """(index version, generation) in one read: what every process compares before each search."""
-        with self._lock:
-            row = self.db.execute(
+        with self.database.lock:
+            row = self.database.db.execute(
                 "SELECT (SELECT COALESCE(MAX(version), 0) FROM changes), "
                 "(SELECT value FROM meta WHERE key='generation')"
             ).fetchone()
@@ -80,9 +72,9 @@ class Generations(Database):
     def generation_state(self) -> tuple[int, str | None, str | None]:
         """(generation, pipeline, config) read together, so a process never pairs one generation's number
         with another's pipeline."""
-        with self._lock:
+        with self.database.lock:
             rows = dict(
-                self.db.execute(
+                self.database.db.execute(
                     "SELECT key, value FROM meta WHERE key IN ('generation', 'pipeline', 'config')"
                 ).fetchall()
             )
@@ -92,7 +84,7 @@ class Generations(Database):
         """Make ``target`` (a pipeline fitted in the data dir at its first start, generation 0) the one this
         data dir uses, in one transaction, only while none is recorded and no reference is stored: a data dir
         already bound to a pipeline is never re-bound. Returns whether it was recorded."""
-        with self.transaction() as db:
+        with self.database.transaction() as db:
             if db.execute("SELECT 1 FROM meta WHERE key='pipeline'").fetchone():
                 return False
             if db.execute("SELECT 1 FROM refs LIMIT 1").fetchone():
@@ -102,10 +94,10 @@ class Generations(Database):
 
     def generation_codes(self) -> tuple[int, int, np.ndarray, list[bytes | None], list[bytes | None]]:
         """``all_codes`` plus the generation they belong to, read in one consistent snapshot."""
-        with self.read_snapshot() as db:
+        with self.database.read_snapshot() as db:
             gen = db.execute("SELECT value FROM meta WHERE key='generation'").fetchone()
             version = int(db.execute("SELECT COALESCE(MAX(version), 0) FROM changes").fetchone()[0])
-            rows = self.fetch_bulk(
+            rows = self.database.backend.fetch_bulk(
                 db,
                 f"SELECT r.id, {CODES} FROM refs r LEFT JOIN switched_codes s ON s.ref_id = r.id "
                 "WHERE r.status='indexed' ORDER BY r.id",
@@ -114,7 +106,7 @@ class Generations(Database):
         return int(gen[0]) if gen else 0, version, ids, [r[1] for r in rows], [r[2] for r in rows]
 
     def reindex_target(self) -> ReindexTarget | None:
-        value = self.get_meta("reindex_target")
+        value = self.database.get_meta("reindex_target")
         return ReindexTarget.from_json(value) if value else None
 
     def start_reindex(self, target: ReindexTarget) -> int:
@@ -123,7 +115,7 @@ class Generations(Database):
         value = target.to_json()
         while self.migrate_switched():  # the previous switch's codes first (an interrupted refit)
             pass
-        with self.transaction() as db:
+        with self.database.transaction() as db:
             row = db.execute("SELECT value FROM meta WHERE key='reindex_target'").fetchone()
             if row is None or row[0] != value:
                 db.execute("DELETE FROM next_codes")
@@ -135,18 +127,18 @@ class Generations(Database):
             return int(db.execute("SELECT COUNT(*) FROM next_codes").fetchone()[0])
 
     def abandon_reindex(self) -> None:
-        with self.transaction() as db:
+        with self.database.transaction() as db:
             db.execute("DELETE FROM next_codes")
             db.execute("DELETE FROM meta WHERE key='reindex_target'")
 
     def reindex_todo(self, limit: int, after: int = 0) -> list[tuple[int, Path]]:
         """Indexed references after ``after`` (by id) that have no code of the new generation yet."""
-        rows = self.db.execute(
+        rows = self.database.db.execute(
             "SELECT r.id, r.sha256, r.image_ext FROM refs r LEFT JOIN next_codes n ON n.ref_id = r.id "
             "WHERE r.status='indexed' AND r.id > ? AND n.ref_id IS NULL ORDER BY r.id LIMIT ?",
             (after, limit),
         ).fetchall()
-        return [(r[0], self.image_path_for(r[1], r[2])) for r in rows]
+        return [(r[0], self.database.image_path_for(r[1], r[2])) for r in rows]
 
     def put_next_codes(
         self, target: ReindexTarget, results: Sequence[tuple[int, np.ndarray | None, np.ndarray | None, str | None]]
@@ -154,7 +146,7 @@ class Generations(Database):
         """Record a batch of the new generation's codes (or why a reference could not be encoded) in one
         transaction. Refused (``StaleReindex``) when another re-index has taken over the data dir."""
         value = target.to_json()
-        with self.transaction() as db:
+        with self.database.transaction() as db:
             row = db.execute("SELECT value FROM meta WHERE key='reindex_target'").fetchone()
             if row is None or row[0] != value:
                 raise StaleReindex("another re-index took over this data dir (or it was switched already)")
@@ -168,7 +160,7 @@ class Generations(Database):
     def reindex_missing(self) -> int:
         """Indexed references still without a code of the new generation."""
         return int(
-            self.db.execute(
+            self.database.db.execute(
                 "SELECT COUNT(*) FROM refs r LEFT JOIN next_codes n ON n.ref_id = r.id "
                 "WHERE r.status='indexed' AND n.ref_id IS NULL"
             ).fetchone()[0]
@@ -182,7 +174,7 @@ class Generations(Database):
         record the target's pipeline, generation, fingerprint and configuration. ``migrate_switched`` then
         copies the codes into ``refs`` in short transactions. Returns the new generation."""
         value = target.to_json()
-        with self.transaction() as db:
+        with self.database.transaction() as db:
             row = db.execute("SELECT value FROM meta WHERE key='reindex_target'").fetchone()
             if row is None or row[0] != value:
                 raise StaleReindex("another re-index took over this data dir (or it was switched already)")
@@ -201,16 +193,16 @@ class Generations(Database):
             )
             db.execute("DROP TABLE switched_codes")
             db.execute("ALTER TABLE next_codes RENAME TO switched_codes")
-            db.execute(NEXT_CODES.strip().rstrip(";"))
+            db.execute(NEXT_CODES.strip())
             _bind_pipeline(db, target)
             db.execute("DELETE FROM meta WHERE key='reindex_target'")
-            self._notify(db)
+            self.database.backend.notify(db)
         return int(target.generation)
 
     def migrate_switched(self, batch: int = 5000) -> int:
         """Copy up to ``batch`` of the last switch's codes into ``refs`` in one short transaction (readers see
         the same codes before and after); returns how many rows it handled (0: nothing left)."""
-        with self.transaction() as db:
+        with self.database.transaction() as db:
             rows = db.execute(
                 "SELECT ref_id, float_code, binary_code FROM switched_codes ORDER BY ref_id LIMIT ?", (batch,)
             ).fetchall()

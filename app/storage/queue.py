@@ -12,40 +12,8 @@ from pathlib import Path
 import numpy as np
 
 from app.storage.changes import ChangeLog
-from app.storage.database import blob, ids_json
+from app.storage.database import Database, Part, blob, ids_json
 
-JOBS_SCHEMA = """
-CREATE TABLE IF NOT EXISTS jobs (
-    id TEXT PRIMARY KEY,
-    created_at TEXT NOT NULL
-);
-CREATE TABLE IF NOT EXISTS job_items (
-    job_id TEXT NOT NULL REFERENCES jobs(id),
-    position INTEGER NOT NULL,
-    ref_id INTEGER NOT NULL,
-    duplicate INTEGER NOT NULL DEFAULT 0,
-    PRIMARY KEY (job_id, position)
-);
-"""
-#: Claims: pending rows a bulk run (``geoloc ingest``) encodes itself. A worker skips them until the lease
-#: ends, so the rows of a run that crashed go back to the queue by themselves.
-CLAIMS_SCHEMA = """
-CREATE TABLE IF NOT EXISTS claims (
-    ref_id INTEGER PRIMARY KEY,
-    owner TEXT NOT NULL,
-    expires REAL NOT NULL
-);
-CREATE INDEX IF NOT EXISTS claims_owner ON claims(owner);
-"""
-#: Encoding attempts of pending rows, counted (and committed) before each attempt starts: a row whose encoding
-#: takes the process down (out of memory, a crash in a native library) can never report its own failure, and
-#: it was retried forever, on every host in turn (issue 30). Its count tells the next worker.
-ATTEMPTS_SCHEMA = """
-CREATE TABLE IF NOT EXISTS encode_attempts (
-    ref_id INTEGER PRIMARY KEY,
-    attempts INTEGER NOT NULL
-);
-"""
 #: How a quarantined row's error starts (``Queue.start_attempts``): ``geoloc check`` and the jobs API list them.
 QUARANTINED = "quarantined"
 
@@ -89,20 +57,30 @@ def _job_status(items: Sequence[JobItem], counts: dict[str, int]) -> str:
     return "failed" if counts["failed"] == len(items) else "done"
 
 
-class Queue(ChangeLog):
+class Queue(Part):
+    """The ingestion queue's tables: ``jobs`` and ``job_items`` (an upload's references, in order),
+    ``claims`` (pending rows a bulk run (``geoloc ingest``) encodes itself: a worker skips them until the
+    lease ends, so the rows of a run that crashed go back to the queue by themselves) and
+    ``encode_attempts`` (counted and committed before each attempt: a row whose encoding takes the process
+    down can never report its own failure, and was retried forever on every host in turn, issue 30)."""
+
+    def __init__(self, database: Database, changes: ChangeLog):
+        super().__init__(database)
+        self.changes = changes
+
     def pending(self, limit: int, after: int = 0) -> list[tuple[int, Path]]:
         """The next pending rows in id order, except those another run claimed and whose lease still runs."""
-        rows = self.db.execute(
+        rows = self.database.db.execute(
             "SELECT r.id, r.sha256, r.image_ext FROM refs r LEFT JOIN claims c ON c.ref_id = r.id "
             "WHERE r.status='pending' AND r.id > ? AND (c.expires IS NULL OR c.expires <= ?) ORDER BY r.id LIMIT ?",
             (after, time.time(), limit),
         ).fetchall()
-        return [(r[0], self.image_path_for(r[1], r[2])) for r in rows]
+        return [(r[0], self.database.image_path_for(r[1], r[2])) for r in rows]
 
     def claim(self, ids: Sequence[int], owner: str, lease_s: float) -> None:
         """Claim rows for ``owner`` for ``lease_s`` seconds (one statement for the whole list); a claim held
         by another owner is taken over only once its lease has ended."""
-        with self.transaction() as db:
+        with self.database.transaction() as db:
             db.execute(
                 "INSERT INTO claims(ref_id, owner, expires) SELECT value, ?, ? FROM json_each(?) WHERE true "
                 "ON CONFLICT(ref_id) DO UPDATE SET owner=excluded.owner, expires=excluded.expires "
@@ -112,7 +90,7 @@ class Queue(ChangeLog):
 
     def release(self, owner: str, ids: Sequence[int] | None = None) -> None:
         """Drop ``owner``'s claims on ``ids`` (all of them when None): done rows, or the end of a run."""
-        with self.transaction() as db:
+        with self.database.transaction() as db:
             if ids is None:
                 db.execute("DELETE FROM claims WHERE owner=?", (owner,))
             else:
@@ -123,7 +101,7 @@ class Queue(ChangeLog):
 
     def attempts(self, ids: Sequence[int]) -> dict[int, int]:
         """How many encodings of ``ids`` were started and never completed (rows with none are left out)."""
-        rows = self.db.execute(
+        rows = self.database.db.execute(
             "SELECT ref_id, attempts FROM encode_attempts WHERE ref_id IN (SELECT value FROM json_each(?))",
             (ids_json(ids),),
         ).fetchall()
@@ -133,7 +111,7 @@ class Queue(ChangeLog):
         """Count one more attempt of each of ``ids``, committed before the encoding starts. A row already
         attempted ``limit`` times is quarantined instead (failed, its error saying so: never tried again) and
         returned."""
-        with self.transaction() as db:
+        with self.database.transaction() as db:
             spent = [
                 int(r[0])
                 for r in db.execute(
@@ -165,12 +143,12 @@ class Queue(ChangeLog):
     def end_attempts(self, ids: Sequence[int]) -> None:
         """The encoding of ``ids`` returned (whatever its outcome: codes, a failure, a storage retry): none of
         them took the process down. Only a process that died leaves its count behind."""
-        with self.transaction() as db:
+        with self.database.transaction() as db:
             db.execute("DELETE FROM encode_attempts WHERE ref_id IN (SELECT value FROM json_each(?))", (ids_json(ids),))
 
     def quarantined(self, limit: int = 100) -> list[tuple[int, str]]:
         """Quarantined rows (id, error), oldest first, at most ``limit``."""
-        rows = self.db.execute(
+        rows = self.database.db.execute(
             "SELECT id, error FROM refs WHERE status='failed' AND error LIKE ? ORDER BY id LIMIT ?",
             (f"{QUARANTINED}:%", limit),
         ).fetchall()
@@ -187,8 +165,8 @@ class Queue(ChangeLog):
         pipeline that encoded the batch; when a re-fit has switched the data dir to another one meanwhile,
         nothing is recorded and the rows stay pending (to be encoded again by the new pipeline)."""
         done = []
-        with self.transaction() as db:
-            if fingerprint is not None and not self._fingerprint_is(db, fingerprint):
+        with self.database.transaction() as db:
+            if fingerprint is not None and not self.database.fingerprint_is(db, fingerprint):
                 return []
             for ref_id, fcode, bcode, error in results:
                 if error is not None:
@@ -201,26 +179,23 @@ class Queue(ChangeLog):
                     (blob(fcode, np.float32), blob(bcode, np.uint8), ref_id),
                 )
                 if cur.rowcount:
-                    self._log_change(db, ref_id, "add")
+                    self.changes.log(db, ref_id, "add")
                     done.append(ref_id)
         return done
 
-    def _record_job(
+    def record_job(
         self, db: sqlite3.Connection, job_id: str, created_at: str, items: Sequence[tuple[int, bool]]
     ) -> None:
         """Inside an add's write transaction: the job of ``items`` ((reference id, created), in order)."""
         db.execute("INSERT INTO jobs(id, created_at) VALUES(?, ?)", (job_id, created_at))
         rows = [(job_id, n, ref_id, int(not created)) for n, (ref_id, created) in enumerate(items)]
-        if self.engine == "postgres":
-            db.copy_rows("job_items", ("job_id", "position", "ref_id", "duplicate"), rows)
-        else:
-            db.executemany("INSERT INTO job_items(job_id, position, ref_id, duplicate) VALUES(?,?,?,?)", rows)
+        self.database.backend.copy_rows(db, "job_items", ("job_id", "position", "ref_id", "duplicate"), rows)
 
     def job(self, job_id: str) -> Job | None:
-        row = self.db.execute("SELECT created_at FROM jobs WHERE id=?", (job_id,)).fetchone()
+        row = self.database.db.execute("SELECT created_at FROM jobs WHERE id=?", (job_id,)).fetchone()
         if row is None:
             return None
-        rows = self.db.execute(
+        rows = self.database.db.execute(
             "SELECT j.position, j.ref_id, j.duplicate, r.status, r.error FROM job_items j "
             "LEFT JOIN refs r ON r.id = j.ref_id WHERE j.job_id=? ORDER BY j.position",
             (job_id,),

@@ -15,35 +15,32 @@ import sqlite3
 import time
 from collections.abc import Sequence
 
-from app.storage.database import Database
+from app.storage.database import Part
 from app.storage.files import THUMBNAILS
 
 log = logging.getLogger("geoloc.store")
 
-REMOVALS_SCHEMA = """
-CREATE TABLE IF NOT EXISTS removals (
-    name TEXT PRIMARY KEY,
-    queued_at REAL NOT NULL
-);
-"""
 
+class Removals(Part):
+    """The ``removals`` table and the unlinks it drives."""
 
-class Removals(Database):
-    def _queue_removal(self, db: sqlite3.Connection, name: str) -> None:
+    def queue(self, db: sqlite3.Connection, name: str) -> None:
         """Inside the write transaction that deletes the row naming ``name``."""
         db.execute(
             "INSERT INTO removals(name, queued_at) VALUES(?, ?) ON CONFLICT(name) DO NOTHING", (name, time.time())
         )
 
-    def _unqueue_removals(self, db: sqlite3.Connection, names: Sequence[str]) -> None:
+    def unqueue(self, db: sqlite3.Connection, names: Sequence[str]) -> None:
         """Inside an add's write transaction: the names are in use again."""
         db.execute("DELETE FROM removals WHERE name IN (SELECT value FROM json_each(?))", (json.dumps(list(names)),))
 
     def queued_removals(self) -> list[str]:
         """The file names still queued for removal (an empty list on a data dir from before the queue)."""
         try:
-            with self._lock:  # not inside another thread's open transaction on this shared connection
-                return [r[0] for r in self.db.execute("SELECT name FROM removals ORDER BY queued_at").fetchall()]
+            with self.database.lock:  # not inside another thread's open transaction on this shared connection
+                return [
+                    r[0] for r in self.database.db.execute("SELECT name FROM removals ORDER BY queued_at").fetchall()
+                ]
         except sqlite3.OperationalError:  # a read-only open of a data dir without the table
             return []
 
@@ -51,7 +48,7 @@ class Removals(Database):
         """Remove queued files (those in ``names``, or up to ``limit`` of the oldest): each is unlinked under
         the write lock unless a row names it again (an upload of the same bytes since), and leaves the queue
         unless its unlink failed. Returns (removed, failed)."""
-        with self.transaction() as db:
+        with self.database.transaction() as db:
             if names is None:
                 rows = db.execute("SELECT name FROM removals ORDER BY queued_at LIMIT ?", (limit,)).fetchall()
             else:
@@ -71,7 +68,7 @@ class Removals(Database):
         """Unlink the image files among ``names`` that no row names (orphans), under the write lock so that
         an add of the same bytes either commits first (and its file is kept) or re-writes the file in its
         own transaction. Returns (removed, failed)."""
-        with self.transaction() as db:
+        with self.database.transaction() as db:
             return self._unlink_unnamed(db, names)
 
     def _unlink_unnamed(self, db: sqlite3.Connection, names: Sequence[str]) -> tuple[list[str], list[str]]:
@@ -84,17 +81,17 @@ class Removals(Database):
             if name in named:
                 continue
             try:
-                (self.images_dir / name).unlink(missing_ok=True)
+                (self.database.images_dir / name).unlink(missing_ok=True)
                 self._unlink_thumbnails(name)
                 removed.append(name)
             except OSError as e:
-                log.warning("cannot remove %s now: %s", self.images_dir / name, e)
+                log.warning("cannot remove %s now: %s", self.database.images_dir / name, e)
                 failed.append(name)
         return removed, failed
 
     def _unlink_thumbnails(self, name: str) -> None:
         """The image's thumbnails, one per size ever served (a handful of folders: no scan of the files)."""
-        folder = self.images_dir / THUMBNAILS
+        folder = self.database.images_dir / THUMBNAILS
         if folder.is_dir():
             sha = name.split(".", 1)[0]
             for size in folder.iterdir():
@@ -105,8 +102,8 @@ class Removals(Database):
         if not names:
             return set()
         shas = json.dumps([n.split(".", 1)[0] for n in names])
-        conn = db or self.db
-        with self._lock:
+        conn = db or self.database.db
+        with self.database.lock:
             rows = conn.execute(
                 "SELECT sha256, image_ext FROM refs WHERE sha256 IN (SELECT value FROM json_each(?))", (shas,)
             ).fetchall()

@@ -13,7 +13,6 @@ from __future__ import annotations
 import uuid
 
 from app.errors import ServiceError
-from app.storage.database import IMAGES_DIR_ENV
 from app.storage.store import ReferenceStore
 
 #: The meta key and the marker file (a dot file: `geoloc check` and the sweep pass over those).
@@ -28,10 +27,11 @@ class ImagesNotShared(ServiceError):
 
 
 def check_images_shared(store: ReferenceStore) -> None:
-    """Raise ``ImagesNotShared`` when ``store`` is on PostgreSQL and its images folder is not the one
-    recorded in the database; record it when none is (the first host). A folder without a marker that holds
-    the newest reference's image (a restore, or a folder shared before this check existed) is adopted."""
-    if store.engine != "postgres" or store.read_only:
+    """Raise ``ImagesNotShared`` when ``store``'s backend is shared by hosts (PostgreSQL) and its images
+    folder is not the one recorded in the database; record it when none is (the first host). A folder
+    without a marker that holds the newest reference's image (a restore, or a folder shared before this
+    check existed) is adopted."""
+    if not store.backend.hosts_share_images or store.read_only:
         return
     marker = store.images_dir / MARKER
     mine = marker.read_text().strip() if marker.exists() else None
@@ -47,7 +47,7 @@ def check_images_shared(store: ReferenceStore) -> None:
     if mine != recorded:
         raise ImagesNotShared(
             f"the images folder {store.images_dir} is not the one the other hosts on this database use: on "
-            f"PostgreSQL every host must set {IMAGES_DIR_ENV} to one shared folder (an NFS or other network "
+            f"PostgreSQL every host must set GEOLOC_IMAGES_DIR to one shared folder (an NFS or other network "
             "path), or an upload accepted here is never found by the host that encodes it"
         )
 

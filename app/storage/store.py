@@ -7,12 +7,13 @@ appends one row in the same transaction as the change itself, so the cost of a c
 collection's size. Accepting an upload (a ``pending`` row) is a change of rows, not of the index, and
 appends nothing.
 
-``ReferenceStore`` is one class composed of the storage's parts (each a ``Database`` subclass over the same
-connection, each owning its tables): this module holds the rows and their images; ``queue`` the pending
-rows, claims and jobs; ``changes`` the change log; ``generations`` a re-fit's codes; ``identity`` the
-database's id and checkpoints; ``removals`` the image files to remove; ``maintenance`` what a check reads.
-Why one class rather than separate components: an add writes rows, the change log, a job and the removal
-queue in one transaction on one connection under one lock, and callers keep ``store.pending(...)``.
+``ReferenceStore`` is composed of the storage's parts, each holding the store's one ``Database`` (one
+connection, one lock, one backend) and owning its tables: this module holds the rows and their images;
+``queue`` the pending rows, claims and jobs; ``changes`` the change log; ``generations`` a re-fit's codes;
+``identity`` the database's id and checkpoints; ``removals`` the image files to remove; ``maintenance``
+what a check reads. Why one database under them: an add writes rows, the change log, a job and the removal
+queue in one transaction on one connection under one lock. The store forwards the parts' methods, so
+callers keep ``store.pending(...)``.
 
 Every storage failure (unwritable folder, full disk, read-only database) surfaces as ``StorageUnavailable``
 so callers answer "try again later" without losing what is already stored.
@@ -20,54 +21,39 @@ so callers answer "try again later" without losing what is already stored.
 
 from __future__ import annotations
 
+import functools
 import json
 import logging
 import os
 import sqlite3
 import time
 import uuid
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from contextlib import AbstractContextManager
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from app.engine.errors import IncompatibleArtifact
-from app.engine.pipeline import Pipeline
 from app.errors import StorageUnavailable
-from app.storage.changes import CHANGES_SCHEMA
-from app.storage.database import META_SCHEMA, blob, ids_json
+from app.storage.backend import StorageBackend
+from app.storage.changes import ChangeLog
+from app.storage.database import Database, blob, ids_json
 from app.storage.errors import storage_guard
 from app.storage.files import SYNC_EACH_UP_TO, fsync_dir, sha256_of, syncfs, write_image_file
-from app.storage.generations import GENERATIONS_SCHEMA, Generations
+from app.storage.generations import Generations
 from app.storage.identity import Identity
 from app.storage.maintenance import Maintenance
-from app.storage.queue import ATTEMPTS_SCHEMA, CLAIMS_SCHEMA, JOBS_SCHEMA, Queue
-from app.storage.removals import REMOVALS_SCHEMA, Removals
+from app.storage.queue import Queue
+from app.storage.removals import Removals
+from app.storage.settings import storage_backend
+
+if TYPE_CHECKING:
+    from app.engine.pipeline import Pipeline
 
 log = logging.getLogger("geoloc.store")
-
-ROWS_SCHEMA = """
-CREATE TABLE IF NOT EXISTS refs (
-    id INTEGER PRIMARY KEY AUTOINCREMENT,
-    sha256 TEXT NOT NULL UNIQUE,
-    lat REAL NOT NULL,
-    lon REAL NOT NULL,
-    heading REAL,
-    captured_at TEXT,
-    label TEXT,
-    source TEXT,
-    image_ext TEXT,
-    created_at TEXT NOT NULL,
-    float_code BLOB,
-    binary_code BLOB,
-    status TEXT NOT NULL DEFAULT 'indexed',  -- pending (accepted, not encoded yet), indexed, failed
-    error TEXT
-);
-CREATE INDEX IF NOT EXISTS refs_lat_lon ON refs(lat, lon);
-CREATE INDEX IF NOT EXISTS refs_status ON refs(status);
-CREATE INDEX IF NOT EXISTS refs_lon ON refs(lon);
-"""
 
 
 @dataclass(frozen=True)
@@ -107,15 +93,9 @@ def _bbox_where(bbox: tuple[float, float, float, float] | None) -> tuple[str, li
     return "WHERE lat BETWEEN ? AND ? AND lon BETWEEN ? AND ?", [min_lat, max_lat, min_lon, max_lon]
 
 
-#: The bulk path's staging table on PostgreSQL (emptied at each commit).
-STAGED_SCHEMA = """
-CREATE TEMP TABLE IF NOT EXISTS staged_refs (
-    pos INTEGER, sha256 TEXT, lat REAL, lon REAL, heading REAL, captured_at TEXT, label TEXT, source TEXT,
-    image_ext TEXT, created_at TEXT, float_code BLOB, binary_code BLOB, status TEXT
-) ON COMMIT DELETE ROWS
-"""
-_STAGED_COLS = (
-    "pos", "sha256", "lat", "lon", "heading", "captured_at", "label", "source", "image_ext", "created_at",
+#: The columns an add writes, in the order of ``_row``.
+_INSERT_COLS = (
+    "sha256", "lat", "lon", "heading", "captured_at", "label", "source", "image_ext", "created_at",
     "float_code", "binary_code", "status",
 )  # fmt: skip
 _COLS = "id, sha256, lat, lon, heading, captured_at, label, source, created_at, status, error"
@@ -151,31 +131,134 @@ def _now() -> str:
     return time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
 
 
-class ReferenceStore(Queue, Generations, Identity, Removals, Maintenance):
-    """One data directory bound to one fitted pipeline (its fingerprint is recorded on first use)."""
+def _row(it: NewReference, now: str) -> tuple:
+    """``it`` as the values of ``_INSERT_COLS``."""
+    return (
+        it.sha256, it.lat, it.lon, it.heading, it.captured_at, it.label, it.source, it.ext, now,
+        blob(it.float_code, np.float32), blob(it.binary_code, np.uint8), "indexed" if it.encoded else "pending",
+    )  # fmt: skip
 
-    SCHEMAS = (
-        ROWS_SCHEMA,
-        META_SCHEMA,
-        JOBS_SCHEMA,
-        CHANGES_SCHEMA,
-        CLAIMS_SCHEMA,
-        ATTEMPTS_SCHEMA,
-        GENERATIONS_SCHEMA,
-        REMOVALS_SCHEMA,
-    )
 
-    def __init__(self, data_dir: Path, read_only: bool = False):
-        super().__init__(data_dir, read_only)
+def _forward(part: str, method: Callable) -> Callable:
+    """``store.name(...)`` calls ``store.<part>.name(...)`` (same signature and docstring)."""
+
+    @functools.wraps(method)
+    def call(self: ReferenceStore, *args: Any, **kwargs: Any) -> Any:
+        return method(getattr(self, part), *args, **kwargs)
+
+    return call
+
+
+class ReferenceStore:
+    """One data directory (or database) bound to one fitted pipeline (its fingerprint is recorded on first
+    use). ``backend``: made from the process's settings when not given (``app.storage.settings``)."""
+
+    def __init__(self, data_dir: Path, read_only: bool = False, backend: StorageBackend | None = None):
+        self.database = Database(backend or storage_backend(data_dir), read_only)
+        self.changes = ChangeLog(self.database)
+        self.queue = Queue(self.database, self.changes)
+        self.generations = Generations(self.database)
+        self.identity = Identity(self.database)
+        self.removals = Removals(self.database)
+        self.maintenance = Maintenance(self.database)
         if not read_only:
             with storage_guard("opening the data dir"):
-                self._ensure_database_id()
+                self.identity.ensure_id()
 
     def close(self) -> None:
         """Checkpoint (a writer's rows go into the main file, the WAL is emptied), then close."""
         if not self.read_only:
             self.checkpoint("TRUNCATE")
-        super().close()
+        self.database.close()
+
+    # -- the database --------------------------------------------------------------------------------
+    @property
+    def backend(self) -> StorageBackend:
+        return self.database.backend
+
+    @property
+    def engine(self) -> str:
+        """The backend's name (``sqlite`` or ``postgres``): what /health and a backup report."""
+        return self.database.backend.name
+
+    @property
+    def db(self) -> Any:
+        """The connection (its queries are the parts'; tools and tests read through it)."""
+        return self.database.db
+
+    @property
+    def data_dir(self) -> Path:
+        return self.database.data_dir
+
+    @property
+    def read_only(self) -> bool:
+        return self.database.read_only
+
+    @property
+    def images_dir(self) -> Path:
+        return self.database.images_dir
+
+    @property
+    def snapshots_dir(self) -> Path:
+        return self.database.snapshots_dir
+
+    @property
+    def write_refusal(self) -> str | None:
+        return self.database.write_refusal
+
+    def transaction(self) -> AbstractContextManager[Any]:
+        return self.database.transaction()
+
+    def image_path_for(self, sha: str, ext: str) -> Path:
+        return self.database.image_path_for(sha, ext)
+
+    def get_meta(self, key: str) -> str | None:
+        return self.database.get_meta(key)
+
+    def set_meta(self, key: str, value: str) -> None:
+        self.database.set_meta(key, value)
+
+    def refuse_writes(self, why: str) -> None:
+        self.database.refuse_writes(why)
+
+    # -- the parts' methods ---------------------------------------------------------------------------
+    version = property(lambda self: self.changes.version, doc="The index version (``ChangeLog.version``).")
+    changes_since = _forward("changes", ChangeLog.changes_since)
+    all_codes = _forward("changes", ChangeLog.all_codes)
+    indexed_ids = _forward("changes", ChangeLog.indexed_ids)
+    pending = _forward("queue", Queue.pending)
+    claim = _forward("queue", Queue.claim)
+    release = _forward("queue", Queue.release)
+    attempts = _forward("queue", Queue.attempts)
+    start_attempts = _forward("queue", Queue.start_attempts)
+    end_attempts = _forward("queue", Queue.end_attempts)
+    quarantined = _forward("queue", Queue.quarantined)
+    complete = _forward("queue", Queue.complete)
+    job = _forward("queue", Queue.job)
+    head = _forward("generations", Generations.head)
+    generation_state = _forward("generations", Generations.generation_state)
+    record_first_pipeline = _forward("generations", Generations.record_first_pipeline)
+    generation_codes = _forward("generations", Generations.generation_codes)
+    reindex_target = _forward("generations", Generations.reindex_target)
+    start_reindex = _forward("generations", Generations.start_reindex)
+    abandon_reindex = _forward("generations", Generations.abandon_reindex)
+    reindex_todo = _forward("generations", Generations.reindex_todo)
+    put_next_codes = _forward("generations", Generations.put_next_codes)
+    reindex_missing = _forward("generations", Generations.reindex_missing)
+    switch_generation = _forward("generations", Generations.switch_generation)
+    migrate_switched = _forward("generations", Generations.migrate_switched)
+    database_id = property(lambda self: self.identity.database_id, doc="The database's id (``Identity``).")
+    checkpoint = _forward("identity", Identity.checkpoint)
+    ref_high_water = _forward("identity", Identity.ref_high_water)
+    binding = _forward("identity", Identity.binding)
+    binding_state = _forward("identity", Identity.binding_state)
+    retire_snapshot = _forward("identity", Identity.retire_snapshot)
+    queued_removals = _forward("removals", Removals.queued_removals)
+    remove_queued = _forward("removals", Removals.remove_queued)
+    remove_unnamed = _forward("removals", Removals.remove_unnamed)
+    named_files = _forward("removals", Removals.named_files)
+    holds_tables = _forward("maintenance", Maintenance.holds_tables)
+    stored_rows = _forward("maintenance", Maintenance.stored_rows)
 
     def bind(self, pipeline: Pipeline) -> None:
         """Record which fitted pipeline encoded this collection; refuse a different one."""
@@ -191,10 +274,7 @@ class ReferenceStore(Queue, Generations, Identity, Removals, Maintenance):
 
     # -- adding ---------------------------------------------------------------------------------------
     def existing_ids(self, shas: Sequence[str]) -> dict[str, int]:
-        rows = self.db.execute(
-            "SELECT sha256, id FROM refs WHERE sha256 IN (SELECT value FROM json_each(?))", (json.dumps(list(shas)),)
-        ).fetchall()
-        return {s: i for s, i in rows}
+        return dict(self._ids_of(self.db, shas))
 
     def write_images(self, items: Sequence[NewReference], skip: set[str] = frozenset()) -> None:
         """Images first, then their data and the folder synced once per batch: a row is committed only after
@@ -223,107 +303,30 @@ class ReferenceStore(Queue, Generations, Identity, Removals, Maintenance):
         job_id = uuid.uuid4().hex if job else None
         now = _now()
         with self.transaction() as db:
-            if self.engine == "postgres":
-                out, created = self._insert_copied(db, items, now)
-            else:
-                out, created = self._insert_each(db, items, now)
+            made = self.backend.insert_refs(db, _INSERT_COLS, [_row(it, now) for it in items])
+            self.changes.log_adds(db, [i for i, status in made.values() if status == "indexed"])
+            others = sorted({it.sha256 for it in items} - set(made))
+            known = dict(self._ids_of(db, others)) if others else {}
+            out: list[tuple[int, bool]] = []
+            created: list[NewReference] = []
+            for it in items:
+                if it.sha256 in made:
+                    out.append((made.pop(it.sha256)[0], True))
+                    known[it.sha256] = out[-1][0]
+                    created.append(it)
+                else:
+                    out.append((int(known[it.sha256]), False))
             self._files_for(db, created)
             if job_id is not None:
-                self._record_job(db, job_id, now, out)
-        if self.engine == "postgres":
-            self._analyze_after_bulk(len(created), max((i for i, _ in out), default=0))
+                self.queue.record_job(db, job_id, now, out)
+        with self.database.lock:
+            self.backend.after_bulk_insert(self.db, len(created), max((i for i, _ in out), default=0))
         return out, job_id
 
-    def _analyze_after_bulk(self, created: int, high: int) -> None:
-        """PostgreSQL: refresh the planner's statistics after a bulk insert that grew the table by a tenth or
-        more. Why: before autovacuum's first ANALYZE (up to a minute) the planner took a freshly seeded table
-        for a tiny one, and a replica's catch-up read (one change) hashed every row: 18 ms at 5,000 rows
-        instead of 0.05 ms. Growth by tenths means a handful of ANALYZEs over a whole seed."""
-        if created >= 1000 and created * 10 >= high:
-            with self._lock, storage_guard("analysing the database"):
-                self.db.execute("ANALYZE refs, changes")
-
-    def _insert_each(self, db, items: Sequence[NewReference], now: str):
-        """SQLite: one INSERT per row (in-process calls, no round trips to save)."""
-        out: list[tuple[int, bool]] = []
-        created: list[NewReference] = []
-        for it in items:
-            row = db.execute(
-                "INSERT INTO refs(sha256, lat, lon, heading, captured_at, label, source, image_ext, created_at, "
-                "float_code, binary_code, status) VALUES(?,?,?,?,?,?,?,?,?,?,?,?) "
-                "ON CONFLICT(sha256) DO NOTHING RETURNING id",
-                (
-                    it.sha256,
-                    it.lat,
-                    it.lon,
-                    it.heading,
-                    it.captured_at,
-                    it.label,
-                    it.source,
-                    it.ext,
-                    now,
-                    blob(it.float_code, np.float32),
-                    blob(it.binary_code, np.uint8),
-                    "indexed" if it.encoded else "pending",
-                ),
-            ).fetchone()
-            if row is not None:
-                out.append((int(row[0]), True))
-                created.append(it)
-                if it.encoded:
-                    self._log_change(db, int(row[0]), "add")
-            else:
-                existing = db.execute("SELECT id FROM refs WHERE sha256=?", (it.sha256,)).fetchone()
-                out.append((int(existing[0]), False))
-        return out, created
-
-    def _insert_copied(self, db, items: Sequence[NewReference], now: str):
-        """PostgreSQL: the rows COPYed into a staging table, then one INSERT ... SELECT (the first of equal
-        bytes wins, ids handed out in the items' order) and one read of the ids that existed already: a
-        constant number of round trips per batch, not one per row."""
-        db.execute(STAGED_SCHEMA)
-        db.copy_rows(
-            "staged_refs",
-            _STAGED_COLS,
-            [
-                (
-                    n, it.sha256, it.lat, it.lon, it.heading, it.captured_at, it.label, it.source, it.ext, now,
-                    blob(it.float_code, np.float32), blob(it.binary_code, np.uint8),
-                    "indexed" if it.encoded else "pending",
-                )
-                for n, it in enumerate(items)
-            ],
-        )  # fmt: skip
-        cols = ", ".join(_STAGED_COLS[1:])
-        rows = db.execute(
-            f"INSERT INTO refs({cols}) SELECT {cols} FROM (SELECT DISTINCT ON (sha256) * FROM staged_refs "
-            "ORDER BY sha256, pos) s ORDER BY pos ON CONFLICT(sha256) DO NOTHING RETURNING id, sha256, status"
+    def _ids_of(self, db, shas: Sequence[str]) -> list[tuple[str, int]]:
+        return db.execute(
+            "SELECT sha256, id FROM refs WHERE sha256 IN (SELECT value FROM json_each(?))", (json.dumps(list(shas)),)
         ).fetchall()
-        new = {sha: int(i) for i, sha, _ in rows}
-        indexed = sorted(int(i) for i, _, status in rows if status == "indexed")
-        if indexed:
-            db.execute("INSERT INTO changes(ref_id, op) SELECT value, 'add' FROM json_each(?) ORDER BY value", (
-                ids_json(indexed),
-            ))  # fmt: skip
-            self._notify(db)
-        others = {it.sha256 for it in items} - set(new)
-        known: dict[str, int] = {}
-        if others:
-            found = db.execute(
-                "SELECT sha256, id FROM refs WHERE sha256 IN (SELECT value FROM json_each(?))",
-                (json.dumps(sorted(others)),),
-            )
-            known = {sha: int(i) for sha, i in found.fetchall()}
-        out: list[tuple[int, bool]] = []
-        created: list[NewReference] = []
-        for it in items:
-            if it.sha256 in new:
-                out.append((new.pop(it.sha256), True))
-                known[it.sha256] = out[-1][0]
-                created.append(it)
-            else:
-                out.append((int(known[it.sha256]), False))
-        return out, created
 
     def add_many(self, items: Sequence[NewReference], job: bool = False) -> tuple[list[tuple[int, bool]], str | None]:
         """The bulk path: images written and synced, then every row in one transaction (with its job).
@@ -353,7 +356,7 @@ class ReferenceStore(Queue, Generations, Identity, Removals, Maintenance):
             write_image_file(self.images_dir / name, it.image, sync=True)
         if gone:
             fsync_dir(self.images_dir)
-        self._unqueue_removals(db, names)
+        self.removals.unqueue(db, names)
 
     # -- deleting -------------------------------------------------------------------------------------
     def delete(self, ref_id: int) -> str | None:
@@ -369,9 +372,9 @@ class ReferenceStore(Queue, Generations, Identity, Removals, Maintenance):
             db.execute("DELETE FROM refs WHERE id=?", (ref_id,))
             db.execute("DELETE FROM encode_attempts WHERE ref_id=?", (ref_id,))
             if row[2] == "indexed":
-                self._log_change(db, ref_id, "delete")
+                self.changes.log(db, ref_id, "delete")
             name = self.image_path_for(row[0], row[1]).name
-            self._queue_removal(db, name)
+            self.removals.queue(db, name)
         try:
             _, failed = self.remove_queued([name])
         except StorageUnavailable as e:
@@ -396,7 +399,7 @@ class ReferenceStore(Queue, Generations, Identity, Removals, Maintenance):
                 sets = ", ".join(f"{k}=?" for k in fields)
                 db.execute(f"UPDATE refs SET {sets} WHERE id=?", (*fields.values(), ref_id))
             if (fields.get("lat", row[0]), fields.get("lon", row[1])) != tuple(row):
-                self._log_change(db, ref_id, "move")
+                self.changes.log(db, ref_id, "move")
         return self.get(ref_id)
 
     # -- reading --------------------------------------------------------------------------------------
