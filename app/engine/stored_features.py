@@ -10,8 +10,9 @@ The form (version 1, little-endian), ``HEADER`` then two arrays:
   1/65535 of a side (0.016 px at 1,024 px), half the bytes of float32 pixels, and independent of size;
 - descriptors as uint8, ``round(value * scale)`` clipped to 255. RootSIFT components are square roots of
   L1 shares, so they lie in [0, 1] and in practice below 0.34 on penn photos: ``scale`` 512 keeps 1/1024
-  steps without clipping any of them. Unit-length learned descriptors (XFeat, in [-1, 1]) are stored
-  shifted, ``(value + 1) * 127.5`` (``offset`` 1).
+  steps without clipping any of them. Unit-length learned descriptors (XFeat, in [-1, 1]) and RootSIFT
+  projected on fewer orthonormal directions (``rootsift-pca``, also in [-1, 1]) are stored shifted,
+  ``(value + 1) * 127.5`` (``offset`` 1).
 
 The width and height of the image the extractor saw are stored so that positions come back in pixels
 (RANSAC's thresholds are in pixels); a CRC32 of the arrays lets ``geoloc check`` and a reader tell a torn or
@@ -33,10 +34,14 @@ VERSION = 1
 HEADER = struct.Struct("<4sBBHHHIffI")
 
 #: The descriptor kinds a stored file may hold; the number is what the header stores.
-KINDS: dict[str, int] = {"rootsift": 1, "xfeat": 2}
+KINDS: dict[str, int] = {"rootsift": 1, "xfeat": 2, "rootsift-pca": 3}
 _KIND_NAMES = {v: k for k, v in KINDS.items()}
 #: How each kind's float descriptors map to uint8: (scale, offset), ``q = round((d + offset) * scale)``.
-QUANTISATION: dict[str, tuple[float, float]] = {"rootsift": (512.0, 0.0), "xfeat": (127.5, 1.0)}
+QUANTISATION: dict[str, tuple[float, float]] = {
+    "rootsift": (512.0, 0.0),
+    "xfeat": (127.5, 1.0),
+    "rootsift-pca": (127.5, 1.0),  # RootSIFT projected on an orthonormal basis: components in [-1, 1]
+}
 _XY_STEPS = 65535
 
 
