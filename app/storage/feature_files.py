@@ -13,12 +13,15 @@ temporary name, then renamed), and a back-fill can resume by asking which names 
 Why 4,096 folders (three hex digits): at 10^7 references that is about 2,400 files a folder (ext4 and XFS
 index directories; listing one stays cheap), at 10^5 about 24, and the folders themselves cost 16 MB.
 
-Where they live at scale: the chosen form is about 63 KB a reference (480 RootSIFT keypoints, uint16
-positions and uint8 descriptors: docs/BENCHMARKS.md, "Stored local features"), so 10^6 references take
-63 GB and 10^7 take 630 GB of disk, beside the images (typically 0.5-3 MB each, so about 5 % more), never
-in memory: a request reads its K candidates' files (K x 63 KB, one random read each: under 1 ms apiece from
-an SSD's page cache). ``root`` is chosen by the caller: the data dir's ``features/<profile>`` for one host;
-on PostgreSQL, a folder beside the shared images (``GEOLOC_IMAGES_DIR``), since every host verifies.
+Where they live at scale: the form chosen by measurement is XFeat at 640 px, 900 keypoints, 64-d uint8
+descriptors and uint16 positions: 61,224 bytes (59.8 KB) a reference, photo or crop (docs/BENCHMARKS.md,
+"Stored local features for verification"; today's RootSIFT at 800 px, 1,500 keypoints, would take 193 KB).
+So 10^6 references take 61 GB and 10^7 take 612 GB of disk, beside the images (typically 0.5-3 MB each,
+so a few % more), never in memory: a request reads its K candidates' files (K x 60 KB, one random read
+each, from the page cache or an SSD).
+
+``root`` is chosen by the caller: the data dir's ``features/<profile>`` for one host; on PostgreSQL, a
+folder beside the shared images (``GEOLOC_IMAGES_DIR``), since every host verifies.
 ``profile`` names the extractor's settings, so a re-fit that changes them writes a new folder beside the
 old one and switches, never mixing two extractors' features.
 """
