@@ -13,7 +13,7 @@ of ``penn-photos-40.csv`` against its 341 references:
     interleaved per query, with the pipeline's own time per query (decode, extract, encode, search) as
     the "without verification" baseline;
 (c) inliers of pairs within 25 m against pairs over 150 m apart (median, p90) and of the top-1 global
-    candidate when it is right (within 25 m) or wrong, and R@1 after re-ordering by ``rerank.fused_score``;
+    candidate when it is right (within 25 m) or wrong, and R@1 after re-ordering by ``matchers.fusion.fused_score``;
 (d) the query's features from the pipeline's own extraction (RootSIFT at 384 px, 1,000 keypoints) against
     each reference form, instead of extracting the query at the form's size;
 and the adaptive stop (``stop_margin``): candidates verified, time, R@1.
@@ -40,9 +40,10 @@ from app.engine.configs import DEFAULT_CONFIG
 from app.engine.geo import haversine_m
 from app.engine.imageio import ImageLimits, load_image
 from app.engine.local_features import RootSift
-from app.engine.models.registry import build_matcher
+from app.engine.matchers.fusion import fused_score
+from app.engine.matchers.sift_mnn import PixelFeatures
 from app.engine.pipeline import Pipeline, load_pipeline
-from app.engine.rerank import PixelFeatures, fused_score
+from app.engine.registry import Kind, create
 from app.engine.stored_verification import Settings, verify_stored
 from app.evaluation.datasets import read_manifest
 from app.evaluation.evaluate import RowReferences
@@ -175,7 +176,7 @@ def run(manifest: Path, k: int, profiles: list[Profile], max_queries: int | None
     r1_global = np.mean(list(right1.values()))
 
     # -- today's rerank: re-extract every candidate (timed per query) ----------------------------------------
-    matcher = build_matcher("sift-mnn")
+    matcher = create(Kind.MATCHER, "sift-mnn")
     refs = RowReferences(rows, db)
     today_ms = []
     for q in queries:

@@ -9,7 +9,7 @@ import pytest
 
 from app.engine import stored_features as sf
 from app.engine.imageio import load_image
-from app.engine.rerank import features_for_verification
+from app.engine.matchers.sift_mnn import features_for_verification
 from app.storage.feature_files import FeatureFiles
 from tests.conftest import penn_photo
 

@@ -1,17 +1,17 @@
 """Verify one query against many candidates' STORED local features in one batch.
 
-Why: the re-extracting rerank (``app.engine.rerank`` through ``app.locate.verify_candidate_pairs``) decodes
+Why: the re-extracting rerank (``app.engine.matchers`` through ``app.locate.verify_candidate_pairs``) decodes
 each candidate's image and extracts its features on every request. Here the query's features are extracted
 once and each candidate's come from its stored record (``app.engine.stored_features``), so what is left is
 matching and geometry. The tentative matches of all candidates come from one BLAS matrix product (the
 query's descriptors against every candidate's, stacked), cut into each candidate's columns; the rules are
-``rerank.mutual_matches``' (mutual nearest neighbours by L2 distance, Lowe's ratio test), and the geometry is
-``rerank.fit_geometry`` itself, so a stored pair is judged exactly as a re-extracted one with the same
+``matchers.geometry.mutual_matches``' (mutual nearest neighbours by L2 distance, Lowe's ratio test), and the geometry is
+``matchers.geometry.fit_geometry`` itself, so a stored pair is judged exactly as a re-extracted one with the same
 features (tests/engine/test_stored_verification.py compares them on penn photos).
 
 Adaptive stop (``stop_margin``): candidates are verified in retrieval order and, once the best fused score
-so far (``rerank.fused_score``) is at least the next candidate's global score plus ``stop_margin``, the
-rest are left unverified. With ``stop_margin = rerank.FUSION_WEIGHT`` this never changes the first
+so far (``matchers.fusion.fused_score``) is at least the next candidate's global score plus ``stop_margin``, the
+rest are left unverified. With ``stop_margin = matchers.fusion.FUSION_WEIGHT`` this never changes the first
 candidate (no later one can gain more than the weight, and their global scores only fall); smaller margins
 stop sooner at a measured risk (bench/stored_verification.py).
 """
@@ -23,8 +23,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from app.engine import rerank
-from app.engine.rerank import PixelFeatures, Verification
+from app.engine.matchers.base import Verification
+from app.engine.matchers.fusion import fused_score
+from app.engine.matchers.geometry import MIN_MATCHES_TO_FIT, fit_geometry
+from app.engine.matchers.sift_mnn import PixelFeatures
 from app.engine.stored_features import StoredFeatures
 
 #: At most this many float32 distances are held at once (query keypoints x stacked candidate keypoints):
@@ -40,7 +42,7 @@ class Settings:
     min_cos: float | None = None
     threshold_px: float = 3.0
     h_share: float = 0.8
-    min_matches: int = rerank.MIN_MATCHES_TO_FIT
+    min_matches: int = MIN_MATCHES_TO_FIT
 
 
 @dataclass(frozen=True)
@@ -58,7 +60,7 @@ def matches_many(
     ratio: float | None = 0.9,
     min_cos: float | None = None,
 ) -> list[np.ndarray]:
-    """``rerank.mutual_matches(query_desc, c)`` for every ``c`` of ``candidates_desc``: (M, 2) index pairs
+    """``matchers.geometry.mutual_matches(query_desc, c)`` for every ``c`` of ``candidates_desc``: (M, 2) index pairs
     each, from one matrix product per block of candidates instead of one per candidate."""
     a = np.ascontiguousarray(query_desc, np.float32)
     out: list[np.ndarray] = [np.zeros((0, 2), np.int64)] * len(candidates_desc)
@@ -96,7 +98,7 @@ def _blocks(sizes: Sequence[int], n_query: int) -> list[list[int]]:
 
 
 def _mutual(dist, a, b, idx, ratio, min_cos) -> np.ndarray:
-    """``rerank.mutual_matches``' rule on a precomputed distance matrix (the same operations, same order)."""
+    """``matchers.geometry.mutual_matches``' rule on a precomputed distance matrix (the same operations, same order)."""
     nn12 = dist.argmin(axis=1)
     nn21 = dist.argmin(axis=0)
     keep = nn21[nn12] == idx
@@ -131,12 +133,12 @@ def verify_stored(
         if c is None:
             continue
         m = matched.get(i, np.zeros((0, 2), np.int64))
-        out[i] = rerank.fit_geometry(
+        out[i] = fit_geometry(
             query.xy[m[:, 0]], c.xy_px[m[:, 1]], settings.threshold_px, settings.h_share, settings.min_matches
         )
         if stop_margin is None:
             continue
-        best_fused = max(best_fused, rerank.fused_score(float(global_scores[i]), out[i].inliers))
+        best_fused = max(best_fused, fused_score(float(global_scores[i]), out[i].inliers))
         if n + 1 < len(candidates) and best_fused >= float(global_scores[n + 1]) + stop_margin:
             return BatchOutcome(out, stopped_after=n + 1)
     return BatchOutcome(out)

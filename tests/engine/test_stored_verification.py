@@ -9,7 +9,7 @@ is given (USAC samples them in order; on penn, one pair gives 50-70 inliers over
 174 matches), and quantising descriptors (at most 1/1024 per component) changes a few matches, hence the
 order. So a stored pair's count must lie within the range today's rerank gives over ``ORDERS`` orders of
 its own matches, widened by ``SLACK``; or, for chance pairs (no shared view: 11-17 "inliers" whatever is
-matched), both at or under ``rerank.FUSION_FLOOR``, where the fused score ignores them.
+matched), both at or under ``matchers.fusion.FUSION_FLOOR``, where the fused score ignores them.
 """
 
 import numpy as np
@@ -18,15 +18,9 @@ import pytest
 from app.engine import stored_features as sf
 from app.engine.geo import haversine_m
 from app.engine.imageio import ImageLimits, load_image
-from app.engine.rerank import (
-    FUSION_FLOOR,
-    FUSION_WEIGHT,
-    PixelFeatures,
-    features_for_verification,
-    fit_geometry,
-    fused_score,
-    mutual_matches,
-)
+from app.engine.matchers.fusion import FUSION_FLOOR, FUSION_WEIGHT, fused_score
+from app.engine.matchers.geometry import fit_geometry, mutual_matches
+from app.engine.matchers.sift_mnn import PixelFeatures, SiftMnnMatcher, features_for_verification
 from app.engine.stored_verification import matches_many, verify_stored
 from app.locate import verify_candidate_pairs
 from tests.conftest import PENN
@@ -89,7 +83,7 @@ def _stored(path) -> sf.StoredFeatures:
 def both(pairs):
     query, candidates, n_near = pairs
     rgb = load_image(query.read_bytes(), ImageLimits().stored()).rgb
-    today = verify_candidate_pairs(rgb, range(len(candidates)), _Images(candidates), ImageLimits())
+    today = verify_candidate_pairs(rgb, range(len(candidates)), _Images(candidates), ImageLimits(), SiftMnnMatcher())
     q = features_for_verification(rgb)
     stored = verify_stored(q, [_stored(p) for p in candidates])
     ranges = [
@@ -116,7 +110,7 @@ def test_stored_verification_still_tells_near_from_far(both):
 
 
 def test_one_product_for_many_candidates_matches_as_pairwise_matching_does(pairs):
-    """Unquantised descriptors through the batch give exactly ``rerank.mutual_matches``' pairs."""
+    """Unquantised descriptors through the batch give exactly ``matchers.geometry.mutual_matches``' pairs."""
     query, candidates, _ = pairs
     q = features_for_verification(load_image(query.read_bytes()).rgb)
     cs = [features_for_verification(load_image(p.read_bytes()).rgb).descriptors for p in candidates[:3]]
