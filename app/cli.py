@@ -17,7 +17,7 @@ try:  # typer's own click (typer 0.29 vendors it); older typers use click itself
 except ImportError:  # pragma: no cover
     from click import exceptions as usage
 from app.library.commands import library_app
-from app.runtime import tune_malloc
+from app.runtime import configure_allocator
 from app.settings import Settings
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, help=__doc__, pretty_exceptions_enable=False)
@@ -536,7 +536,7 @@ def worker_cmd(
     from app.storage.shared_images import ImagesNotShared, check_images_shared
     from app.storage.store import ReferenceStore
 
-    serving_blas_threads()  # encoding one photo at a time: see app.runtime
+    serving_blas_threads(_S.blas_threads)  # encoding one photo at a time: see app.runtime
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
 
     def ready(service) -> None:
@@ -747,7 +747,7 @@ def _failure(exc: BaseException) -> tuple[int, str]:
 def main(argv: list[str] | None = None) -> None:
     """Every failure ends in one line on stderr and an exit code of ``EXIT_CODES``; ``--debug`` (anywhere on
     the line) adds the traceback. Click's own usage errors, its multi-line boxes included, are one line too."""
-    tune_malloc()
+    configure_allocator(_S.malloc_tuning, _S.malloc_trim)
     args = list(sys.argv[1:] if argv is None else argv)
     debug = "--debug" in args
     args = [a for a in args if a != "--debug"]

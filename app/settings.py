@@ -85,6 +85,15 @@ class Settings(BaseSettings):
     snapshot_every_seconds: float = Field(
         300.0, gt=0, description="...or this long after the first change not in a snapshot"
     )
+    malloc_tuning: bool = Field(
+        True, description="fixed glibc malloc thresholds in every geoloc process (app/runtime.py says why)"
+    )
+    malloc_trim: bool = Field(
+        True, description="hand freed memory back to the kernel after a large upload (app/runtime.py)"
+    )
+    blas_threads: int = Field(
+        1, ge=1, description="BLAS threads of a serving process (serve, worker): more only spin between queries"
+    )
 
     def snapshot_policy(self):
         from app.collection import SnapshotPolicy

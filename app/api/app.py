@@ -119,7 +119,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     @asynccontextmanager
     async def lifespan(app: FastAPI):
-        serving_blas_threads()
+        serving_blas_threads(settings.blas_threads)
         stop = threading.Event()
         loader = threading.Thread(target=_load, args=(app, stop), name="geoloc-load", daemon=True)
         loader.start()
