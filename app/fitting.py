@@ -1,17 +1,21 @@
-"""The fitting rules, once, for ``geoloc fit``, ``geoloc refit``, the first start of an empty data dir and the
-evaluation: where the SVM bank learns by default, which requests are refused, and how a pipeline and its
-bank are fitted against the references.
+"""The fit, once, for ``geoloc fit``, the first start of an empty data dir, ``geoloc refit`` and each of the
+evaluation's folds: where the SVM bank learns by default, which requests are refused, and the one sequence
+of a fit (``fit_pipeline``: extraction, then codebook, PCA-whitening and binariser, then the SVM bank, then
+the calibration on the references), with its steps' times and progress.
 
-Why one module: the three faces used to decide these each in their own words, and a rule changed in one
-(say, "a configuration without local features has no bank") silently stayed old in the others, so what
-the evaluation measured was not what `fit` built.
+Why one module: the faces used to decide these each in their own words, and to sequence the fit each in
+their own code (refit did it by hand, the evaluation too), so a rule changed in one (say, "a configuration
+without local features has no bank") silently stayed old in the others, and what the evaluation measured
+was not what `fit` built.
 """
 
 from __future__ import annotations
 
+import logging
 import time
-from collections.abc import Mapping, Sequence
-from dataclasses import asdict
+from collections.abc import Callable, Mapping, Sequence
+from contextlib import nullcontext
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
@@ -20,14 +24,22 @@ from app.domain import LocateAnswer, LocateOptions, RefInfo, Region
 from app.engine.calibration import MIN_QUERIES, Calibration, Sample, fit_calibration
 from app.engine.configs import PipelineConfig
 from app.engine.geo import haversine_m
+from app.engine.imageio import ImageLimits
 from app.engine.index.references import ReferenceIndex
 from app.engine.learned_whitening import Place
 from app.engine.pipeline import Features, Pipeline
+from app.engine.progress import Progress
 from app.engine.svm_bank import KINDS, BankParams, SvmBank
-from app.engine.training.svm_training import BANK_SOURCES, Geotagged, fit_bank_from, index_of
+from app.engine.training.svm_training import BANK_SOURCES, Geotagged, NothingToTrainOn, fit_bank_from, index_of
 from app.errors import FitRefused
+from app.extraction import Counter, Extracted, extract_batch
 from app.runtime import fit_threads
 
+log = logging.getLogger("geoloc.fit")
+
+#: References located against the others to calibrate (like the SVM bank's sample: the cost of a fit or a
+#: refit does not grow with the collection past it).
+CALIBRATION_SAMPLE = 600
 #: Where an evaluation's bank learns, per fold (never "none": the evaluation's ``svm_bank=off`` says that).
 EVAL_BANK_SOURCES = ("train", "collection")
 
@@ -78,60 +90,234 @@ def train_bank(
     return fit_bank_from(source, pipe, index, refs, train, BankParams(kind=kind, seed=seed), pos_radius_m=pos_radius_m)
 
 
+def capture_group(lat: float, lon: float, captured_at: str | None) -> str:
+    """Which references count as one capture (a photo and its crops) for the SVM bank's "never learn from
+    yourself" rule: the same position to about 0.1 m, and the same capture time when the photo says it."""
+    return f"{captured_at or ''}@{lat:.6f},{lon:.6f}"
+
+
+# -- the fit, once --------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class FitPhoto:
+    """One photo a fit learns from.
+
+    ``path``: where to read it; ``features``: its features, extracted already (the evaluation's folds share
+    one extraction; ``path`` is then only read to verify, with ``FitOptions.calibrate_verified``).
+    ``lat``/``lon`` None: the photo's EXIF position (one with neither is left out); ``group`` None: its
+    capture (``capture_group``) from the position and ``captured_at``, else the EXIF time.
+    ``reference``: one of the collection (the SVM bank retrieves against it, the calibration locates it),
+    numbered ``ref_id`` (None: by its place among the references kept); else a training photo: geotagged,
+    not a reference. ``in_fit``: whether the codebook, PCA-whitening and binariser learn from it (a
+    refit's training photos train the bank only). ``sha256``: of its bytes, when known already (a stored
+    reference's); else that of the bytes read."""
+
+    path: Path | None = None
+    features: Features | None = None
+    lat: float | None = None
+    lon: float | None = None
+    group: str | None = None
+    captured_at: str | None = None
+    reference: bool = True
+    ref_id: int | None = None
+    in_fit: bool = True
+    sha256: str | None = None
+
+
+@dataclass(frozen=True)
+class FitOptions:
+    """How a fit runs. ``bank``: where the SVM bank learns (``bank_source``: collection, train or none);
+    ``bank_select``: which features it keeps (the evaluation's ablation: negative); ``bank_optional``: a
+    bank that cannot be trained (too few or too uniform photos) leaves the pipeline without one instead of
+    failing the fit (the first start serves all the same). ``pos_radius_m``: the bank's positives.
+    ``calibration_sample``: references located to calibrate; ``calibrate_verified``: also the rule for
+    verified answers, on the references' photos. ``limits``, ``workers``: the extraction's decode limits
+    and threads; ``skip_unreadable``: leave out (logged) a photo that cannot be read or has no position,
+    instead of failing. ``keep_index``: return the references encoded by the fitted pipeline (the
+    evaluation searches them). ``fixed_threads``: the numerical steps on ``fit_threads`` (the same fit on
+    any machine); the evaluation's folds keep the machine's threads, as its recorded figures were measured
+    (on 2 cores, one thread moved a fold's bank on the mini manifest, and with it Recall@5).
+    """
+
+    bank: str = "none"
+    bank_kind: str = "contrastive"
+    bank_select: str = "positive"
+    bank_optional: bool = False
+    pos_radius_m: float = 25.0
+    seed: int = 0
+    calibration_sample: int = CALIBRATION_SAMPLE
+    calibrate_verified: bool = False
+    limits: ImageLimits | None = None
+    workers: int = 1
+    skip_unreadable: bool = False
+    keep_index: bool = False
+    fixed_threads: bool = True
+
+
+@dataclass
+class FittedPipeline:
+    """What a fit made: the pipeline (fitted, with its bank and calibration), the references it learnt from
+    (by id), where its bank learnt (``none`` without one), each step's seconds (``extract``, ``codebook,
+    PCA, binariser``, ``SVM bank``, ``calibration``: where a fit's time goes) and, with ``keep_index``, the
+    references encoded by the pipeline before its bank."""
+
+    pipeline: Pipeline
+    refs: dict[int, Geotagged]
+    bank: str
+    seconds: dict[str, float]
+    index: ReferenceIndex | None = None
+
+    @property
+    def fit_seconds(self) -> str:
+        """The fitting steps' times, for a log line (``codebook, PCA, binariser 3.7 s, ...``)."""
+        return ", ".join(f"{k} {v:.1f} s" for k, v in self.seconds.items() if k != "extract")
+
+
+class FitProgress:
+    """What a fit tells as it goes: the extraction's progress (a bar on a terminal, else a line every tenth),
+    then one line before the fitting steps, to ``say`` (none: silent). The first start overrides both to
+    show them on /ready."""
+
+    def __init__(self, say: Callable[[str], None] | None = None, desc: str = "fit: extract"):
+        self.say, self.desc = say, desc
+
+    def extraction(self, total: int) -> Counter:
+        return Progress(total, desc=self.desc, every=max(1, total // 10))
+
+    def fitting(self, config: str, photos: int, extract_seconds: float) -> None:
+        if self.say is not None:
+            self.say(f"fit: extracted {photos} images in {extract_seconds:.0f} s; fitting {config} ...")
+
+
 def fit_pipeline(
-    pipe: Pipeline,
-    features: Sequence[Features],
-    refs: dict[int, Geotagged],
-    train: Sequence[Geotagged],
-    source: str,
-    kind: str = "contrastive",
-    seed: int = 0,
-    calibration_sample: int | None = None,
-    images: Mapping[int, Path] | None = None,
-    hashes: Mapping[int, str] | None = None,
-    seconds: dict[str, float] | None = None,
-    places: Sequence[Place | None] | None = None,
-) -> Pipeline:
-    """Fit ``pipe`` (codebook, PCA-whitening, binariser) on ``features`` (every photo it learns from), then,
-    unless ``source`` is ``none``, its SVM bank from ``refs`` (the references, by id) and ``train`` (geotagged
-    photos that are not references), then its confidence rule and ``p_within_25m`` on ``refs``
-    (``calibrate_collection``, at most ``calibration_sample`` of them located; with ``images``, the references'
-    photos, also the rule for verified answers; ``hashes``, the sha256 of each reference's photo, recorded with
-    the calibration): what `geoloc fit` and the first start of an empty data dir both run. ``seconds`` gets
-    each step's time (``codebook, PCA, binariser``, ``SVM bank``, ``calibration``): where a fit's time goes.
-    ``places``: where each of ``features`` was taken (a configuration with learned whitening learns from
-    their GPS pairs)."""
-    check_bank_kind(kind)
-    seconds = {} if seconds is None else seconds
-    with fit_threads():  # one BLAS and OpenMP thread: the same fit on any machine (app.runtime)
+    pipe: Pipeline, photos: Sequence[FitPhoto], options: FitOptions, progress: FitProgress | None = None
+) -> FittedPipeline:
+    """Fit ``pipe`` on ``photos``, every step in order: extract the features of those not extracted yet,
+    fit the codebook, PCA-whitening and binariser on the photos ``in_fit`` (in the order given), then, unless
+    ``options.bank`` is ``none``, the SVM bank from the references and the training photos, then the
+    confidence rule and ``p_within_25m`` on the references themselves (``calibrate_collection``, with the
+    training photos in its auxiliary fits). What `geoloc fit`, the first start, `geoloc refit` and each of
+    the evaluation's folds run: one fit, so what the evaluation measures is what the others build.
+
+    Raises ``FitRefused`` when fewer than 2 photos are left to fit on, or the bank cannot be trained (unless
+    ``bank_optional``). The numerical steps run on ``fit_threads`` (unless ``options.fixed_threads`` is
+    off); the extraction keeps its own threads."""
+    if options.bank != "none":
+        check_bank_kind(options.bank_kind)
+    progress = progress or FitProgress()
+    seconds: dict[str, float] = {}
+    t0 = time.perf_counter()
+    kept = _extracted(pipe, photos, options, progress)
+    seconds["extract"] = time.perf_counter() - t0
+    fit_on = [p for p in kept if p.in_fit]
+    if len(fit_on) < 2:
+        asked = sum(p.in_fit for p in photos)
+        raise FitRefused(f"{len(fit_on)} of the {asked} photos to fit on could be read: a fit needs at least 2")
+    progress.fitting(pipe.config.name, len(kept), seconds["extract"])
+    refs: dict[int, Geotagged] = {}
+    hashes: dict[int, str] = {}
+    images: dict[int, Path] = {}
+    for p in kept:
+        if not p.reference:
+            continue
+        i = len(refs) if p.ref_id is None else p.ref_id
+        refs[i] = Geotagged(p.features, p.lat, p.lon, p.group)
+        if p.sha256:
+            hashes[i] = p.sha256
+        if p.path is not None:
+            images[i] = p.path
+    ids = sorted(refs)
+    train = [Geotagged(p.features, p.lat, p.lon, p.group) for p in kept if not p.reference]
+    source, index = options.bank, None
+    # One BLAS and OpenMP thread: the same fit on any machine (app.runtime).
+    with fit_threads() if options.fixed_threads else nullcontext():
         t0 = time.perf_counter()
-        pipe.fit(list(features), seed=seed, places=places)
+        places = [Place(p.lat, p.lon, p.group) for p in fit_on]  # a configuration with learned whitening uses them
+        pipe.fit([p.features for p in fit_on], seed=options.seed, places=places)
         seconds["codebook, PCA, binariser"] = time.perf_counter() - t0
+        if options.keep_index:
+            index = index_of(pipe, ids, (refs[i].features for i in ids))
         if source != "none":
             t0 = time.perf_counter()
-            pipe.bank = train_bank(pipe, refs, list(train), source, kind, seed)
+            try:
+                pipe.bank = train_bank(
+                    pipe, refs, train, source, options.bank_kind, options.seed, options.pos_radius_m, index
+                )
+            except (FitRefused, NothingToTrainOn) as e:
+                if not options.bank_optional:
+                    raise
+                log.warning("no SVM bank (%s); the pipeline is fitted without one", e)
+                source = "none"  # and calibrated on these photos all the same: never judged by another's figures
             seconds["SVM bank"] = time.perf_counter() - t0
+        pipe.bank_select = options.bank_select
         t0 = time.perf_counter()
         pipe.calibration = calibrate_collection(
             pipe,
             refs,
             [t.features for t in train],
-            CALIBRATION_SAMPLE if calibration_sample is None else calibration_sample,
-            seed=seed,
-            images=images,
+            options.calibration_sample,
+            seed=options.seed,
+            images=images if options.calibrate_verified else None,
             hashes=hashes,
         )
         seconds["calibration"] = time.perf_counter() - t0
-    return pipe
+    return FittedPipeline(pipe, refs, source, seconds, index)
+
+
+@dataclass(frozen=True)
+class _Ready:
+    """A ``FitPhoto`` with its features, position and capture known."""
+
+    path: Path | None
+    features: Features
+    lat: float
+    lon: float
+    group: str
+    reference: bool
+    ref_id: int | None
+    in_fit: bool
+    sha256: str | None
+
+
+def _extracted(pipe: Pipeline, photos: Sequence[FitPhoto], options: FitOptions, progress: FitProgress) -> list[_Ready]:
+    """The photos with their features (extracted now, ``extract_batch``, for those without), position and
+    capture; those left out (unreadable, no position) logged, with ``skip_unreadable``."""
+    todo = [k for k, p in enumerate(photos) if p.features is None]
+    extracted: list[Extracted | None] = [None] * len(photos)
+    if todo:
+        pipe.load_models()
+        done = extract_batch(
+            pipe,
+            [photos[k].path for k in todo],
+            limits=options.limits,
+            workers=options.workers,
+            progress=progress.extraction(len(todo)),
+            skip_unreadable=options.skip_unreadable,
+        )
+        for k, e in zip(todo, done, strict=True):
+            extracted[k] = e
+    out = []
+    for p, e in zip(photos, extracted, strict=True):
+        if p.features is None and e is None:
+            continue  # unreadable: logged by extract_batch
+        position = (p.lat, p.lon) if p.lat is not None and p.lon is not None else (e.gps if e else None)
+        if position is None:
+            if not options.skip_unreadable:
+                raise FitRefused(f"{p.path}: no GPS position, in its row or in the photo")
+            log.warning("%s: not used (no GPS position)", p.path)
+            continue
+        lat, lon = position
+        group = p.group or capture_group(lat, lon, p.captured_at or (e.captured_at if e else None))
+        features = p.features if p.features is not None else e.features
+        sha256 = p.sha256 or (e.sha256 if e else None)
+        out.append(_Ready(p.path, features, lat, lon, group, p.reference, p.ref_id, p.in_fit, sha256))
+    return out
 
 
 # -- calibration on the collection itself -------------------------------------------------------------------
-#: References located against the others to calibrate (like the SVM bank's sample: the cost of a fit or a
-#: refit does not grow with the collection past it).
-CALIBRATION_SAMPLE = 600
-#: Of those, how many are located once more with verification (``--calibrate-rerank``) for the rule that
-#: judges verified answers: each costs its own photo's matcher features and up to 20 verified pairs (the
-#: candidates' features are computed once per reference), about 0.2 s with RootSIFT on 2 cores.
+#: Of the references located to calibrate (``CALIBRATION_SAMPLE``), how many are located once more with
+#: verification (``--calibrate-rerank``) for the rule that judges verified answers: each costs its own photo's
+#: matcher features and up to 20 verified pairs (the candidates' features are computed once per reference),
+#: about 0.2 s with RootSIFT on 2 cores.
 VERIFY_CALIBRATION_SAMPLE = 300
 #: At most this many references' matcher features are kept while calibrating (RootSIFT's 1,500 keypoints
 #: take about 0.8 MB each, so about 320 MB), the oldest dropped first: a large collection's candidates then

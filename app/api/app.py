@@ -120,7 +120,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     @asynccontextmanager
     async def lifespan(app: FastAPI):
-        serving_blas_threads()
+        serving_blas_threads(settings.blas_threads)
         set_search_threads(settings.faiss_threads)
         stop = threading.Event()
         loader = threading.Thread(target=_load, args=(app, stop), name="geoloc-load", daemon=True)

@@ -108,8 +108,14 @@ def test_full_decodes_share_the_pixel_budget():
 
 
 def test_free_memory_is_handed_back_on_glibc(monkeypatch):
-    from app.runtime import release_free_memory
+    from app.runtime import configure_allocator, release_free_memory
+    from app.settings import Settings
 
     assert release_free_memory()  # glibc's malloc_trim was found and called
     monkeypatch.setenv("GEOLOC_MALLOC_TRIM", "0")
-    assert not release_free_memory()
+    settings = Settings()
+    try:
+        configure_allocator(settings.malloc_tuning, settings.malloc_trim)  # what a geoloc process does at start
+        assert not release_free_memory()
+    finally:
+        configure_allocator(False, True)  # trimming on again for the rest of the session
