@@ -277,7 +277,7 @@ def ingest(
         src = open_source(source, manifest, split)
     except SourceError as e:
         _fail(str(e))
-    service = GeolocService.open(data_dir, models_dir, config, limits=_S.image_limits())
+    service = GeolocService.open(data_dir, models_dir, config, limits=_S.image_limits(), backend=_S.backend(data_dir))
     options = IngestOptions(chunk=chunk, batch=batch, workers=workers, ray=ray, shared_fs=shared_fs)
     summary, left = run_ingest(service, src, options, say=typer.echo)
     _print_summary(service, summary, left)
@@ -346,7 +346,7 @@ def locate(
     options = LocateOptions(
         top_k=top_k, mode=mode, rerank=rerank, region=_region_option(lat, lon, radius_m, bbox), min_score=min_score
     )
-    service = GeolocService.open(data_dir, models_dir, config)
+    service = GeolocService.open(data_dir, models_dir, config, backend=_S.backend(data_dir))
     answer = service.locate(data, options)
     out = LocateOut.of(answer).model_dump()
     if compare_exif:
@@ -580,7 +580,7 @@ def worker_cmd(
     def ready(service) -> None:
         typer.echo(f"worker: {data_dir} ({service.pipeline.config.name}), {service.store.count('pending')} pending")
 
-    store = ReferenceStore(data_dir)
+    store = ReferenceStore(data_dir, backend=_S.backend(data_dir))
     try:
         check_images_shared(store)  # on PostgreSQL: one images folder for every host
     except ImagesNotShared as e:

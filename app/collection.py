@@ -25,6 +25,7 @@ from app.engine.calibration import Calibration
 from app.engine.configs import DEFAULT_CONFIG
 from app.engine.index.references import ReferenceIndex
 from app.engine.pipeline import Pipeline, PipelineSource
+from app.storage.backend import StorageBackend
 from app.storage.changes import Change
 from app.storage.snapshots import SnapshotInvalid, SnapshotMismatch, load_snapshot, write_snapshot
 from app.storage.store import ReferenceStore
@@ -153,9 +154,17 @@ class Collection:
         self.index, self.version = self._load()
 
     @classmethod
-    def open(cls, data_dir: Path, models_dir: Path, config: str | None, policy: SnapshotPolicy | None = None):
-        """The data dir's own configuration and pipeline win over ``config``: its codes were made by them."""
-        store = ReferenceStore(data_dir)
+    def open(
+        cls,
+        data_dir: Path,
+        models_dir: Path,
+        config: str | None,
+        policy: SnapshotPolicy | None = None,
+        backend: StorageBackend | None = None,
+    ):
+        """The data dir's own configuration and pipeline win over ``config``: its codes were made by them.
+        ``backend``: the storage backend the process made once from its Settings (None: from the environment)."""
+        store = ReferenceStore(data_dir, backend=backend)
         for _ in range(3):  # a re-fit switching between the read and the load: read again
             generation, ref, name = store.generation_state()
             name = name or config or DEFAULT_CONFIG

@@ -26,6 +26,7 @@ from app.engine.pipeline import Features, Pipeline
 from app.errors import InvalidRequest
 from app.locate import StoreReferences, locate_features
 from app.runtime import release_free_memory
+from app.storage.backend import StorageBackend
 from app.storage.queue import Job
 from app.storage.store import KeysetPage, NewReference, Reference, ReferenceStore
 from app.thumbnails import THUMBNAIL_PX, keep_thumbnail, thumbnail
@@ -74,8 +75,10 @@ class GeolocService:
         keep_queries: bool = False,
         locate_concurrency: int = 0,
         thumbnail_px: int = THUMBNAIL_PX,
+        backend: StorageBackend | None = None,
     ) -> GeolocService:
-        collection = Collection.open(data_dir, models_dir, config, policy)
+        """``backend``: made once from the process's Settings (``Settings.backend``) and passed down."""
+        collection = Collection.open(data_dir, models_dir, config, policy, backend)
         return cls(collection, limits, keep_queries, locate_concurrency, thumbnail_px)
 
     @property

@@ -92,6 +92,7 @@ def _load(app: FastAPI, stop: threading.Event) -> None:
                 s.keep_queries,
                 s.locate_concurrency,  # the extraction slots: app/service.py, extraction_slots
                 s.thumbnail_px,
+                s.backend(s.data_dir),
             )
             try:
                 check_images_shared(service.store)  # on PostgreSQL: one images folder for every host
