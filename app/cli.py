@@ -180,7 +180,7 @@ def fit(
     from app.engine.pipeline import Pipeline, pipeline_dir
     from app.errors import FitRefused
     from app.evaluation.datasets import read_manifest
-    from app.fitting import FitOptions, FitPhoto, FitProgress, bank_source, check_bank_kind, fit_pipeline
+    from app.usecases.fitting import FitOptions, FitPhoto, FitProgress, bank_source, check_bank_kind, fit_pipeline
 
     cfg = get_config(config)
     try:
@@ -271,7 +271,7 @@ def ingest(
     from app.jobs.ingest.run import IngestOptions
     from app.jobs.ingest.run import ingest as run_ingest
     from app.jobs.ingest.sources import SourceError, open_source
-    from app.service import GeolocService
+    from app.usecases.service import GeolocService
 
     try:
         src = open_source(source, manifest, split)
@@ -340,7 +340,7 @@ def locate(
     --brief what it means in words."""
     from app.api.schemas import LocateOut
     from app.domain import LocateOptions
-    from app.service import GeolocService
+    from app.usecases.service import GeolocService
 
     data = image.read_bytes()  # a missing photo is said before the model loads
     options = LocateOptions(
@@ -465,7 +465,7 @@ def eval_cmd(
     """Fit, index the db rows in memory, query the query rows through the core; print Recall@N, time, bytes."""
     from app.engine.configs import get_config
     from app.evaluation.evaluate import evaluate, format_summary, write_report
-    from app.fitting import EVAL_BANK_SOURCES
+    from app.usecases.fitting import EVAL_BANK_SOURCES
 
     if svm_bank not in ("off", "positive", "negative"):
         _fail(f"--svm-bank must be off, positive or negative, not {svm_bank!r}")
@@ -620,7 +620,7 @@ def check(
     ] = 3600.0,
 ) -> None:
     """Check that rows, image files, codes and the index snapshot agree; say what does not (exit 1)."""
-    from app.operations import check_data_dir, repair_data_dir
+    from app.usecases.operations import check_data_dir, repair_data_dir
 
     if repair:
         for line in repair_data_dir(data_dir, min_age):
@@ -642,7 +642,7 @@ def backup(
 ) -> None:
     """Copy the data dir while it is in use: SQLite through its online backup API, then the images and the
     newest index snapshot."""
-    from app.operations import backup_data_dir
+    from app.usecases.operations import backup_data_dir
 
     summary = backup_data_dir(data_dir, dest)
     typer.echo(
@@ -660,7 +660,7 @@ def restore(
     data_dir: DataDir = _S.data_dir,
 ) -> None:
     """Restore a backup into an empty or new data dir (stop the services using it first)."""
-    from app.operations import restore_data_dir
+    from app.usecases.operations import restore_data_dir
 
     summary = restore_data_dir(source, data_dir)
     typer.echo(f"restored {summary['references']} references into {data_dir}")

@@ -121,7 +121,7 @@ class Settings(StorageSettings):
     )
 
     def snapshot_policy(self):
-        from app.collection import SnapshotPolicy
+        from app.usecases.collection import SnapshotPolicy
 
         return SnapshotPolicy(self.snapshot_every_changes, self.snapshot_every_seconds)
 

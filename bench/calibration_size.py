@@ -22,8 +22,8 @@ from app.engine.configs import DEFAULT_CONFIG, get_config
 from app.engine.pipeline import Pipeline
 from app.evaluation.datasets import read_manifest
 from app.evaluation.evaluate import extract_cached
-from app.fitting import FitOptions, FitPhoto, bank_source, fit_pipeline
 from app.settings import REPO_ROOT
+from app.usecases.fitting import FitOptions, FitPhoto, bank_source, fit_pipeline
 
 
 def subset(groups: dict[str, list[int]], size: int, seed: int) -> list[int]:

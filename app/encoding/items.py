@@ -14,7 +14,7 @@ import numpy as np
 from app.engine.errors import GeolocError
 from app.engine.imageio import ImageLimits, LoadedImage
 from app.engine.pipeline import Pipeline
-from app.thumbnails import thumbnail_of
+from app.usecases.thumbnails import thumbnail_of
 
 log = logging.getLogger("geoloc.encoding")
 
@@ -39,7 +39,7 @@ class Encoded:
     error: str | None = None  # a permanent failure (the row becomes failed)
     retry: bool = False  # a storage failure: the row stays pending and is tried again later
     fingerprint: str | None = None  # the pipeline that made the codes (a re-fit may switch meanwhile)
-    thumbnail: bytes | None = None  # a JPEG made from the same decode (``app.thumbnails``), when asked
+    thumbnail: bytes | None = None  # a JPEG made from the same decode (``app.usecases.thumbnails``), when asked
 
 
 def read_item(item: EncodeItem) -> EncodeItem | Encoded:

@@ -1,7 +1,8 @@
 """The evaluation protocol of METHOD.md: Recall@N within d metres, estimate error, time per stage, bytes.
 
 Every image is decoded and its features extracted once; each fold then fits the pipeline on its own db
-and train rows, indexes the db rows in memory and queries the query rows through ``app.locate.locate_features``,
+and train rows, indexes the db rows in memory and queries the query rows through
+``app.usecases.locate.locate_features``,
 the function /locate calls. With ``folds`` > 1 the query role rotates over the non-train groups (a capture and its
 crops move together), because on a set this small one query moves Recall@1 by points.
 """
@@ -26,9 +27,9 @@ from app.engine.pipeline import DECODE_OVERSAMPLE, Pipeline
 from app.engine.progress import Progress
 from app.errors import ManifestCannotBeEvaluated
 from app.evaluation.datasets import Row, read_manifest
-from app.extraction import Extracted, extract_batch
-from app.fitting import EVAL_BANK_SOURCES, FitOptions, FitPhoto, fit_pipeline, near_ids
-from app.locate import ESTIMATE_CANDIDATES, MIN_LOCAL_FEATURES, Excluding, locate_features
+from app.usecases.extraction import Extracted, extract_batch
+from app.usecases.fitting import EVAL_BANK_SOURCES, FitOptions, FitPhoto, fit_pipeline, near_ids
+from app.usecases.locate import ESTIMATE_CANDIDATES, MIN_LOCAL_FEATURES, Excluding, locate_features
 
 RECALL_AT = (1, 5, 10, 20)
 
@@ -110,7 +111,7 @@ class EvalResult(BaseModel):
 
 
 def extract_cached(pipeline: Pipeline, rows: list[Row], cache_dir: Path | None, workers: int = 2) -> list[Extracted]:
-    """Every row's features (``app.extraction.extract_batch``), with an optional on-disk cache keyed by the
+    """Every row's features (``app.usecases.extraction.extract_batch``), with an optional on-disk cache keyed by the
     images and the extraction settings, so parameter sweeps that change only aggregation or codes skip the
     expensive part. Stage times of work done in parallel are inflated; the report says so."""
 
@@ -124,7 +125,9 @@ def extract_cached(pipeline: Pipeline, rows: list[Row], cache_dir: Path | None, 
     # The decode scale is part of the key: features of a pipeline-scale decode differ from a 1600 px one; and
     # so is the record's type (a cache of an older one would not load).
     decode = f"decode={pipeline.decode_sides}x{DECODE_OVERSAMPLE}"
-    key = hashlib.sha256((pipeline.config.extraction_key() + decode + "record=app.extraction.Extracted").encode())
+    key = hashlib.sha256(
+        (pipeline.config.extraction_key() + decode + "record=app.usecases.extraction.Extracted").encode()
+    )
     for r in rows:
         st = r.image.stat()
         key.update(f"{r.image}:{st.st_size}:{st.st_mtime_ns}".encode())
@@ -219,7 +222,8 @@ def evaluate(
     fold's queries: ``bank_source`` train (the train rows only) or collection (the fold's db rows as
     training photos, plus the train rows: the rule ``geoloc fit`` serves). ``rerank`` and
     ``region_radius_m`` (a circle of that radius around each query's true position) ask the same of the
-    core as /locate's ``rerank`` and region do: queries go through ``app.locate.locate_features``. With ``rerank``
+    core as /locate's ``rerank`` and region do: queries go through ``app.usecases.locate.locate_features``. With
+    ``rerank``
     each query is also located without it (the same search), so one run reports recall with and without
     verification and the time it adds per query."""
     if svm_bank not in ("off", "positive", "negative"):
@@ -245,7 +249,8 @@ def evaluate(
         q_idx = [i for i, r in enumerate(rows) if r.group in qset and r.split != "train"]
         db_idx = [i for i, r in enumerate(rows) if r.group not in qset and r.split != "train"]
         train_idx = [i for i, r in enumerate(rows) if r.split == "train"]
-        # The fold's fit (``app.fitting.fit_pipeline``, what `geoloc fit` runs): on its db and train rows (never
+        # The fold's fit (``app.usecases.fitting.fit_pipeline``, what `geoloc fit` runs): on its db and train rows
+        # (never
         # on its queries), the bank (with ``svm_bank``) from them, the confidence rule and p_within_25m on the
         # db rows alone, as `geoloc fit` calibrates on the collection; with rerank (in the default search mode:
         # /locate reads no calibration in another) the rule for verified answers too, as

@@ -3,7 +3,7 @@ then ingest them, while the server already answers /health, and /ready says whic
 
 Why: a user with Docker alone has no ``make fit`` and no fitted pipeline; the image holds the models, and
 the data volume starts empty. So the server's loader (``app.api.app``) calls ``run_first_start`` before it
-opens the data dir: the fit is ``app.fitting.fit_pipeline`` (what `geoloc fit` runs), saved in the data dir
+opens the data dir: the fit is ``app.usecases.fitting.fit_pipeline`` (what `geoloc fit` runs), saved in the data dir
 as generation 0 (``pipelines/<config>-g0``, the layout a later `geoloc refit` continues from), and the photos
 go in through the ingest use case (``app.jobs.ingest.run.ingest``, what `geoloc ingest` runs). Nothing here
 is a second fit or ingest path.
@@ -30,12 +30,12 @@ from app.engine.imageio import ImageLimits
 from app.engine.pipeline import Pipeline
 from app.engine.progress import Progress
 from app.errors import FitRefused, ServiceError
-from app.extraction import Counter
-from app.fitting import FitProgress
 from app.jobs.ingest.sources import Source, SourceItem, open_source
 from app.permissions import private_dir
 from app.storage.database import DB_NAME
 from app.storage.store import ReferenceStore
+from app.usecases.extraction import Counter
+from app.usecases.fitting import FitProgress
 
 log = logging.getLogger("geoloc.first_start")
 
@@ -205,11 +205,11 @@ def _fit(
     workers: int,
     seed: int,
 ) -> None:
-    """Fit (``app.fitting.fit_pipeline``) on a seeded sample of the photos, with the positions of their rows
+    """Fit (``app.usecases.fitting.fit_pipeline``) on a seeded sample of the photos, with the positions of their rows
     else of their EXIF (those with neither, or unreadable, are left out here and reported by the ingest
     step, which reads them again), and save it as generation 0."""
-    from app.fitting import FitOptions, FitPhoto, bank_source, fit_pipeline
     from app.jobs.refit import save_generation
+    from app.usecases.fitting import FitOptions, FitPhoto, bank_source, fit_pipeline
 
     cfg = get_config(config)
     items = _sample(source, seed)
@@ -263,7 +263,7 @@ def _ingest(
     workers: int,
 ) -> int:
     from app.jobs.ingest.run import IngestOptions, ingest
-    from app.service import GeolocService
+    from app.usecases.service import GeolocService
 
     total = source.count()
     log.info("first start: ingesting the %d photos from %s", total, source.path)

@@ -26,17 +26,17 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from app.collection import Collection, pipeline_source
 from app.encoding import EncodeItem, batched, make_engine
 from app.encoding.items import Encoded
 from app.engine.configs import DEFAULT_CONFIG, get_config
 from app.engine.imageio import ImageLimits
 from app.engine.pipeline import Pipeline, PipelineSource
 from app.errors import FitRefused, RefitError, StorageUnavailable
-from app.fitting import FitOptions, FitPhoto, bank_source, capture_group, check_bank_kind, fit_pipeline
 from app.jobs.writer import write_snapshot_if_free
 from app.storage.generations import ReindexTarget
 from app.storage.store import ReferenceStore
+from app.usecases.collection import Collection, pipeline_source
+from app.usecases.fitting import FitOptions, FitPhoto, bank_source, capture_group, check_bank_kind, fit_pipeline
 
 log = logging.getLogger("geoloc.reindex")
 
@@ -85,7 +85,7 @@ class RefitSummary:
 def fit_generation(
     store: ReferenceStore, models_dir: Path, options: RefitOptions, limits: ImageLimits | None = None
 ) -> tuple[Target, RefitSummary]:
-    """Fit the next generation's pipeline (``app.fitting.fit_pipeline``) on a seeded sample of the stored
+    """Fit the next generation's pipeline (``app.usecases.fitting.fit_pipeline``) on a seeded sample of the stored
     references, read from their stored images (and its SVM bank, from them or from the training photos of
     ``options.train_manifest``), and save it in the data dir atomically; returns the target to re-index
     into."""
