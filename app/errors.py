@@ -81,6 +81,10 @@ ENGINE_CODES: dict[str, str] = {
     _name(engine.InvalidPosition): "invalid_position",
     "app.engine.index.references.UnsupportedMode": "unsupported_mode",
     "app.engine.configs.UnknownConfig": "invalid_request",
+    # A pipeline naming an index kind no module provides, or an IVF fitted before its quantizer was trained at
+    # fit: the collection cannot be served until the kind is installed or the data dir is refitted.
+    "app.engine.index.base.UnknownIndexKind": "not_ready",
+    "app.engine.index.base.IndexNotTrained": "not_ready",
     _name(engine.ModelNotReady): "not_ready",
     _name(engine.IncompatibleArtifact): "not_ready",
     _name(engine.ModelBuildError): "not_ready",
