@@ -348,7 +348,14 @@ def locate(
     image: Annotated[Path, typer.Argument(help="the photo to geolocate")],
     top_k: Annotated[int, typer.Option("--top-k", "-k")] = 10,
     mode: Annotated[str | None, typer.Option(help="float, binary or two-stage")] = None,
-    rerank: Annotated[bool, typer.Option("--rerank", help="geometric verification of the top candidates")] = False,
+    rerank: Annotated[
+        bool | None,
+        typer.Option(
+            "--rerank/--no-rerank",
+            help="geometric verification of the top candidates; default: the configuration's (on when it stores "
+            "local features)",
+        ),
+    ] = None,
     lat: Annotated[float | None, typer.Option(help="region centre (with --lon and --radius-m)")] = None,
     lon: Annotated[float | None, typer.Option()] = None,
     radius_m: Annotated[float | None, typer.Option("--radius-m")] = None,
