@@ -2,7 +2,8 @@
 worker writes one small file per reference at ingestion, /locate verifies the top candidates from those files
 by default (a reference's own photo first, with many inliers; a far one with few), a candidate without a
 file stays unverified, ``rerank=false`` is the global-only answer, a deleted reference's file goes with its
-image, and ``geoloc check`` names a reference whose file is missing. The default configuration stores none."""
+image, ``geoloc check`` names a reference whose file is missing and ``features backfill`` makes it again.
+The default configuration stores none."""
 
 from __future__ import annotations
 
@@ -102,9 +103,33 @@ def test_stored_features_written_verified_and_removed(sv_models, mini_manifest, 
     files.write(gone_sha, saved)
     assert not any("stored features" in p for p in check_data_dir(data, sv_models, CONFIG).problems)
 
+    # A data dir whose references lack their files gets them back (the same bytes ingestion wrote), with
+    # progress; a second run finds them all there (a file that exists is the resume marker).
+    from app.jobs.backfill_features import backfill_stored_features
+
+    written = {s: files.read(s) for s in shas}
+    lost = sorted(shas)[:3]
+    for s in lost:
+        files.delete(s)
+    lines: list[str] = []
+    report = backfill_stored_features(data, sv_models, say=lines.append, every=2)
+    assert (report.seen, report.written, report.present, report.failed) == (len(shas), 3, len(shas) - 3, 0)
+    assert {s: files.read(s) for s in shas} == written
+    assert len(lines) == len(shas) // 2 + 1 and lines[-1].endswith("(done)"), lines
+    again = backfill_stored_features(data, sv_models, say=lines.append)
+    assert (again.written, again.present) == (0, len(shas))
+
     # Deleting a reference removes its file with its image.
     victim = accepted.reference_ids[2]
     victim_sha = service.store.get(victim).sha256
     assert service.delete(victim) == "removed"
     assert not files.exists(victim_sha)
     assert set(files.names()) == set(shas) - {victim_sha}
+
+    # A re-fit re-encodes every reference through the same path and re-makes their files with the codes.
+    from app.jobs.refit import RefitOptions, refit
+
+    shutil.rmtree(profile_root(data, "xfeat-640-n900"))
+    summary = refit(data, sv_models, RefitOptions(sample=9, svm_bank="none", seed=3), progress=False)
+    assert summary.generation == 1
+    assert {s: files.read(s) for s in files.names()} == {s: b for s, b in written.items() if s != victim_sha}
