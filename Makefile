@@ -175,8 +175,8 @@ clean-index:
 
 # At least 1,000 generated requests against a ready server (CI runs a small budget).
 fuzz: setup
-	GEOLOC_FUZZ_EXAMPLES=200 GEOLOC_FUZZ_MIN_REQUESTS=1000 $(BIN)/python -m pytest -q -s tests/service/test_fuzz.py
+	GEOLOC_FUZZ_EXAMPLES=200 GEOLOC_FUZZ_MIN_REQUESTS=1000 $(BIN)/python -m pytest -q -s tests/api/test_fuzz.py
 
 # The crash tests with 1600 px photos instead of 224 px crops.
 crash-full: setup
-	GEOLOC_CRASH_FULL=1 $(BIN)/python -m pytest -q tests/service/test_crash.py
+	GEOLOC_CRASH_FULL=1 $(BIN)/python -m pytest -q tests/api/test_crash.py

@@ -5,7 +5,6 @@ from __future__ import annotations
 import errno
 import json
 import sys
-import time
 from pathlib import Path
 from typing import Annotated
 
@@ -19,7 +18,7 @@ except ImportError:  # pragma: no cover
     from click import exceptions as usage
 from app.engine.models.ort import set_session_threads
 from app.library.commands import library_app
-from app.runtime import tune_malloc
+from app.runtime import configure_allocator
 from app.settings import Settings
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, help=__doc__, pretty_exceptions_enable=False)
@@ -183,8 +182,7 @@ def fit(
     from app.engine.pipeline import Pipeline, pipeline_dir
     from app.errors import FitRefused
     from app.evaluation.datasets import read_manifest
-    from app.evaluation.evaluate import extract_all
-    from app.fitting import bank_source, check_bank_kind
+    from app.usecases.fitting import FitOptions, FitPhoto, FitProgress, bank_source, check_bank_kind, fit_pipeline
 
     cfg = get_config(config)
     try:
@@ -193,13 +191,41 @@ def fit(
     except FitRefused as e:
         _fail(str(e))
     rows = [r for r in read_manifest(manifest) if r.split in ("db", "train")]
+    if source == "train" and not any(r.split == "train" for r in rows):
+        _fail(
+            "the manifest has no train rows: --svm-bank train learns from geotagged photos that are not references "
+            "(--svm-bank collection learns from the references)"
+        )
+    if source != "none" and not any(r.split == "db" for r in rows):
+        _fail("the manifest has no db rows: the SVM bank needs references to retrieve against")
+    # Every row is fitted on, in the manifest's order; the db rows are the references (the bank retrieves
+    # against them, the calibration locates them), numbered by their place among the rows.
+    photos = [
+        FitPhoto(r.image, lat=r.lat, lon=r.lon, group=r.group, reference=r.split == "db", ref_id=i)
+        for i, r in enumerate(rows)
+    ]
+    options = FitOptions(
+        bank=source,
+        bank_kind=svm_bank_kind,
+        seed=seed,
+        calibration_sample=calibration_sample,
+        calibrate_verified=calibrate_rerank,
+        workers=2,
+    )
     pipe = Pipeline(cfg, models_dir=models_dir)
-    t0 = time.perf_counter()
-    feats = [e.features for e in extract_all(pipe, rows, desc="fit: extract")]
-    seconds = {"extract": time.perf_counter() - t0}
-    typer.echo(f"fit: extracted {len(feats)} images in {seconds['extract']:.0f} s; fitting {cfg.name} ...")
-    _fit_with_bank(pipe, rows, feats, svm_bank_kind, seed, source, calibration_sample, calibrate_rerank, seconds)
-    typer.echo("fit: seconds per step: " + ", ".join(f"{k} {v:.1f}" for k, v in seconds.items()))
+    try:
+        fitted = fit_pipeline(pipe, photos, options, FitProgress(say=typer.echo))
+    except FitRefused as e:
+        _fail(str(e))
+    if pipe.bank is not None:
+        bank, t = pipe.bank, pipe.bank.manifest["training"]
+        typer.echo(
+            f"SVM bank ({svm_bank_kind}, from {source}): {t['labelled_positive']} positive / "
+            f"{t['labelled_negative']} negative features from {t['training_photos']} photos, negative radius "
+            f"{t['negative_radius_m']} m, keep fraction {bank.manifest['chosen_keep_fraction']} chosen on "
+            f"{bank.manifest['heldout_photos']} held-out photos, {bank.manifest['train_seconds']} s"
+        )
+    typer.echo("fit: seconds per step: " + ", ".join(f"{k} {v:.1f}" for k, v in fitted.seconds.items()))
     cal = pipe.calibration
     typer.echo(
         f"calibration ({cal.source}): {cal.note}; "
@@ -210,58 +236,6 @@ def fit(
         f"saved {pipeline_dir(models_dir, cfg.name)} (float dim {pipe.float_dim}, bits {pipe.bits}"
         + (f", SVM bank of {len(pipe.bank.centers)} clusters" if pipe.bank is not None else ", no SVM bank")
         + ")"
-    )
-
-
-def _fit_with_bank(
-    pipe,
-    rows,
-    feats,
-    kind: str,
-    seed: int,
-    source: str,
-    calibration_sample: int = 600,
-    verify: bool = False,
-    seconds: dict[str, float] | None = None,
-) -> None:
-    """``app.fitting.fit_pipeline``: the pipeline on every row, then the bank from the db rows (the collection
-    rule, plus train rows) or from the train rows alone, retrieved against an in-memory index of the db rows
-    encoded by the pipeline just fitted."""
-    from app.engine.learned_whitening import Place
-    from app.engine.training.svm_training import Geotagged
-    from app.errors import FitRefused
-    from app.fitting import fit_pipeline
-    from app.storage.files import sha256_of
-
-    db = [i for i, r in enumerate(rows) if r.split == "db"]
-    train = [Geotagged(feats[i], r.lat, r.lon, r.group) for i, r in enumerate(rows) if r.split == "train"]
-    if source == "train" and not train:
-        _fail(
-            "the manifest has no train rows: --svm-bank train learns from geotagged photos that are not references "
-            "(--svm-bank collection learns from the references)"
-        )
-    if source != "none" and not db:
-        _fail("the manifest has no db rows: the SVM bank needs references to retrieve against")
-    refs = {i: Geotagged(feats[i], rows[i].lat, rows[i].lon, rows[i].group) for i in db}
-    try:
-        images = {i: rows[i].image for i in db} if verify else None
-        hashes = {i: sha256_of(Path(rows[i].image).read_bytes()) for i in db}  # what ingesting them stores
-        places = [Place(r.lat, r.lon, r.group) for r in rows]
-        fit_pipeline(
-            pipe, feats, refs, train, source, kind, seed, calibration_sample, images,
-            hashes=hashes, seconds=seconds, places=places,
-        )  # fmt: skip
-    except FitRefused as e:
-        _fail(str(e))
-    if pipe.bank is None:
-        return
-    bank = pipe.bank
-    t = bank.manifest["training"]
-    typer.echo(
-        f"SVM bank ({kind}, from {source}): {t['labelled_positive']} positive / {t['labelled_negative']} negative "
-        f"features from {t['training_photos']} photos, negative radius {t['negative_radius_m']} m, keep fraction "
-        f"{bank.manifest['chosen_keep_fraction']} chosen on {bank.manifest['heldout_photos']} held-out photos, "
-        f"{bank.manifest['train_seconds']} s"
     )
 
 
@@ -299,13 +273,13 @@ def ingest(
     from app.jobs.ingest.run import IngestOptions
     from app.jobs.ingest.run import ingest as run_ingest
     from app.jobs.ingest.sources import SourceError, open_source
-    from app.service import GeolocService
+    from app.usecases.service import GeolocService
 
     try:
         src = open_source(source, manifest, split)
     except SourceError as e:
         _fail(str(e))
-    service = GeolocService.open(data_dir, models_dir, config, limits=_S.image_limits())
+    service = GeolocService.open(data_dir, models_dir, config, limits=_S.image_limits(), backend=_S.backend(data_dir))
     options = IngestOptions(chunk=chunk, batch=batch, workers=workers, ray=ray, shared_fs=shared_fs)
     summary, left = run_ingest(service, src, options, say=typer.echo)
     _print_summary(service, summary, left)
@@ -375,13 +349,13 @@ def locate(
     --brief what it means in words."""
     from app.api.schemas import LocateOut
     from app.domain import LocateOptions
-    from app.service import GeolocService
+    from app.usecases.service import GeolocService
 
     data = image.read_bytes()  # a missing photo is said before the model loads
     options = LocateOptions(
         top_k=top_k, mode=mode, rerank=rerank, region=_region_option(lat, lon, radius_m, bbox), min_score=min_score
     )
-    service = GeolocService.open(data_dir, models_dir, config)
+    service = GeolocService.open(data_dir, models_dir, config, backend=_S.backend(data_dir))
     answer = service.locate(data, options)
     out = LocateOut.of(answer).model_dump()
     if compare_exif:
@@ -500,7 +474,7 @@ def eval_cmd(
     """Fit, index the db rows in memory, query the query rows through the core; print Recall@N, time, bytes."""
     from app.engine.configs import get_config
     from app.evaluation.evaluate import evaluate, format_summary, write_report
-    from app.fitting import EVAL_BANK_SOURCES
+    from app.usecases.fitting import EVAL_BANK_SOURCES
 
     if svm_bank not in ("off", "positive", "negative"):
         _fail(f"--svm-bank must be off, positive or negative, not {svm_bank!r}")
@@ -609,13 +583,13 @@ def worker_cmd(
     from app.storage.shared_images import ImagesNotShared, check_images_shared
     from app.storage.store import ReferenceStore
 
-    serving_blas_threads()  # encoding one photo at a time: see app.runtime
+    serving_blas_threads(_S.blas_threads)  # encoding one photo at a time: see app.runtime
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
 
     def ready(service) -> None:
         typer.echo(f"worker: {data_dir} ({service.pipeline.config.name}), {service.store.count('pending')} pending")
 
-    store = ReferenceStore(data_dir)
+    store = ReferenceStore(data_dir, backend=_S.backend(data_dir))
     try:
         check_images_shared(store)  # on PostgreSQL: one images folder for every host
     except ImagesNotShared as e:
@@ -655,7 +629,7 @@ def check(
     ] = 3600.0,
 ) -> None:
     """Check that rows, image files, codes and the index snapshot agree; say what does not (exit 1)."""
-    from app.operations import check_data_dir, repair_data_dir
+    from app.usecases.operations import check_data_dir, repair_data_dir
 
     if repair:
         for line in repair_data_dir(data_dir, min_age):
@@ -697,7 +671,7 @@ def backup(
 ) -> None:
     """Copy the data dir while it is in use: SQLite through its online backup API, then the images and the
     newest index snapshot."""
-    from app.operations import backup_data_dir
+    from app.usecases.operations import backup_data_dir
 
     summary = backup_data_dir(data_dir, dest)
     typer.echo(
@@ -715,7 +689,7 @@ def restore(
     data_dir: DataDir = _S.data_dir,
 ) -> None:
     """Restore a backup into an empty or new data dir (stop the services using it first)."""
-    from app.operations import restore_data_dir
+    from app.usecases.operations import restore_data_dir
 
     summary = restore_data_dir(source, data_dir)
     typer.echo(f"restored {summary['references']} references into {data_dir}")
@@ -840,7 +814,7 @@ def _failure(exc: BaseException) -> tuple[int, str]:
 def main(argv: list[str] | None = None) -> None:
     """Every failure ends in one line on stderr and an exit code of ``EXIT_CODES``; ``--debug`` (anywhere on
     the line) adds the traceback. Click's own usage errors, its multi-line boxes included, are one line too."""
-    tune_malloc()
+    configure_allocator(_S.malloc_tuning, _S.malloc_trim)
     set_session_threads(_S.ort_threads)
     args = list(sys.argv[1:] if argv is None else argv)
     debug = "--debug" in args

@@ -7,13 +7,16 @@ and the benchmark's floor run): RootSIFT 70-87 ms in a fresh process, 45-50 ms w
 threshold. In a thread pool with decoding in between (the server) both settings measured 53 ms: no gain,
 no loss. The cost is at most 128 MB of freed memory kept for reuse. ``GEOLOC_MALLOC_TUNING=0`` turns it
 off; other C libraries are left alone.
+
+Every setting here is a ``Settings`` field (``malloc_tuning``, ``malloc_trim``, ``blas_threads``) that the
+process's start passes in (``configure_allocator``, ``serving_blas_threads``): nothing here reads the
+environment, so a test or an embedding program sets them as it sets any other.
 """
 
 from __future__ import annotations
 
 import ctypes
 import ctypes.util
-import os
 
 M_TRIM_THRESHOLD = -1
 M_MMAP_THRESHOLD = -3
@@ -21,9 +24,18 @@ MMAP_THRESHOLD_BYTES = 64 << 20
 TRIM_THRESHOLD_BYTES = 128 << 20
 
 
-def tune_malloc() -> bool:
-    """True when glibc accepted the fixed thresholds."""
-    if os.environ.get("GEOLOC_MALLOC_TUNING", "1") == "0":
+def configure_allocator(tuning: bool, trim: bool) -> bool:
+    """The allocator's settings (``Settings.malloc_tuning``, ``Settings.malloc_trim``), applied once at the
+    start of a process (every ``geoloc`` command): the fixed thresholds (``tune_malloc``; returns whether
+    glibc accepted them) and whether ``release_free_memory`` hands memory back."""
+    global _trim_enabled
+    _trim_enabled = trim
+    return tune_malloc(tuning)
+
+
+def tune_malloc(enabled: bool = True) -> bool:
+    """True when glibc accepted the fixed thresholds; False when not ``enabled`` or not glibc."""
+    if not enabled:
         return False
     name = ctypes.util.find_library("c")
     if not name:
@@ -39,6 +51,8 @@ def tune_malloc() -> bool:
 
 
 _libc_trim = None
+#: Whether ``release_free_memory`` trims (``Settings.malloc_trim``, set by ``configure_allocator``).
+_trim_enabled = True
 
 
 def release_free_memory() -> bool:
@@ -47,7 +61,8 @@ def release_free_memory() -> bool:
     Why: with the thresholds above, a 49 MP decode's buffers come from the per-thread arenas, and glibc
     keeps what they free (up to the 128 MB trim threshold each) after the request: eight concurrent 49 MP
     uploads left RSS 1.9 GB above idle for good (issue 18). Called after large decodes only; it costs a
-    walk over the arenas (milliseconds). False where the C library has no malloc_trim."""
+    walk over the arenas (milliseconds). False where the C library has no malloc_trim, or where the
+    process's settings turned it off (``GEOLOC_MALLOC_TRIM=0``, ``configure_allocator``)."""
     global _libc_trim
     if _libc_trim is None:
         name = ctypes.util.find_library("c")
@@ -55,19 +70,20 @@ def release_free_memory() -> bool:
             _libc_trim = ctypes.CDLL(name).malloc_trim if name else False
         except (OSError, AttributeError):
             _libc_trim = False
-    if not _libc_trim or os.environ.get("GEOLOC_MALLOC_TRIM", "1") == "0":
+    if not _libc_trim or not _trim_enabled:
         return False
     _libc_trim(0)
     return True
 
 
-#: BLAS threads while serving (``serving_blas_threads``); ``GEOLOC_BLAS_THREADS`` overrides.
+#: BLAS threads while serving (``serving_blas_threads``): ``Settings.blas_threads``'s default.
 SERVING_BLAS_THREADS = 1
 
 
-def serving_blas_threads() -> int | None:
-    """Limit the BLAS library (OpenBLAS under numpy) to one thread for a process that answers queries; the
-    number of threads set, or None where threadpoolctl found no BLAS to limit.
+def serving_blas_threads(threads: int = SERVING_BLAS_THREADS) -> int | None:
+    """Limit the BLAS library (OpenBLAS under numpy) to ``threads`` (``Settings.blas_threads``: one by default)
+    for a process that answers queries; the number of threads set, or None where threadpoolctl found no BLAS
+    to limit.
 
     Why: a query's BLAS work is one vector through the PCA-whitening (a few ms), yet after each parallel
     call OpenBLAS's worker threads spin, busy, for about 2^28 cycles before they sleep, and that spinning
@@ -77,8 +93,7 @@ def serving_blas_threads() -> int | None:
     import numpy  # noqa: F401  (threadpoolctl limits the BLAS libraries already loaded: numpy's)
     from threadpoolctl import threadpool_info, threadpool_limits
 
-    raw = os.environ.get("GEOLOC_BLAS_THREADS", "")
-    n = int(raw) if raw.isdigit() and int(raw) > 0 else SERVING_BLAS_THREADS
+    n = max(1, threads)
     threadpool_limits(limits=n, user_api="blas")
     # A process-wide OpenBLAS pool answers (threadpoolctl >= 3.6) only to the thread that set it first;
     # hand that back, so that a fit on another thread (the first start's loader) can raise the limit.

@@ -110,9 +110,18 @@ class Settings(StorageSettings):
         description="FAISS's OpenMP threads: 1 for the service's one query at a time (more only fight the "
         "CNN's threads for the cores); batch jobs that search many queries at once may raise it",
     )
+    malloc_tuning: bool = Field(
+        True, description="fixed glibc malloc thresholds in every geoloc process (app/runtime.py says why)"
+    )
+    malloc_trim: bool = Field(
+        True, description="hand freed memory back to the kernel after a large upload (app/runtime.py)"
+    )
+    blas_threads: int = Field(
+        1, ge=1, description="BLAS threads of a serving process (serve, worker): more only spin between queries"
+    )
 
     def snapshot_policy(self):
-        from app.collection import SnapshotPolicy
+        from app.usecases.collection import SnapshotPolicy
 
         return SnapshotPolicy(self.snapshot_every_changes, self.snapshot_every_seconds)
 

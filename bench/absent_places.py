@@ -18,7 +18,7 @@ import numpy as np
 
 from app.domain import LocateOptions
 from app.engine.configs import DEFAULT_CONFIG
-from app.service import GeolocService
+from app.usecases.service import GeolocService
 
 REPO = Path(__file__).resolve().parents[1]
 SF = REPO.parent / "shared" / "data" / "sf-streetview-toy"

@@ -20,11 +20,10 @@ import numpy as np
 
 from app.engine.configs import DEFAULT_CONFIG, get_config
 from app.engine.pipeline import Pipeline
-from app.engine.training.svm_training import Geotagged
 from app.evaluation.datasets import read_manifest
 from app.evaluation.evaluate import extract_cached
-from app.fitting import bank_source, fit_pipeline
 from app.settings import REPO_ROOT
+from app.usecases.fitting import FitOptions, FitPhoto, bank_source, fit_pipeline
 
 
 def subset(groups: dict[str, list[int]], size: int, seed: int) -> list[int]:
@@ -62,15 +61,13 @@ def main() -> None:
     for size in (int(s) for s in args.sizes.split(",")):
         for seed in range(args.first_seed, args.first_seed + args.seeds):
             ids = subset(groups, size, seed)
-            refs = {i: Geotagged(feats[i], rows[i].lat, rows[i].lon, rows[i].group) for i in ids}
+            photos = [FitPhoto(rows[i].image, feats[i], rows[i].lat, rows[i].lon, rows[i].group, ref_id=i) for i in ids]
             t0 = time.perf_counter()
             fitted = Pipeline(cfg, pipe.global_model, models_dir=args.models_dir)
-            try:
-                fit_pipeline(fitted, [feats[i] for i in ids], refs, [], bank_source(cfg, None), seed=seed)
-            except Exception as e:  # a subset too uniform for a bank: fitted without one, as the first start does
-                fitted.bank = None
-                fit_pipeline(fitted, [feats[i] for i in ids], refs, [], "none", seed=seed)
-                print(f"  (no SVM bank: {e})")
+            # A subset too uniform for a bank is fitted without one, as the first start does.
+            fit = fit_pipeline(fitted, photos, FitOptions(bank=bank_source(cfg, None), bank_optional=True, seed=seed))
+            if fit.bank == "none" and fitted.config.svm_bank:
+                print("  (no SVM bank)")
             cal = fitted.calibration
             cp = cal.confident_p if cal.calibrated else None
             print(

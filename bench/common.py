@@ -18,10 +18,12 @@ import numpy as np
 from prometheus_client.parser import text_string_to_metric_families
 
 from app.evaluation.datasets import Row, read_manifest
-from app.runtime import tune_malloc
+from app.runtime import configure_allocator
+from app.settings import Settings
 from tools.server_process import wait_job
 
-tune_malloc()  # the bench process measures the floor: same allocator settings as `geoloc serve`
+# The bench process measures the floor: the same allocator settings as `geoloc serve`.
+configure_allocator(Settings().malloc_tuning, Settings().malloc_trim)
 
 REPO = Path(__file__).resolve().parents[1]
 MANIFEST = REPO / "data" / "manifests" / "penn-campus-gps.csv"

@@ -1,7 +1,7 @@
 """Crafted uploads against a real server (issue 30): each shape one and eight at once, the server's RSS
 peak over idle and the slowest answer.
 
-The shapes are generated here, as the tests do (tests/service/test_hardening_shapes.py): the strips that
+The shapes are generated here, as the tests do (tests/api/test_hardening_shapes.py): the strips that
 used to grow a server to 19.7 GB (refused at the header now), a TIFF of 100,000 IFDs (read as its first
 frame), a 10:1 noise panorama (accepted, its network input bounded), 12 MP photos with verification
 (``rerank=true``, inside the /locate slots), and the thumbnail of a 7000 x 7000 WebP reference (decoded

@@ -22,8 +22,8 @@ from app.engine.configs import DEFAULT_CONFIG
 from app.engine.progress import Progress
 from app.jobs.ingest.run import IngestOptions, IngestRun
 from app.jobs.ingest.sources import open_source
-from app.service import GeolocService
 from app.storage.journal import JOURNAL_NAME
+from app.usecases.service import GeolocService
 from bench.common import REPO, median_ms
 
 

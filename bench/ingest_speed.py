@@ -40,7 +40,7 @@ from app.encoding.items import Encoded  # noqa: E402
 from app.engine.configs import DEFAULT_CONFIG  # noqa: E402
 from app.engine.imageio import load_image  # noqa: E402
 from app.engine.models.ort import set_session_threads  # noqa: E402
-from app.service import GeolocService  # noqa: E402
+from app.usecases.service import GeolocService  # noqa: E402
 from bench.common import REPO, write_section  # noqa: E402
 
 set_session_threads(1)  # before any session: one onnxruntime thread, as an actor holding 1 CPU

@@ -70,9 +70,9 @@ def score(results: list[dict], truth: dict[str, tuple[float, float]]) -> dict:
 
 def main() -> None:
     from app.library.scan import ScanOptions, scan_library
-    from app.service import GeolocService
     from app.settings import Settings
     from app.storage.library import LOCATED, LibraryJournal
+    from app.usecases.service import GeolocService
 
     ap = argparse.ArgumentParser()
     ap.add_argument("--config", default=Settings().config)

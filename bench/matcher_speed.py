@@ -5,7 +5,7 @@ Why interleaved: this machine is shared and its load changes by the minute, so e
 both matchers back to back, in alternating order, and the figures that matter are their ratios. Per query
 (a penn photo and the ``K`` photos after it as candidates, all decoded from their files as the core does):
 
-- ``per query``: ``app.locate.verify_candidate_pairs``, what /locate's rerank costs: the query's features,
+- ``per query``: ``app.usecases.locate.verify_candidate_pairs``, what /locate's rerank costs: the query's features,
   each candidate's features recomputed from its stored image, then the matches and the geometry
   (LighterGlue with its default ``BATCH`` pairs per network run);
 - ``features``: one image's features (decode included), the part of a pair that storing keypoints at
@@ -29,7 +29,7 @@ from app.engine.imageio import ImageLimits, load_image
 from app.engine.matchers.lighterglue import LighterGlueMatcher
 from app.engine.matchers.sift_mnn import SiftMnnMatcher
 from app.engine.models.ort import set_session_threads
-from app.locate import verify_candidate_pairs
+from app.usecases.locate import verify_candidate_pairs
 from bench.common import REPO, machine, median_ms, write_section
 
 

@@ -3,7 +3,7 @@
 Run: ``python -m bench.pg_replicas --clients 4 --seconds 30 --rounds 2``. Starts a throw-away PostgreSQL
 server (``tools.postgres_server``), then two ``geoloc serve`` processes, each with a local data dir of its
 own and the images and snapshots on one shared path, on that one database (what
-tests/service/test_postgres_hosts.py runs as two "hosts"), with the fitted configuration in models/; the
+tests/api/test_postgres_hosts.py runs as two "hosts"), with the fitted configuration in models/; the
 first (the writer) is seeded with ``--seed`` penn db photos through POST /references and the second starts
 once they are indexed (it loads the writer's snapshot). Then ``--clients`` concurrent clients send only
 /locate (penn query photos, ``bench.load``'s client) for ``--seconds``, first all against one replica, then

@@ -18,10 +18,11 @@ from pathlib import Path
 from app.engine.configs import CONFIGS, get_config
 from app.evaluation.datasets import read_manifest
 from app.evaluation.evaluate import evaluate, format_summary, write_report
-from app.runtime import tune_malloc
+from app.runtime import configure_allocator
+from app.settings import Settings
 
 REPO = Path(__file__).resolve().parents[1]
-tune_malloc()  # as every geoloc command does: timings comparable with the service's
+configure_allocator(Settings().malloc_tuning, Settings().malloc_trim)  # as every geoloc command: timings comparable
 
 #: (configuration, mode, overrides): the sweeps that chose the defaults.
 SWEEPS: list[tuple[str, str | None, dict]] = [

@@ -117,7 +117,7 @@ def interleaved(sizes: list[int], root: Path, models: Path, config: str, photos:
     machine): locate through the core, and one upload accepted, encoded and completed (the job)."""
     from app.domain import LocateOptions, Upload
     from app.jobs.worker import IngestWorker
-    from app.service import GeolocService
+    from app.usecases.service import GeolocService
 
     svcs = {n: GeolocService.open(root / f"n{n}", models, config) for n in sizes}
     out = {n: {"locate": [], "search": [], "job": []} for n in sizes}

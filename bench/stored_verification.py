@@ -9,7 +9,7 @@ of ``penn-photos-40.csv`` against its 341 references:
     1600 px photos (the crops are smaller) and the time to extract them from the decoded reference;
 (b) the time to verify a query against its top K global candidates from STORED features (records decoded
     from bytes, one BLAS product, USAC: ``app.engine.stored_verification``), against today's rerank, which
-    decodes and re-extracts every candidate (``app.locate.verify_candidate_pairs``, ``sift-mnn``), measured
+    decodes and re-extracts every candidate (``app.usecases.locate.verify_candidate_pairs``, ``sift-mnn``), measured
     interleaved per query, with the pipeline's own time per query (decode, extract, encode, search) as
     the "without verification" baseline;
 (c) inliers of pairs within 25 m against pairs over 150 m apart (median, p90) and of the top-1 global
@@ -47,7 +47,7 @@ from app.engine.registry import Kind, create
 from app.engine.stored_verification import Settings, verify_stored
 from app.evaluation.datasets import read_manifest
 from app.evaluation.evaluate import RowReferences
-from app.locate import verify_candidate_pairs
+from app.usecases.locate import verify_candidate_pairs
 from bench.common import REPO, machine, write_section
 
 MANIFEST = Path("/work/shared/manifests/penn-photos-40.csv")

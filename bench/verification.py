@@ -6,7 +6,7 @@ and stored against recomputed reference features.
         --models-dir models --cache out/cache --json out/eval-rerank.json
     python -m bench.verification out/eval-rerank.json [--stored-sample 40]
 
-The evaluation runs every query through ``app.locate.locate_features`` with and without verification and
+The evaluation runs every query through ``app.usecases.locate.locate_features`` with and without verification and
 records, per query, the retrieval order (reference, global score, right or wrong) and each verified
 pair's outcome (tentative matches, homography and fundamental-matrix inliers): this script analyses those
 records, so what it measures is what /locate does. ``--stored-sample`` re-verifies the first 10 candidates

@@ -15,8 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
+from tests.api.conftest import CONFIG
 from tests.conftest import PENN
-from tests.service.conftest import CONFIG
 
 THREADS_ENV = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "GEOLOC_ORT_THREADS")
 

@@ -29,9 +29,9 @@ def test_make_test_leaves_out_the_container_test_only():
 def test_quick_selection_leaves_out_crash_fuzz_browser_library_and_container_only():
     everything, quick = _collected(None), _collected(_make_var("QUICK"))
     left_out = {
-        "tests/service/test_crash.py",
-        "tests/service/test_fuzz.py",
-        "tests/service/test_browser.py",
+        "tests/api/test_crash.py",
+        "tests/api/test_fuzz.py",
+        "tests/api/test_browser.py",
         "tests/library/test_library_browser.py",
         "tests/library/test_readme_library.py",
         "tests/library/test_manifest_library.py",
@@ -39,4 +39,4 @@ def test_quick_selection_leaves_out_crash_fuzz_browser_library_and_container_onl
     }
     assert left_out <= everything
     assert everything - quick == left_out
-    assert {"tests/engine/test_vlad.py", "tests/service/test_e2e.py", "tests/service/test_errors.py"} <= quick
+    assert {"tests/engine/test_vlad.py", "tests/api/test_e2e.py", "tests/api/test_errors.py"} <= quick

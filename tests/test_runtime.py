@@ -1,4 +1,5 @@
-"""Allocator tuning: applied on glibc (this machine, the Docker image), skippable by environment."""
+"""Allocator tuning: applied on glibc (this machine, the Docker image), skippable by environment (read by
+Settings, passed to app.runtime)."""
 
 import os
 import platform
@@ -8,6 +9,7 @@ import sys
 import pytest
 
 from app.runtime import tune_malloc
+from app.settings import Settings
 from tests.conftest import REPO
 
 
@@ -18,7 +20,7 @@ def test_glibc_accepts_the_fixed_thresholds():
 
 def test_can_be_turned_off(monkeypatch):
     monkeypatch.setenv("GEOLOC_MALLOC_TUNING", "0")
-    assert tune_malloc() is False
+    assert tune_malloc(Settings().malloc_tuning) is False
 
 
 def _blas_threads() -> set[int]:
@@ -80,7 +82,7 @@ def test_blas_threads_can_be_set(monkeypatch, restored_blas):
 
     monkeypatch.setenv("GEOLOC_BLAS_THREADS", "2")
     with threadpool_limits(limits=None):
-        assert serving_blas_threads() == 2 and _blas_threads() == {2}
+        assert serving_blas_threads(Settings().blas_threads) == 2 and _blas_threads() == {2}
 
 
 def test_a_fit_on_another_thread_gets_its_threads(restored_blas):

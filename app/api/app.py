@@ -21,9 +21,9 @@ from app.engine.index.faiss_index import set_search_threads
 from app.jobs.worker import IngestWorker
 from app.jobs.writer import Writer
 from app.runtime import serving_blas_threads
-from app.service import GeolocService
 from app.settings import Settings, usable_cpus
 from app.storage.shared_images import ImagesNotShared, check_images_shared
+from app.usecases.service import GeolocService
 
 log = logging.getLogger("geoloc.api")
 #: The page (issue: drop a photo, see where it was taken). Leaflet and Swagger UI are copied into vendor/ by
@@ -90,8 +90,9 @@ def _load(app: FastAPI, stop: threading.Event) -> None:
                 s.image_limits(),
                 s.snapshot_policy(),
                 s.keep_queries,
-                s.locate_concurrency,  # the extraction slots: app/service.py, extraction_slots
+                s.locate_concurrency,  # the extraction slots: app/usecases/service.py, extraction_slots
                 s.thumbnail_px,
+                s.backend(s.data_dir),
             )
             try:
                 check_images_shared(service.store)  # on PostgreSQL: one images folder for every host
@@ -120,7 +121,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     @asynccontextmanager
     async def lifespan(app: FastAPI):
-        serving_blas_threads()
+        serving_blas_threads(settings.blas_threads)
         set_search_threads(settings.faiss_threads)
         stop = threading.Event()
         loader = threading.Thread(target=_load, args=(app, stop), name="geoloc-load", daemon=True)

@@ -13,7 +13,7 @@ from fastapi import Depends, Header, Path, Request, UploadFile
 from starlette.requests import HTTPConnection
 
 from app.api.errors import ApiError
-from app.service import GeolocService
+from app.usecases.service import GeolocService
 
 
 # -- the service ----------------------------------------------------------------------------------------

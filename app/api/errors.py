@@ -79,7 +79,7 @@ class ErrorBody(BaseModel):
 
 class ApiError(Exception):
     """A refusal decided in the HTTP layer. ``error`` must be a code of ``ERRORS`` with its status, written as
-    literals so that tests/service/test_errors.py can check every call."""
+    literals so that tests/api/test_errors.py can check every call."""
 
     def __init__(self, status: int, error: str, message: str):
         self.status, self.error, self.message = status, error, message

@@ -15,7 +15,7 @@ from app.engine.errors import GeolocError
 from app.engine.imageio import ImageLimits, LoadedImage
 from app.engine.pipeline import Pipeline
 from app.engine.stored_features import encode as encode_stored
-from app.thumbnails import thumbnail_of
+from app.usecases.thumbnails import thumbnail_of
 
 log = logging.getLogger("geoloc.encoding")
 
@@ -40,7 +40,7 @@ class Encoded:
     error: str | None = None  # a permanent failure (the row becomes failed)
     retry: bool = False  # a storage failure: the row stays pending and is tried again later
     fingerprint: str | None = None  # the pipeline that made the codes (a re-fit may switch meanwhile)
-    thumbnail: bytes | None = None  # a JPEG made from the same decode (``app.thumbnails``), when asked
+    thumbnail: bytes | None = None  # a JPEG made from the same decode (``app.usecases.thumbnails``), when asked
     #: The reference's stored local features (``app.engine.stored_features.encode``'s bytes) from the same
     #: decode, when the configuration names a profile (``PipelineConfig.stored_features``); the writer keeps
     #: them (``app.storage.feature_files``) before the row completes.

@@ -22,7 +22,7 @@ from app.engine.pipeline import Pipeline
 
 
 class Encoder(Protocol):
-    """What the bulk loop needs of the service (``app.service.GeolocService``): the loaded pipeline, the
+    """What the bulk loop needs of the service (``app.usecases.service.GeolocService``): the loaded pipeline, the
     image limits, and the one writer's ``complete``."""
 
     pipeline: Pipeline

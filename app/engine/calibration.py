@@ -4,7 +4,7 @@ user's own collection.
 Why on the collection itself: a mapping fitted on penn-campus-gps gave 0.83-0.89 to every query of a user's
 21-photo collection, wrong ones included, and 0.27 to the median photo of a place the collection does not
 hold. So ``geoloc fit`` and ``geoloc refit`` locate a seeded sample of the references against the others
-(``app.fitting.calibrate_collection``): once with the reference's own capture left out (the place is
+(``app.usecases.fitting.calibrate_collection``): once with the reference's own capture left out (the place is
 present, when another capture shows it) and once with every reference within ``absent_radius_m`` removed
 (the place is absent). A logistic regression on the evidence (``app.engine.evidence``) of those answers'
 candidates gives ``p_within_25m``; the rule then says, from the same sample:

@@ -1,7 +1,7 @@
 """The evidence a locate has for each of its first candidates, as one small feature vector, made in one place.
 
 Why one place: the confidence rule and ``p_within_25m`` (``app.engine.calibration``) are fitted on these
-vectors and applied to them, on the user's own collection (``app.fitting.calibrate_collection``), in the
+vectors and applied to them, on the user's own collection (``app.usecases.fitting.calibrate_collection``), in the
 evaluation, and in /locate; a second copy of "what the evidence is" would drift from the first. A new kind of
 evidence (a learned matcher's match confidence) is one more named column here: the rule is fitted on whatever
 names the calibration sample carried, and reads the same names back, so nothing else changes.

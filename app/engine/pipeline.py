@@ -143,7 +143,8 @@ class Pipeline:
         self.binariser = binariser
         self.manifest = manifest or {}
         self.bank = bank  # SVM bank: which local features to aggregate (None = all)
-        #: The confidence rule and ``p_within_25m``, fitted on the collection (``app.fitting.calibrate_collection``);
+        #: The confidence rule and ``p_within_25m``, fitted on the collection
+        #: (``app.usecases.fitting.calibrate_collection``);
         #: the conservative rule until then.
         self.calibration: Calibration = calibration or Calibration.conservative("this pipeline is not calibrated")
         self.bank_select = "positive"  # or "negative" (the thesis ablation)

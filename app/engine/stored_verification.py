@@ -1,6 +1,6 @@
 """Verify one query against many candidates' STORED local features in one batch.
 
-Why: the re-extracting rerank (``app.engine.matchers`` through ``app.locate.verify_candidate_pairs``) decodes
+Why: the re-extracting rerank (``app.engine.matchers`` through ``app.usecases.locate.verify_candidate_pairs``) decodes
 each candidate's image and extracts its features on every request. Here the query's features are extracted
 once and each candidate's come from its stored record (``app.engine.stored_features``), so what is left is
 matching and geometry. The tentative matches of all candidates come from one BLAS matrix product (the

@@ -1,7 +1,8 @@
 """The evaluation protocol of METHOD.md: Recall@N within d metres, estimate error, time per stage, bytes.
 
 Every image is decoded and its features extracted once; each fold then fits the pipeline on its own db
-and train rows, indexes the db rows in memory and queries the query rows through ``app.locate.locate_features``,
+and train rows, indexes the db rows in memory and queries the query rows through
+``app.usecases.locate.locate_features``,
 the function /locate calls. With ``folds`` > 1 the query role rotates over the non-train groups (a capture and its
 crops move together), because on a set this small one query moves Recall@1 by points.
 """
@@ -12,28 +13,23 @@ import hashlib
 import json
 import pickle
 import statistics
-import time
-from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 from pydantic import BaseModel
-from tqdm import tqdm
 
 from app.domain import LocateOptions, RefInfo, Region
 from app.engine.artifacts import atomic_write_bytes
 from app.engine.calibration import reliability
 from app.engine.configs import PipelineConfig
 from app.engine.geo import haversine_m
-from app.engine.learned_whitening import Place
-from app.engine.pipeline import DECODE_OVERSAMPLE, Features, Pipeline
-from app.engine.progress import tracked
-from app.engine.training.svm_training import Geotagged, index_of
+from app.engine.pipeline import DECODE_OVERSAMPLE, Pipeline
+from app.engine.progress import Progress
 from app.errors import ManifestCannotBeEvaluated
 from app.evaluation.datasets import Row, read_manifest
-from app.fitting import EVAL_BANK_SOURCES, calibrate_collection, near_ids, train_bank
-from app.locate import ESTIMATE_CANDIDATES, MIN_LOCAL_FEATURES, Excluding, locate_features
+from app.usecases.extraction import Extracted, extract_batch
+from app.usecases.fitting import EVAL_BANK_SOURCES, FitOptions, FitPhoto, fit_pipeline, near_ids
+from app.usecases.locate import ESTIMATE_CANDIDATES, MIN_LOCAL_FEATURES, Excluding, locate_features
 
 RECALL_AT = (1, 5, 10, 20)
 
@@ -114,34 +110,24 @@ class EvalResult(BaseModel):
     queries: list[dict]  # per query: image, group, fold, position, candidates, estimate (the report's rows)
 
 
-@dataclass
-class Extracted:
-    features: Features
-    decode_ms: float
-
-
-def extract_all(pipeline: Pipeline, rows: list[Row], workers: int = 2, desc: str = "extract") -> list[Extracted]:
-    """Decode and extract every row; threads help because OpenCV and onnxruntime release the GIL.
-    Stage times of work done in parallel are inflated; ``time_queries`` re-measures queries alone."""
-
-    def one(row: Row) -> Extracted:
-        t0 = time.perf_counter()
-        img = pipeline.decode(row.image.read_bytes())
-        decode_ms = (time.perf_counter() - t0) * 1000
-        return Extracted(pipeline.extract(img.rgb), decode_ms)
-
-    with ThreadPoolExecutor(max_workers=workers) as pool:
-        return list(tracked(pool.map(one, rows), len(rows), desc))
-
-
 def extract_cached(pipeline: Pipeline, rows: list[Row], cache_dir: Path | None, workers: int = 2) -> list[Extracted]:
-    """``extract_all`` with an optional on-disk cache keyed by the images and the extraction settings,
-    so parameter sweeps that change only aggregation or codes skip the expensive part."""
+    """Every row's features (``app.usecases.extraction.extract_batch``), with an optional on-disk cache keyed by the
+    images and the extraction settings, so parameter sweeps that change only aggregation or codes skip the
+    expensive part. Stage times of work done in parallel are inflated; the report says so."""
+
+    def extract() -> list[Extracted]:
+        progress = Progress(len(rows), desc="extract", every=max(1, len(rows) // 10))
+        done = extract_batch(pipeline, [r.image for r in rows], workers=workers, progress=progress)
+        return [e for e in done if e is not None]  # none is left out: an unreadable row raises
+
     if cache_dir is None:
-        return extract_all(pipeline, rows, workers)
-    # The decode scale is part of the key: features of a pipeline-scale decode differ from a 1600 px one.
+        return extract()
+    # The decode scale is part of the key: features of a pipeline-scale decode differ from a 1600 px one; and
+    # so is the record's type (a cache of an older one would not load).
     decode = f"decode={pipeline.decode_sides}x{DECODE_OVERSAMPLE}"
-    key = hashlib.sha256((pipeline.config.extraction_key() + decode).encode())
+    key = hashlib.sha256(
+        (pipeline.config.extraction_key() + decode + "record=app.usecases.extraction.Extracted").encode()
+    )
     for r in rows:
         st = r.image.stat()
         key.update(f"{r.image}:{st.st_size}:{st.st_mtime_ns}".encode())
@@ -149,7 +135,7 @@ def extract_cached(pipeline: Pipeline, rows: list[Row], cache_dir: Path | None, 
     if path.exists():
         with path.open("rb") as f:
             return pickle.load(f)
-    extracted = extract_all(pipeline, rows, workers)
+    extracted = extract()
     cache_dir.mkdir(parents=True, exist_ok=True)
     atomic_write_bytes(path, pickle.dumps(extracted, protocol=pickle.HIGHEST_PROTOCOL))
     return extracted
@@ -236,7 +222,8 @@ def evaluate(
     fold's queries: ``bank_source`` train (the train rows only) or collection (the fold's db rows as
     training photos, plus the train rows: the rule ``geoloc fit`` serves). ``rerank`` and
     ``region_radius_m`` (a circle of that radius around each query's true position) ask the same of the
-    core as /locate's ``rerank`` and region do: queries go through ``app.locate.locate_features``. With ``rerank``
+    core as /locate's ``rerank`` and region do: queries go through ``app.usecases.locate.locate_features``. With
+    ``rerank``
     each query is also located without it (the same search), so one run reports recall with and without
     verification and the time it adds per query."""
     if svm_bank not in ("off", "positive", "negative"):
@@ -261,37 +248,40 @@ def evaluate(
         qset = set(qgroups)
         q_idx = [i for i, r in enumerate(rows) if r.group in qset and r.split != "train"]
         db_idx = [i for i, r in enumerate(rows) if r.group not in qset and r.split != "train"]
-        fit_idx = db_idx + [i for i, r in enumerate(rows) if r.split == "train"]
+        train_idx = [i for i, r in enumerate(rows) if r.split == "train"]
+        # The fold's fit (``app.usecases.fitting.fit_pipeline``, what `geoloc fit` runs): on its db and train rows
+        # (never
+        # on its queries), the bank (with ``svm_bank``) from them, the confidence rule and p_within_25m on the
+        # db rows alone, as `geoloc fit` calibrates on the collection; with rerank (in the default search mode:
+        # /locate reads no calibration in another) the rule for verified answers too, as
+        # `geoloc fit --calibrate-rerank` fits it.
+        photos = [
+            FitPhoto(rows[i].image, extracted[i].features, rows[i].lat, rows[i].lon, rows[i].group, ref_id=i)
+            for i in db_idx
+        ] + [
+            FitPhoto(rows[i].image, extracted[i].features, rows[i].lat, rows[i].lon, rows[i].group, reference=False)
+            for i in train_idx
+        ]
+        fit_options = FitOptions(
+            bank="none" if svm_bank == "off" else bank_source,
+            bank_kind=bank_kind,
+            bank_select="positive" if svm_bank == "off" else svm_bank,
+            pos_radius_m=radius_m,
+            seed=seed + f,
+            calibrate_verified=rerank and mode in (None, config.modes[0]),
+            keep_index=True,
+            fixed_threads=False,  # the machine's threads, as the recorded figures were measured
+        )
         pipe = Pipeline(config, base.global_model, models_dir=models_dir)  # one session for every fold
-        places = [Place(rows[i].lat, rows[i].lon, rows[i].group) for i in fit_idx]  # never a query's
-        pipe.fit([extracted[i].features for i in fit_idx], seed=seed + f, places=places)
-        progress = tqdm(db_idx, desc=f"fold {f + 1}/{len(query_sets)} encode db", unit="img", leave=False)
-        index = index_of(pipe, db_idx, (extracted[i].features for i in progress))
-        if svm_bank != "off":
-            refs = {i: Geotagged(extracted[i].features, rows[i].lat, rows[i].lon, rows[i].group) for i in db_idx}
-            train = [
-                Geotagged(extracted[i].features, r.lat, r.lon, r.group)
-                for i, r in enumerate(rows)
-                if r.split == "train"
-            ]
-            pipe.bank = train_bank(
-                pipe, refs, train, bank_source, bank_kind, seed + f, pos_radius_m=radius_m, index=index
-            )
-            pipe.bank_select = svm_bank
+        fitted = fit_pipeline(pipe, photos, fit_options)
+        index, geotagged = fitted.index, fitted.refs
+        if pipe.bank is not None:
             bank_reports.append(
                 {
                     k: pipe.bank.manifest.get(k)
                     for k in ("training", "chosen_keep_fraction", "threshold_trials", "train_seconds", "source")
                 }
             )
-        # The confidence rule and p_within_25m, calibrated on this fold's db alone (never on its queries), as
-        # `geoloc fit` calibrates on the collection.
-        geotagged = {i: Geotagged(extracted[i].features, rows[i].lat, rows[i].lon, rows[i].group) for i in db_idx}
-        train_features = [extracted[i].features for i, r in enumerate(rows) if r.split == "train"]
-        # With rerank, the rule for verified answers too, as `geoloc fit --calibrate-rerank` fits it.
-        # (Only in the default search mode: /locate reads no calibration in another.)
-        images = {i: rows[i].image for i in db_idx} if rerank and mode in (None, config.modes[0]) else None
-        pipe.calibration = calibrate_collection(pipe, geotagged, train_features, seed=seed + f, images=images)
         calibration_reports.append({"source": pipe.calibration.source, **pipe.calibration.report})
         refs = RowReferences(rows, db_idx)
         hits, hits_plain = [], []

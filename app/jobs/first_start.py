@@ -3,7 +3,7 @@ then ingest them, while the server already answers /health, and /ready says whic
 
 Why: a user with Docker alone has no ``make fit`` and no fitted pipeline; the image holds the models, and
 the data volume starts empty. So the server's loader (``app.api.app``) calls ``run_first_start`` before it
-opens the data dir: the fit is ``app.fitting.fit_pipeline`` (what `geoloc fit` runs), saved in the data dir
+opens the data dir: the fit is ``app.usecases.fitting.fit_pipeline`` (what `geoloc fit` runs), saved in the data dir
 as generation 0 (``pipelines/<config>-g0``, the layout a later `geoloc refit` continues from), and the photos
 go in through the ingest use case (``app.jobs.ingest.run.ingest``, what `geoloc ingest` runs). Nothing here
 is a second fit or ingest path.
@@ -21,25 +21,21 @@ import logging
 import os
 import time
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from app.engine.configs import get_config
-from app.engine.errors import GeolocError
 from app.engine.imageio import ImageLimits
-from app.engine.learned_whitening import Place
-from app.engine.pipeline import Features, Pipeline
+from app.engine.pipeline import Pipeline
 from app.engine.progress import Progress
-from app.engine.training.svm_training import NothingToTrainOn
 from app.errors import FitRefused, ServiceError
 from app.jobs.ingest.sources import Source, SourceItem, open_source
 from app.permissions import private_dir
 from app.storage.database import DB_NAME
-from app.storage.files import sha256_of
 from app.storage.store import ReferenceStore
+from app.usecases.extraction import Counter
+from app.usecases.fitting import FitProgress
 
 log = logging.getLogger("geoloc.first_start")
 
@@ -55,18 +51,6 @@ class FirstStartError(ServiceError):
     retries, so adding photos to the folder is enough to fix it."""
 
     code = "not_ready"
-
-
-@dataclass(frozen=True)
-class FitPhoto:
-    """One photo the fit learned from: its features, where it was taken, and its capture (the SVM bank's
-    "never learn from yourself" rule: photos at the same spot and time are one capture)."""
-
-    features: Features
-    lat: float
-    lon: float
-    group: str
-    sha256: str  # of the file's bytes: what the ingest stores, and the calibration records
 
 
 def needed(data_dir: Path) -> bool:
@@ -173,36 +157,42 @@ def _sample(source: Source, seed: int) -> list[SourceItem]:
     return items
 
 
-def _extract(
-    pipe: Pipeline, items: list[SourceItem], limits: ImageLimits, workers: int, step: Callable[[int], None]
-) -> list[FitPhoto]:
-    """Features and positions (the row's, else the photo's EXIF GPS) of every usable photo; the others are
-    left out here and reported by the ingest step, which reads them again."""
-    from app.jobs.refit import capture_group
+class _FitSteps(FitProgress):
+    """The fit's progress, on /ready and in the log: step 1 (the extraction, with its rate) and step 2."""
 
-    def one(item: SourceItem) -> FitPhoto | None:
-        try:
-            data = item.path.read_bytes()
-            img = pipe.decode(data, limits)  # the pixels ingest and /locate will see
-        except (OSError, GeolocError) as e:
-            log.warning("%s: not used for the fit (%s)", item.path, e)
-            return None
-        position = (item.lat, item.lon) if item.lat is not None and item.lon is not None else img.gps
-        if position is None:
-            log.warning("%s: not used for the fit (no GPS position)", item.path)
-            return None
-        lat, lon = position
-        features = pipe.extract(img.rgb)
-        group = capture_group(lat, lon, item.captured_at or img.captured_at)
-        return FitPhoto(features, lat, lon, group, sha256_of(data))
+    def __init__(self, say: Callable[[str], None], total: int):
+        super().__init__()
+        self._say, self._t0 = say, time.perf_counter()
+        self._extracted(0, total)
 
-    out: list[FitPhoto] = []
-    with ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
-        for n, photo in enumerate(pool.map(one, items), start=1):
-            if photo is not None:
-                out.append(photo)
-            step(n)
-    return out
+    def extraction(self, total: int) -> Counter:
+        return _Extracting(total, self._extracted)
+
+    def _extracted(self, n: int, total: int) -> None:
+        rate = f", {n / (time.perf_counter() - self._t0):.1f} photos/s" if n else ""
+        self._say(
+            f"first start: fitting the pipeline: step 1 of {STEPS}, extracting features ({n}/{total} photos{rate})"
+        )
+
+    def fitting(self, config: str, photos: int, extract_seconds: float) -> None:
+        self._say(
+            f"first start: fitting the pipeline: step 2 of {STEPS}, codebook, PCA and SVM bank on {photos} photos"
+        )
+
+
+class _Extracting:
+    """Counts the photos extracted and tells every tenth of them (and the last) to ``tell``."""
+
+    def __init__(self, total: int, tell: Callable[[int, int], None]):
+        self.total, self.every, self.done, self._tell = total, max(1, total // 10), 0, tell
+
+    def update(self, n: int) -> None:
+        self.done += n
+        if self.done % self.every == 0 or self.done == self.total:
+            self._tell(self.done, self.total)
+
+    def close(self) -> None:
+        pass
 
 
 def _fit(
@@ -215,56 +205,38 @@ def _fit(
     workers: int,
     seed: int,
 ) -> None:
-    from app.engine.training.svm_training import Geotagged
-    from app.fitting import bank_source, fit_pipeline
+    """Fit (``app.usecases.fitting.fit_pipeline``) on a seeded sample of the photos, with the positions of their rows
+    else of their EXIF (those with neither, or unreadable, are left out here and reported by the ingest
+    step, which reads them again), and save it as generation 0."""
     from app.jobs.refit import save_generation
+    from app.usecases.fitting import FitOptions, FitPhoto, bank_source, fit_pipeline
 
     cfg = get_config(config)
     items = _sample(source, seed)
     if not items:
         raise FirstStartError(f"no photos in {source.path}: put geotagged photos (EXIF GPS) there")
     log.info("first start: fitting the %s pipeline on %d photos from %s", cfg.name, len(items), source.path)
-    every = max(1, len(items) // 10)
-    t0 = time.perf_counter()
-
-    def step(n: int) -> None:
-        if n % every == 0 or n == len(items):
-            rate = f", {n / (time.perf_counter() - t0):.1f} photos/s" if n else ""
-            say(
-                f"first start: fitting the pipeline: step 1 of {STEPS}, extracting features "
-                f"({n}/{len(items)} photos{rate})"
-            )
-
-    step(0)
-    pipe = Pipeline(cfg, models_dir=Path(models_dir))
-    pipe.load_models()
-    photos = _extract(pipe, items, limits, workers, step)
-    if len(photos) < 2:
-        raise FirstStartError(
-            f"{len(photos)} of the {len(items)} photos in {source.path} have a readable image and a GPS position: "
-            "the fit needs at least 2"
-        )
-    say(f"first start: fitting the pipeline: step 2 of {STEPS}, codebook, PCA and SVM bank on {len(photos)} photos")
-    refs = {i: Geotagged(p.features, p.lat, p.lon, p.group) for i, p in enumerate(photos)}
-    source_name = bank_source(cfg, None)
-    hashes = {i: p.sha256 for i, p in enumerate(photos)}
-    seconds: dict[str, float] = {}
-    features = [p.features for p in photos]
-    places = [Place(p.lat, p.lon, p.group) for p in photos]  # a configuration with learned whitening uses them
-    try:
-        fit_pipeline(pipe, features, refs, [], source_name, seed=seed, hashes=hashes, seconds=seconds, places=places)
-    except (FitRefused, NothingToTrainOn) as e:  # too small or too uniform for a bank: serve without one, say so
-        log.warning("first start: no SVM bank (%s); the pipeline is fitted without one", e)
-        source_name = "none"
-        pipe.bank = None  # and calibrated on these photos all the same: never judged by another's figures
-        fit_pipeline(pipe, features, refs, [], source_name, seed=seed, hashes=hashes, seconds=seconds, places=places)
-    log.info("first start: fitted in %s", ", ".join(f"{k} {v:.1f} s" for k, v in seconds.items()))
-    target = save_generation(
-        store.data_dir, pipe, 0, {"first_start": str(source.path), "fit_photos": len(photos), "svm_bank": source_name}
+    steps = _FitSteps(say, len(items))
+    photos = [FitPhoto(it.path, lat=it.lat, lon=it.lon, captured_at=it.captured_at) for it in items]
+    options = FitOptions(
+        bank=bank_source(cfg, None),
+        bank_optional=True,  # too small or too uniform for a bank: serve without one, and say so
+        seed=seed,
+        limits=limits,
+        workers=workers,
+        skip_unreadable=True,
     )
+    pipe = Pipeline(cfg, models_dir=Path(models_dir))
+    try:
+        fitted = fit_pipeline(pipe, photos, options, steps)
+    except FitRefused as e:
+        raise FirstStartError(f"{source.path}: {e}") from None
+    log.info("first start: fitted in %s", fitted.fit_seconds)
+    extra = {"first_start": str(source.path), "fit_photos": len(fitted.refs), "svm_bank": fitted.bank}
+    target = save_generation(store.data_dir, pipe, 0, extra)
     if not store.record_first_pipeline(target):
         raise FirstStartError(f"{store.data_dir} got a pipeline or references while the first start was fitting")
-    log.info("first start: saved %s (SVM bank: %s)", store.data_dir / target.pipeline, source_name)
+    log.info("first start: saved %s (SVM bank: %s)", store.data_dir / target.pipeline, fitted.bank)
 
 
 # -- step 3: the ingest ------------------------------------------------------------------------------------
@@ -291,7 +263,7 @@ def _ingest(
     workers: int,
 ) -> int:
     from app.jobs.ingest.run import IngestOptions, ingest
-    from app.service import GeolocService
+    from app.usecases.service import GeolocService
 
     total = source.count()
     log.info("first start: ingesting the %d photos from %s", total, source.path)

@@ -20,29 +20,24 @@ import os
 import shutil
 import time
 from collections.abc import Callable, Sequence
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 from tqdm import tqdm
 
-from app.collection import Collection, pipeline_source
 from app.encoding import EncodeItem, batched, make_engine
 from app.encoding.items import Encoded
 from app.engine.configs import DEFAULT_CONFIG, get_config
-from app.engine.errors import GeolocError
 from app.engine.imageio import ImageLimits
-from app.engine.learned_whitening import Place
-from app.engine.pipeline import Features, Pipeline, PipelineSource
-from app.engine.progress import tracked
+from app.engine.pipeline import Pipeline, PipelineSource
 from app.errors import FitRefused, RefitError, StorageUnavailable
-from app.fitting import bank_source, calibrate_collection, check_bank_kind, train_bank
 from app.jobs.writer import write_snapshot_if_free
-from app.runtime import fit_threads
 from app.storage.feature_files import FeatureFiles, profile_root
 from app.storage.generations import ReindexTarget
 from app.storage.store import ReferenceStore
+from app.usecases.collection import Collection, pipeline_source
+from app.usecases.fitting import FitOptions, FitPhoto, bank_source, capture_group, check_bank_kind, fit_pipeline
 
 log = logging.getLogger("geoloc.reindex")
 
@@ -88,32 +83,13 @@ class RefitSummary:
 
 
 # -- fitting ----------------------------------------------------------------------------------------------
-def capture_group(lat: float, lon: float, captured_at: str | None) -> str:
-    """Which references count as one capture (a photo and its crops) for the SVM bank's "never learn from
-    yourself" rule: the same position to about 0.1 m, and the same capture time when the photo says it."""
-    return f"{captured_at or ''}@{lat:.6f},{lon:.6f}"
-
-
-def _extract(pipe: Pipeline, paths: Sequence[Path], limits: ImageLimits, workers: int, desc: str) -> list:
-    def one(path: Path) -> Features | None:
-        try:
-            return pipe.extract(pipe.decode(path.read_bytes(), limits).rgb)
-        except (OSError, GeolocError) as e:
-            log.warning("%s: not used for fitting (%s)", path, e)
-            return None
-
-    with ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
-        return list(tracked(pool.map(one, paths), len(paths), desc))
-
-
 def fit_generation(
     store: ReferenceStore, models_dir: Path, options: RefitOptions, limits: ImageLimits | None = None
 ) -> tuple[Target, RefitSummary]:
-    """Fit the next generation's pipeline on a seeded sample of the stored references (and its SVM bank) and
-    save it in the data dir atomically; returns the target to re-index into."""
-    from app.engine.training.svm_training import Geotagged
-
-    limits = limits or ImageLimits()
+    """Fit the next generation's pipeline (``app.usecases.fitting.fit_pipeline``) on a seeded sample of the stored
+    references, read from their stored images (and its SVM bank, from them or from the training photos of
+    ``options.train_manifest``), and save it in the data dir atomically; returns the target to re-index
+    into."""
     generation, _, current = store.generation_state()
     name = options.config or current or DEFAULT_CONFIG
     cfg = get_config(name)
@@ -132,66 +108,58 @@ def fit_generation(
     rng = np.random.default_rng(options.seed)
     picked = np.sort(rng.choice(ids, min(options.sample, len(ids)), replace=False))
     rows = store.get_many(picked.tolist())
-    picked = [int(i) for i in picked if int(i) in rows]
-    t0 = time.perf_counter()
-    pipe = Pipeline(cfg, models_dir=Path(models_dir))
-    pipe.load_models()
-    paths = [store.image_path(i) for i in picked]
-    feats = _extract(pipe, paths, limits, options.workers, "fit: extract")
-    kept = [(i, f) for i, f in zip(picked, feats, strict=True) if f is not None]
-    if len(kept) < 2:
-        raise RefitError("fewer than 2 stored references could be read to fit on")
-    refs = {
-        i: Geotagged(f, rows[i].lat, rows[i].lon, capture_group(rows[i].lat, rows[i].lon, rows[i].captured_at))
-        for i, f in kept
-    }
-    places = [Place(refs[i].lat, refs[i].lon, refs[i].group) for i, _ in kept]
-    pipe.fit([f for _, f in kept], seed=options.seed, places=places)
-    seconds = {"fit": time.perf_counter() - t0}
-    train = []
-    if source != "none":
-        t1 = time.perf_counter()
-        train = _train_photos(pipe, options.train_manifest, limits, options.workers)
-        if source == "train" and not train:
-            raise RefitError(f"{options.train_manifest} has no photo that could be read")
-        try:
-            pipe.bank = train_bank(pipe, refs, train, source, options.bank_kind, options.seed)
-        except FitRefused as e:
-            raise RefitError(str(e)) from None
-        seconds["bank"] = time.perf_counter() - t1
-    t1 = time.perf_counter()
-    images = None
-    if options.calibrate_rerank:
-        images = {int(i): p for i, p in zip(picked, paths, strict=True) if p is not None}
-    pipe.calibration = calibrate_collection(
-        pipe,
-        refs,
-        [t.features for t in train],
-        options.calibration_sample,
+    photos = [
+        FitPhoto(
+            store.image_path(i),
+            lat=rows[i].lat,
+            lon=rows[i].lon,
+            group=capture_group(rows[i].lat, rows[i].lon, rows[i].captured_at),
+            ref_id=i,
+            sha256=rows[i].sha256,
+        )
+        for i in (int(i) for i in picked)
+        if i in rows
+    ]
+    if source != "none":  # the training photos train the bank (and join the calibration's auxiliary fits)
+        photos += _train_photos(options.train_manifest)
+    fit_options = FitOptions(
+        bank=source,
+        bank_kind=options.bank_kind,
         seed=options.seed,
-        images=images,
-        hashes={i: rows[i].sha256 for i, _ in kept},
+        calibration_sample=options.calibration_sample,
+        calibrate_verified=options.calibrate_rerank,
+        limits=limits or ImageLimits(),
+        workers=options.workers,
+        skip_unreadable=True,  # a stored image gone or damaged: fit on the others (`geoloc check` reports it)
     )
-    seconds["calibration"] = time.perf_counter() - t1
-    extra = {"refit_sample": len(kept), "svm_bank_source": source}
+    pipe = Pipeline(cfg, models_dir=Path(models_dir))
+    try:
+        fitted = fit_pipeline(pipe, photos, fit_options)
+    except FitRefused as e:
+        raise RefitError(str(e)) from None
+    extra = {"refit_sample": len(fitted.refs), "svm_bank_source": source}
     target = save_generation(store.data_dir, pipe, generation + 1, extra)
     needs = pipe.calibration.confidence_note(len(ids))
     note = pipe.calibration.note + (f"; {needs}" if needs else "")
-    summary = RefitSummary(target.generation, target.pipeline, name, fitted_on=len(kept), bank=source, calibration=note)
-    summary.seconds.update(seconds)
+    summary = RefitSummary(
+        target.generation, target.pipeline, name, fitted_on=len(fitted.refs), bank=source, calibration=note
+    )
+    summary.seconds.update(fitted.seconds)
     return target, summary
 
 
-def _train_photos(pipe: Pipeline, manifest: Path | None, limits: ImageLimits, workers: int) -> list:
-    from app.engine.training.svm_training import Geotagged
+def _train_photos(manifest: Path | None) -> list[FitPhoto]:
+    """The train rows of ``manifest`` (all its rows when it has none: a manifest of training photos only),
+    as training photos that only the bank learns from."""
     from app.evaluation.datasets import read_manifest
 
     if manifest is None:
         return []
     rows = read_manifest(manifest)
-    rows = [r for r in rows if r.split == "train"] or rows  # a manifest of training photos only: all rows
-    feats = _extract(pipe, [r.image for r in rows], limits, workers, "fit: train photos")
-    return [Geotagged(f, r.lat, r.lon, f"train:{r.group}") for r, f in zip(rows, feats, strict=True) if f is not None]
+    rows = [r for r in rows if r.split == "train"] or rows
+    return [
+        FitPhoto(r.image, lat=r.lat, lon=r.lon, group=f"train:{r.group}", reference=False, in_fit=False) for r in rows
+    ]
 
 
 def save_generation(data_dir: Path, pipe: Pipeline, generation: int, extra: dict) -> Target:
@@ -315,8 +283,7 @@ def refit(
         summary = RefitSummary(target.generation, target.pipeline, target.config, resumed=True)
         log.info("continuing the interrupted re-index into generation %d", target.generation)
     else:
-        with fit_threads():  # one BLAS and OpenMP thread: the same fit on any machine (app.runtime)
-            target, summary = fit_generation(store, models_dir, options, limits)
+        target, summary = fit_generation(store, models_dir, options, limits)
     already = store.start_reindex(target)
     t0 = time.perf_counter()
     pipeline = target.source(data_dir, models_dir).load()

@@ -15,10 +15,10 @@ import threading
 from collections.abc import Callable
 from pathlib import Path
 
-from app.service import GeolocService
 from app.storage.backend import WriterLock
 from app.storage.errors import is_storage_error
 from app.storage.settings import storage_backend
+from app.usecases.service import GeolocService
 
 log = logging.getLogger("geoloc.worker")
 

@@ -20,10 +20,10 @@ import threading
 from collections.abc import Callable
 from pathlib import Path
 
-from app.collection import Collection, SnapshotWriter
 from app.jobs.worker import IngestWorker, writer_lock
-from app.service import GeolocService
 from app.storage.orphans import Janitor
+from app.usecases.collection import Collection, SnapshotWriter
+from app.usecases.service import GeolocService
 
 log = logging.getLogger("geoloc.worker")
 

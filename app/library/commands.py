@@ -68,7 +68,7 @@ def scan(
     what is done). Nothing is written into any photo: review, then `geoloc library write`."""
     from app.library.exports import write_export
     from app.library.scan import LibraryError, ScanOptions, library_files, scan_library
-    from app.service import GeolocService
+    from app.usecases.service import GeolocService
 
     if not folder.exists():
         _fail(f"{folder} does not exist: give a folder of photos or a manifest (image,lat,lon,split)")

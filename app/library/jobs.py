@@ -23,9 +23,9 @@ from pathlib import Path
 from app.engine.errors import GeolocError
 from app.engine.imageio import ImageLimits
 from app.library.scan import ScanOptions, scan_library
-from app.service import GeolocService
 from app.storage.library import LibraryJournal
-from app.thumbnails import render_thumbnail
+from app.usecases.service import GeolocService
+from app.usecases.thumbnails import render_thumbnail
 
 log = logging.getLogger("geoloc.library")
 #: How long ``close`` waits for a scan thread to stop after the stop flag (it stops between two photos).
@@ -140,6 +140,6 @@ class LibraryJobs:
 
 def thumbnail(path: Path, px: int, limits: ImageLimits | None = None) -> bytes:
     """A JPEG of the photo's pixels only (no EXIF, XMP or comment), upright, at most ``px`` on a side:
-    decoded as a reference's thumbnail is (``app.thumbnails``: reduced, under the pixel budget; a
+    decoded as a reference's thumbnail is (``app.usecases.thumbnails``: reduced, under the pixel budget; a
     7000 x 7000 WebP decoded whole per request cost gigabytes, issue 30), under the server's limits."""
     return render_thumbnail(path.read_bytes(), px, (limits or ImageLimits()).stored())

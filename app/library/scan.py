@@ -38,9 +38,9 @@ from app.jobs.ingest.sources import Source, SourceItem
 from app.library.photos import PhotoMeta, read_meta, same_stat, walk_photos
 from app.library.suggest import suggestion
 from app.library.timeprior import Anchor, time_prior
-from app.service import GeolocService
 from app.settings import usable_cpus
 from app.storage.library import LOCATED, PROBLEM, LibraryJournal
+from app.usecases.service import GeolocService
 
 log = logging.getLogger("geoloc.library")
 T, R = TypeVar("T"), TypeVar("R")

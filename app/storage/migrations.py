@@ -8,7 +8,7 @@ code does not know (made by a newer version) is refused rather than written with
 
 Step 1 is the schema as it was before migrations existed (every ``CREATE ... IF NOT EXISTS``): on a data
 dir or database made then, it changes nothing and records version 1; on a new one, it makes the tables.
-A later step is one ``Step`` appended to ``STEPS`` (``tests/test_store_migrations.py`` shows one adding a
+A later step is one ``Step`` appended to ``STEPS`` (``tests/storage/test_store_migrations.py`` shows one adding a
 column), written in SQLite's spelling (the PostgreSQL connection translates types and placeholders).
 
 Why our own steps rather than Alembic: the store speaks SQL through sqlite3 and psycopg directly, with no

@@ -125,7 +125,7 @@ def test_calibration_parts_are_whole_captures_bounded_by_the_sample():
     """The references the calibration locates: whole captures, each in one part (an auxiliary fit leaves a
     part out, so a photo's crops are never fitted on while it is located), at most ``sample`` of them."""
     from app.engine.training.svm_training import Geotagged
-    from app.fitting import HOLDOUT_PARTS, calibration_parts
+    from app.usecases.fitting import HOLDOUT_PARTS, calibration_parts
 
     refs = {i: Geotagged(None, LAT0, LON0, f"g{i // 3}") for i in range(60)}  # 20 captures of 3
     parts = calibration_parts(refs, sample=600, seed=0)

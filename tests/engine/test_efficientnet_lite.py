@@ -188,7 +188,7 @@ def test_the_lite2_feature_level_hybrid_finds_a_reencoded_photo(name, lite2, mod
     from app.engine.pipeline import Pipeline
     from app.evaluation.datasets import read_manifest
     from app.evaluation.evaluate import RowReferences
-    from app.locate import locate_features
+    from app.usecases.locate import locate_features
 
     rows = [r for r in read_manifest(mini_manifest) if r.split != "query"]
     pipe = Pipeline(get_config(name), models_dir=models_dir)

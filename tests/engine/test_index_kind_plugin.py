@@ -63,7 +63,7 @@ def test_a_toy_index_kind_fits_ingests_and_locates(toy_config, mini_manifest, tm
     from app.engine.pipeline import pipeline_dir
     from app.jobs.refit import RefitOptions, refit
     from app.jobs.worker import IngestWorker
-    from app.service import GeolocService
+    from app.usecases.service import GeolocService
 
     models = tmp_path / "models"
     models.mkdir()

@@ -75,7 +75,7 @@ def test_verification_through_the_locate_path_batches_and_reports_the_evidence(b
     """A query photo against a crop of itself (the same place), two other places and a missing image:
     one network run for the live pairs, and the evidence per candidate (matches, inliers,
     mean confidence) puts the same place first."""
-    from app.locate import verify_candidate_pairs
+    from app.usecases.locate import verify_candidate_pairs
 
     refs = _Refs(
         {1: PENN / "crops" / "img_00008_0.jpg", 2: penn_photo("img_00050.jpg"), 3: penn_photo("img_00070.jpg")}

@@ -22,11 +22,11 @@ from app.engine.convert import lighterglue_onnx
 from app.engine.convert.lighterglue_onnx import build_graph, build_lighterglue_onnx, matcher_state, read_lighterglue
 from app.engine.convert.torch_checkpoint import read_state_dict
 from app.engine.imageio import load_image
+from app.engine.matchers.lighterglue import LighterGlueMatcher
 from app.engine.models.lighterglue import (
     MODEL_FILENAME,
     KeypointFeatures,
     LighterGlue,
-    LighterGlueMatcher,
     filter_matches,
     normalize_keypoints,
 )

@@ -37,7 +37,7 @@ def test_a_toy_matcher_fits_ingests_and_locates_with_verification(toy, mini_mani
     from app.domain import LocateOptions, Upload
     from app.engine.imageio import load_image
     from app.jobs.worker import IngestWorker
-    from app.service import GeolocService
+    from app.usecases.service import GeolocService
 
     models = tmp_path / "models"
     models.mkdir()

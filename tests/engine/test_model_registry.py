@@ -84,7 +84,7 @@ def test_a_toy_global_model_fits_ingests_and_locates(toy_registered, mini_manife
     from app.domain import LocateOptions, Upload
     from app.encoding.ray import model_files
     from app.jobs.worker import IngestWorker
-    from app.service import GeolocService
+    from app.usecases.service import GeolocService
 
     models = toy_registered
     fit(manifest=mini_manifest, config="toy-gem", models_dir=models, seed=0, svm_bank=None, svm_bank_kind="contrastive")

@@ -14,7 +14,7 @@ from app.engine.index.references import ReferenceIndex
 from app.engine.pipeline import Pipeline
 from app.evaluation.datasets import read_manifest
 from app.evaluation.evaluate import RowReferences
-from app.locate import locate_features
+from app.usecases.locate import locate_features
 
 
 @pytest.fixture(scope="module")

@@ -3,7 +3,7 @@
 The claim under test: storing a reference's features (uint16 positions, uint8 descriptors) and matching
 them in one batch changes no verdict that matters. Same pairs, same settings (RootSIFT at 800 px, 1,500
 keypoints, ratio 0.9, H-or-F MAGSAC at 3 px): every pair's inlier count is within ``TOLERANCE`` of the
-count ``app.locate.verify_candidate_pairs`` gives by decoding and re-extracting the candidate. The
+count ``app.usecases.locate.verify_candidate_pairs`` gives by decoding and re-extracting the candidate. The
 tolerance is MAGSAC's own: today's count is not one number but depends on the order of the matches it
 is given (USAC samples them in order; on penn, one pair gives 50-70 inliers over 12 orders of the same
 174 matches), and quantising descriptors (at most 1/1024 per component) changes a few matches, hence the
@@ -22,7 +22,7 @@ from app.engine.matchers.fusion import FUSION_FLOOR, FUSION_WEIGHT, fused_score
 from app.engine.matchers.geometry import fit_geometry, mutual_matches
 from app.engine.matchers.sift_mnn import PixelFeatures, SiftMnnMatcher, features_for_verification
 from app.engine.stored_verification import matches_many, verify_stored
-from app.locate import verify_candidate_pairs
+from app.usecases.locate import verify_candidate_pairs
 from tests.conftest import PENN
 
 ORDERS = 8

@@ -9,7 +9,7 @@ from app.engine.imageio import ImageLimits, load_image
 from app.engine.matchers.fusion import FUSION_FLOOR, fused_score
 from app.engine.matchers.geometry import MIN_MATCHES_TO_FIT, fit_geometry, mutual_matches, verify
 from app.engine.matchers.sift_mnn import SiftMnnMatcher
-from app.locate import order_by_verification, verify_candidates
+from app.usecases.locate import order_by_verification, verify_candidates
 from tests.conftest import PENN, penn_photo
 
 

@@ -9,7 +9,7 @@ import numpy as np
 from app.engine.imageio import ImageLimits, load_image
 from app.engine.matchers import geometry
 from app.engine.matchers.sift_mnn import PixelFeatures, SiftMnnMatcher, features_for_verification
-from app.locate import order_by_verification, verify_candidates
+from app.usecases.locate import order_by_verification, verify_candidates
 from tests.conftest import PENN
 
 
@@ -70,7 +70,7 @@ class CountingPhotos(Photos):
 def test_a_features_cache_reads_each_reference_once_and_verifies_the_same():
     """The calibration verifies hundreds of answers whose candidates recur: with a cache each reference's
     photo is read and its features computed once, and the outcomes are those of a fresh computation."""
-    from app.locate import verify_candidate_pairs
+    from app.usecases.locate import verify_candidate_pairs
 
     paths = sorted((PENN / "photos").glob("*.jpg"))[:4]
     query = load_image(paths[0].read_bytes()).rgb
@@ -85,7 +85,7 @@ def test_a_features_cache_reads_each_reference_once_and_verifies_the_same():
         assert (again[i].n_matches, again[i].inliers) == (first[i].n_matches, first[i].inliers)
         assert (fresh[i].n_matches, fresh[i].n_matches > 0) == (first[i].n_matches, True)
     # The calibration's cache is bounded: it forgets the oldest reference's features first.
-    from app.fitting import BoundedCache
+    from app.usecases.fitting import BoundedCache
 
     bounded = BoundedCache(2)
     verify_candidate_pairs(query, [1, 2, 3], source, ImageLimits(), SiftMnnMatcher(), bounded)

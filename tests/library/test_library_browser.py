@@ -1,4 +1,4 @@
-"""The Library view in a real browser (Debian's Chromium, as tests/service/test_browser.py drives it), over
+"""The Library view in a real browser (Debian's Chromium, as tests/api/test_browser.py drives it), over
 a real uvicorn server: the user scans a library folder on the page, accepts two suggestions and rejects
 one, and writes: the two have XMP sidecars holding the accepted GPS, the rejected one has nothing, and the
 originals are byte for byte (and pixel for pixel) what they were. A second scan skips what is done; undo
@@ -17,8 +17,8 @@ import pytest
 
 from app.engine.configs import DEFAULT_CONFIG
 from app.library.writeback import pixel_hash
+from tests.api.test_browser import ARGS, CHROMIUM, SHOTS, open_page
 from tests.library.conftest import SF, copy_collection, make_library
-from tests.service.test_browser import ARGS, CHROMIUM, SHOTS, open_page
 from tools.server_process import ServerProcess
 
 pytestmark = [pytest.mark.browser, pytest.mark.library]

@@ -1,4 +1,4 @@
-"""The Library page holds to the page's rules (tests/service/test_hardening_web.py): nothing inline that
+"""The Library page holds to the page's rules (tests/api/test_hardening_web.py): nothing inline that
 the Content-Security-Policy would have to allow, and no string ever parsed as HTML (file names, labels and
 reasons are user text)."""
 
@@ -7,7 +7,7 @@ from __future__ import annotations
 import re
 
 from app.api.app import WEB_DIR
-from tests.service.test_hardening_web import _Inline
+from tests.api.test_hardening_web import _Inline
 
 
 def test_library_html_has_nothing_inline():

@@ -43,8 +43,8 @@ def test_a_manifest_library(tmp_path, library_models):
 
     # Resumable: a run that dies after two photos leaves them journalled; the next run locates the rest only.
     from app.library.scan import ScanOptions, scan_library
-    from app.service import GeolocService
     from app.storage.library import LibraryJournal
+    from app.usecases.service import GeolocService
 
     class Dies:
         def __init__(self, total: int, desc: str):

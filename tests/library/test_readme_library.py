@@ -20,9 +20,9 @@ import pytest
 from app.engine.configs import DEFAULT_CONFIG
 from app.engine.geo import haversine_m
 from app.library.writeback import pixel_hash
+from tests.api.test_readme_commands import ACTIVATE, commands
 from tests.conftest import REPO
 from tests.library.conftest import ELSEWHERE, copy_collection, make_library
-from tests.service.test_readme_commands import ACTIVATE, commands
 
 #: A whole library scanned with the fitted default pipeline: make test, not make test-quick.
 pytestmark = pytest.mark.library

@@ -3,7 +3,7 @@ transaction), claim the new rows, encode them with an engine and complete them i
 
 Why this shape:
 - Streaming chunks (``chunk`` files at a time) keeps memory flat on 10^6 photos: a chunk is read, validated
-  with ``app.uploads.prepare_upload`` (the API's limits), accepted, journalled, and handed on; the engine pulls
+  with ``app.usecases.uploads.prepare_upload`` (the API's limits), accepted, journalled, and handed on; the engine pulls
   the next items only as it needs them, so the next chunk is read while this one encodes.
 - Accepted rows are the core's ``pending`` rows, so a crash loses nothing; the run claims them for a lease
   so that a running server's worker (which reads ``store.pending``) does not encode the same rows, and a
@@ -39,10 +39,10 @@ from app.engine.errors import (
 from app.engine.progress import Progress
 from app.jobs.ingest.sources import Source, SourceItem
 from app.jobs.writer import Writer
-from app.service import GeolocService
 from app.storage.journal import FileKey, Journal
 from app.storage.store import NewReference
-from app.uploads import prepare_upload
+from app.usecases.service import GeolocService
+from app.usecases.uploads import prepare_upload
 
 #: How long this run's claim on a row lasts: the row is encoded within seconds of being claimed, so a
 #: claim that outlives this belongs to a run that died, and a worker may take the row over.

@@ -1,0 +1,413 @@
+"""The collection as one process sees it: the store, the fitted pipeline, and a live index kept current.
+
+Why it is built this way (cost per change independent of the collection's size):
+- The index is loaded once (a verified snapshot plus the change log after it, or, when no snapshot can be
+  trusted, a full rebuild from the codes in SQLite) and then only *caught up*: before each search the
+  process compares the log's last version with the one it holds (one indexed SQL read) and applies exactly
+  the changes in between, adds in place and deletions as tombstones.
+- Snapshots are written by one process only (the one holding the worker lock), in the background, by the
+  policy below: on a copy of the index taken under the lock (a memory copy), compacted and written to disk
+  with the lock released, then swapped in after replaying what arrived meanwhile. Searches never wait for
+  a disk write.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from app.engine.calibration import Calibration
+from app.engine.configs import DEFAULT_CONFIG
+from app.engine.index.references import ReferenceIndex
+from app.engine.pipeline import Pipeline, PipelineSource
+from app.storage.backend import StorageBackend
+from app.storage.changes import Change
+from app.storage.snapshots import SnapshotInvalid, SnapshotMismatch, load_snapshot, write_snapshot
+from app.storage.store import ReferenceStore
+
+log = logging.getLogger("geoloc.collection")
+
+
+@dataclass(frozen=True)
+class SnapshotPolicy:
+    """Write a snapshot after ``every_changes`` index changes, or ``every_seconds`` after the first change
+    not yet in one, and at a clean shutdown. A restart then replays at most that many changes."""
+
+    every_changes: int = 5_000
+    every_seconds: float = 300.0
+
+    def due(self, pending_changes: int, seconds_pending: float) -> bool:
+        """``seconds_pending``: since the oldest change not yet in a snapshot."""
+        return pending_changes >= self.every_changes or (pending_changes > 0 and seconds_pending >= self.every_seconds)
+
+
+@dataclass
+class IndexStats:
+    """What /metrics reports about the index's upkeep in this process."""
+
+    full_rebuilds: int = 0
+    replayed_at_start: int = 0
+    snapshot_writes: int = 0
+    snapshot_version: int | None = None
+    snapshot_written_at: float | None = None  # wall time of the snapshot loaded or last written
+    changes_applied: int = 0
+
+
+def apply_changes(index: ReferenceIndex, changes: list[Change]) -> None:
+    """Apply log entries in order: runs of adds in one call each, deletions as tombstones. An add whose row
+    is gone (deleted since; its delete entry is in the same read) is skipped, and so is that delete."""
+    skipped: set[int] = set()
+    run: list[Change] = []
+
+    def flush() -> None:
+        if not run:
+            return
+        ids = np.array([c.ref_id for c in run], np.int64)
+        f = np.stack([np.frombuffer(c.float_code, np.float32) for c in run]) if index.float is not None else None
+        b = np.stack([np.frombuffer(c.binary_code, np.uint8) for c in run]) if index.binary is not None else None
+        index.add(ids, f, b)
+        run.clear()
+
+    for c in changes:
+        if c.op == "move":  # positions live in SQLite, read at every search: nothing to change in the index
+            continue
+        if c.op == "add":
+            if c.float_code is None and c.binary_code is None:
+                skipped.add(c.ref_id)
+            else:
+                run.append(c)
+        else:
+            flush()
+            if c.ref_id not in skipped:
+                index.remove([c.ref_id])
+    flush()
+
+
+def index_from_codes(pipeline: Pipeline, ids: np.ndarray, fcodes: list, bcodes: list) -> ReferenceIndex:
+    index = pipeline.new_index()
+    if len(ids):
+        f = np.stack([np.frombuffer(c, np.float32) for c in fcodes]) if index.float is not None else None
+        b = np.stack([np.frombuffer(c, np.uint8) for c in bcodes]) if index.binary is not None else None
+        index.add(ids, f, b)
+    return index
+
+
+DEFAULT_PIPELINE = "models:"  # meta ``pipeline`` prefix: the models dir's pipelines/<config>
+
+
+def pipeline_source(data_dir: Path, models_dir: Path, pipeline_ref: str | None, config: str) -> PipelineSource:
+    """Where the data dir's recorded pipeline is: the models dir's (``models:<config>``, or nothing recorded
+    yet) or a re-fitted one in the data dir (``pipelines/<config>-g<N>``)."""
+    if not pipeline_ref or pipeline_ref.startswith(DEFAULT_PIPELINE):
+        name = pipeline_ref[len(DEFAULT_PIPELINE) :] if pipeline_ref else config
+        return PipelineSource.default(Path(models_dir), name or config)
+    return PipelineSource(Path(models_dir), Path(data_dir) / pipeline_ref, config)
+
+
+@dataclass(frozen=True)
+class View:
+    """One generation's pipeline and index, taken together for one request (``Searchable``)."""
+
+    collection: Collection
+    pipeline: Pipeline
+    index: ReferenceIndex
+    generation: int
+
+    def check_mode(self, mode: str | None) -> str:
+        return self.index.check_mode(mode)
+
+    def search(self, float_code, binary_code, k: int, mode: str | None = None, allowed: np.ndarray | None = None):
+        with self.collection.lock:
+            return self.index.search(float_code, binary_code, k, mode, allowed)
+
+
+class Collection:
+    """One per process and data dir. ``search`` and every change of ``index`` hold ``lock``."""
+
+    def __init__(
+        self,
+        store: ReferenceStore,
+        pipeline: Pipeline,
+        policy: SnapshotPolicy | None = None,
+        generation: int = 0,
+        models_dir: Path | None = None,
+    ):
+        self.store = store
+        self.pipeline = pipeline
+        self.generation = generation
+        self.models_dir = models_dir  # where a new generation's ONNX models are loaded from
+        self.policy = policy or SnapshotPolicy()
+        self.lock = threading.RLock()
+        self.stats = IndexStats()
+        self._snapshot_lock = threading.Lock()
+        self._reload_lock = threading.Lock()
+        self._reloader: threading.Thread | None = None
+        self.reload_error: str | None = None  # why the last attempt to load a newer generation failed
+        self._first_pending_at: float | None = None  # when the oldest change not in a snapshot was applied
+        self.rebuilt = False  # loaded by a full rebuild: a snapshot is due as soon as a writer can take it
+        self._calibration: tuple[tuple[int, int], Calibration] | None = None  # (pipeline, version) -> the rule
+        self.index, self.version = self._load()
+
+    @classmethod
+    def open(
+        cls,
+        data_dir: Path,
+        models_dir: Path,
+        config: str | None,
+        policy: SnapshotPolicy | None = None,
+        backend: StorageBackend | None = None,
+    ):
+        """The data dir's own configuration and pipeline win over ``config``: its codes were made by them.
+        ``backend``: the storage backend the process made once from its Settings (None: from the environment)."""
+        store = ReferenceStore(data_dir, backend=backend)
+        for _ in range(3):  # a re-fit switching between the read and the load: read again
+            generation, ref, name = store.generation_state()
+            name = name or config or DEFAULT_CONFIG
+            pipeline = pipeline_source(data_dir, models_dir, ref, name).load()
+            if store.generation_state()[0] == generation:
+                break
+        store.bind(pipeline)
+        if ref is None and not store.read_only:
+            store.set_meta("pipeline", DEFAULT_PIPELINE + name)
+        return cls(store, pipeline, policy, generation, Path(models_dir))
+
+    def view(self) -> View:
+        """The current generation's pipeline and index, for one request."""
+        with self.lock:
+            return View(self, self.pipeline, self.index, self.generation)
+
+    # -- loading --------------------------------------------------------------------------------------
+    def _load(self) -> tuple[ReferenceIndex, int]:
+        try:
+            index, manifest = load_snapshot(self.store.snapshots_dir, self.pipeline, self.store)
+        except SnapshotInvalid as e:
+            if (self.store.snapshots_dir / "index.json").exists():
+                log.warning("snapshot not used (%s): rebuilding the index from the codes in SQLite", e)
+            if isinstance(e, SnapshotMismatch):
+                self.store.retire_snapshot(e.manifest.version, e.manifest.ref_high_water)
+            return self._rebuild()
+        version = manifest.version
+        changes = self.store.changes_since(version)
+        apply_changes(index, changes)
+        self.stats.replayed_at_start = len(changes)
+        self.stats.snapshot_version = version
+        self.stats.snapshot_written_at = float(manifest.written_at or 0) or None
+        log.info("index loaded from the snapshot of version %d and %d later changes", version, len(changes))
+        return index, changes[-1].version if changes else version
+
+    def _rebuild(self) -> tuple[ReferenceIndex, int]:
+        t0 = time.perf_counter()
+        version, ids, fcodes, bcodes = self.store.all_codes()
+        index = index_from_codes(self.pipeline, ids, fcodes, bcodes)
+        self.stats.full_rebuilds += 1
+        self.rebuilt = True
+        log.info("index rebuilt from %d stored codes in %.1f s", len(ids), time.perf_counter() - t0)
+        return index, version
+
+    # -- switching generation -------------------------------------------------------------------------
+    def _load_generation(self) -> bool:
+        """Load the data dir's current generation (pipeline, then its snapshot or a rebuild from SQLite)
+        without the lock, then swap pipeline, index and version together. True when it swapped."""
+        if self.models_dir is None:
+            raise RuntimeError("this collection was not opened from a models dir: it cannot load a new generation")
+        generation, ref, name = self.store.generation_state()
+        if generation == self.generation:
+            return False
+        t0 = time.perf_counter()
+        pipeline = pipeline_source(self.store.data_dir, self.models_dir, ref, name or self.pipeline.config.name).load()
+        try:
+            index, manifest = load_snapshot(self.store.snapshots_dir, pipeline, self.store)
+            if manifest.generation != generation:
+                raise SnapshotInvalid("the snapshot is of another generation")
+            version, rebuilt = manifest.version, False
+        except SnapshotInvalid as e:
+            if isinstance(e, SnapshotMismatch):
+                log.warning("snapshot not used (%s)", e)
+                self.store.retire_snapshot(e.manifest.version, e.manifest.ref_high_water)
+            gen, version, ids, fcodes, bcodes = self.store.generation_codes()
+            if gen != generation:  # switched again while we loaded: the next catch-up loads that one
+                return False
+            index, rebuilt = index_from_codes(pipeline, ids, fcodes, bcodes), True
+        with self.lock:
+            if self.generation >= generation:
+                return False
+            self.pipeline, self.index, self.version, self.generation = pipeline, index, version, generation
+            self.rebuilt = rebuilt
+            self.stats.snapshot_version = None if rebuilt else version
+            if rebuilt:
+                self.stats.full_rebuilds += 1
+        log.info("switched to generation %d (%s) in %.1f s", generation, ref, time.perf_counter() - t0)
+        self.catch_up()
+        return True
+
+    def _reload_loop(self) -> None:
+        try:
+            self._load_generation()
+            self.reload_error = None
+        except Exception as e:  # keep answering from the generation we hold; the next catch-up tries again
+            log.exception("loading the new generation failed")
+            self.reload_error = str(e)
+
+    def refresh_generation(self, wait: bool = False, timeout: float = 600.0) -> None:
+        """Start loading the data dir's newer generation in the background (one loader at a time); ``wait``:
+        return once it is loaded (the ingestion worker, which must not encode with a stale pipeline)."""
+        with self._reload_lock:
+            if self._reloader is None or not self._reloader.is_alive():
+                self._reloader = threading.Thread(target=self._reload_loop, name="geoloc-generation", daemon=True)
+                self._reloader.start()
+            thread = self._reloader
+        if wait:
+            thread.join(timeout)
+
+    # -- keeping current ------------------------------------------------------------------------------
+    def catch_up(self) -> int:
+        """Apply the changes other processes (or this one's worker) logged since our version; returns how many.
+        One read gives the version and the generation; a newer generation is loaded in the background and,
+        until it is swapped in, the old index takes no change (those logged after the switch are the new
+        generation's codes)."""
+        version, generation = self.store.head()
+        if generation != self.generation:
+            self.refresh_generation()
+            return 0
+        if version == self.version:
+            return 0
+        with self.lock:
+            if generation != self.generation:
+                return 0
+            changes = [c for c in self.store.changes_since(self.version) if c.version <= version]
+            if not changes:
+                return 0
+            apply_changes(self.index, changes)
+            self.version = changes[-1].version
+            self.stats.changes_applied += len(changes)
+            if self._first_pending_at is None:
+                self._first_pending_at = time.time()
+            return len(changes)
+
+    @property
+    def size(self) -> int:
+        return self.index.size
+
+    def calibration(self, pipeline: Pipeline | None = None) -> Calibration:
+        """The rule that judges this collection's answers: ``pipeline``'s calibration when it was fitted on
+        this collection (``Calibration.for_collection``), else the conservative rule saying why. Looked up
+        again when the pipeline or the collection's version changes (one indexed query of at most 600
+        hashes)."""
+        pipeline = pipeline or self.pipeline
+        cal = pipeline.calibration
+        if not cal.calibrated or not cal.references:
+            return cal.for_collection(0)
+        key = (id(pipeline), self.version)
+        cached = self._calibration
+        if cached is not None and cached[0] == key:
+            return cached[1]
+        judged = cal.for_collection(len(self.store.existing_ids(cal.references)))
+        self._calibration = (key, judged)
+        return judged
+
+    def calibration_summary(self) -> str:
+        """``calibration``'s note, and what the collection needs when no answer of it can be confident yet
+        (/ready, so that a small collection's answers are not taken for a fault)."""
+        cal = self.calibration()
+        needs = cal.confidence_note(self.size)
+        return cal.note + (f"; {needs}" if needs else "")
+
+    def check_mode(self, mode: str | None) -> str:
+        return self.index.check_mode(mode)
+
+    def search(self, float_code, binary_code, k: int, mode: str | None = None, allowed: np.ndarray | None = None):
+        """``ReferenceIndex.search`` on the current index (caught up first, and safe against changes)."""
+        self.catch_up()
+        with self.lock:
+            return self.index.search(float_code, binary_code, k, mode, allowed)
+
+    # -- snapshots (only the process holding the worker lock calls these) ------------------------------
+    def pending_changes(self) -> int:
+        return self.version - (self.stats.snapshot_version or 0)
+
+    def snapshot_due(self) -> bool:
+        if self.rebuilt:
+            return True
+        pending = self.pending_changes()
+        if pending and self._first_pending_at is None:  # replayed at start: count from then
+            self._first_pending_at = time.time()
+        waited = time.time() - self._first_pending_at if self._first_pending_at is not None else 0.0
+        return self.policy.due(pending, waited)
+
+    def write_snapshot(self) -> bool:
+        """Copy under the lock, compact and write without it, then swap the compacted copy in (after
+        replaying whatever was applied meanwhile). Returns False when there was nothing to write."""
+        with self._snapshot_lock:
+            self.catch_up()
+            with self.lock:
+                if self.stats.snapshot_version == self.version and not self.rebuilt:
+                    return False
+                v0, gen0, pipeline = self.version, self.generation, self.pipeline
+                copy = self.index.copy()
+            copy.compact()
+            t0 = time.perf_counter()
+            if self.store.head()[1] != gen0:  # a re-fit switched meanwhile: this generation is done with
+                return False
+            manifest = write_snapshot(self.store.snapshots_dir, copy, pipeline, v0, gen0, self.store.binding(v0))
+            with self.lock:
+                if self.generation != gen0:  # swapped while we wrote: the new generation's index stays
+                    return False
+                later = [c for c in self.store.changes_since(v0) if c.version <= self.version]
+                apply_changes(copy, later)
+                self.index = copy
+                self.rebuilt = False
+            self.stats.snapshot_writes += 1
+            self.stats.snapshot_version = v0
+            self._first_pending_at = time.time() if self.version > v0 else None
+            self.stats.snapshot_written_at = manifest.written_at
+            log.info(
+                "snapshot of version %d written (%d references) in %.2f s", v0, copy.size, time.perf_counter() - t0
+            )
+            self.store.checkpoint()  # the main file catches up with the snapshot: a copy of it alone matches
+            return True
+
+
+class SnapshotWriter:
+    """The background thread that writes snapshots by the policy, and a last one at a clean stop. It also
+    checkpoints the database (the WAL's pages into the main file) every ``checkpoint_seconds``, and empties
+    the WAL at the stop: the data dir's main file is never far behind what was accepted."""
+
+    def __init__(self, collection: Collection, check_seconds: float = 2.0, checkpoint_seconds: float = 10.0):
+        self.collection = collection
+        self.check_seconds = check_seconds
+        self.checkpoint_seconds = checkpoint_seconds
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._checkpointed_at = time.monotonic()
+
+    def run(self) -> None:
+        while not self._stop.wait(self.check_seconds):
+            try:
+                self.collection.catch_up()
+                if self.collection.snapshot_due():
+                    self.collection.write_snapshot()
+            except Exception:  # a failed write is retried at the next check; the log still holds everything
+                log.exception("snapshot write failed")
+            if time.monotonic() - self._checkpointed_at >= self.checkpoint_seconds:
+                self.collection.store.checkpoint()  # PASSIVE: never waits for a reader nor blocks a writer
+                self._checkpointed_at = time.monotonic()
+
+    def start(self) -> None:
+        self._thread = threading.Thread(target=self.run, name="geoloc-snapshot", daemon=True)
+        self._thread.start()
+
+    def stop(self, final: bool = True) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(60)
+        if final:
+            try:
+                self.collection.write_snapshot()
+            except Exception:
+                log.exception("final snapshot write failed")
+            self.collection.store.checkpoint("TRUNCATE")  # a clean stop leaves every row in the main file

@@ -1,0 +1,277 @@
+"""Operations on a data dir: check that its parts agree, back it up while it is in use, restore it.
+
+Why a check: the FAISS snapshot is a cache of SQLite and the images live beside it; after a disk incident
+or a hand edit an operator needs one command that says which part disagrees with which, rather than
+rankings that are quietly wrong. Why SQLite's backup API: it copies a consistent state of a database
+that other processes keep writing, which a plain file copy of a WAL database does not.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from app.apikey import KEY_FILE, key_path
+from app.engine.configs import DEFAULT_CONFIG
+from app.errors import OperationRefused
+from app.permissions import private_dir, private_tree
+from app.storage.backend import StorageBackend
+from app.storage.feature_files import FeatureFiles, profile_root
+from app.storage.files import IMAGES
+from app.storage.orphans import MIN_AGE_S, retry_removals, sweep
+from app.storage.settings import storage_backend
+from app.storage.snapshots import (
+    MANIFEST,
+    SnapshotInvalid,
+    SnapshotUnverifiable,
+    load_snapshot,
+    read_manifest,
+    snapshot_files,
+)
+from app.storage.store import ReferenceStore
+from app.usecases.collection import pipeline_source
+
+BACKUP_MANIFEST = "backup.json"
+KEY_NOTE = f"this backup holds the API key ({KEY_FILE}, mode 0600): keep it as private as the key itself"
+PIPELINES = "pipelines"  # the data dir's re-fitted pipelines, one folder per generation
+
+
+@dataclass
+class CheckReport:
+    lines: list[str] = field(default_factory=list)
+    problems: list[str] = field(default_factory=list)
+
+
+def _sample(ids, n: int = 10) -> str:
+    ids = list(ids)
+    return ", ".join(str(i) for i in ids[:n]) + (f" (and {len(ids) - n} more)" if len(ids) > n else "")
+
+
+def check_data_dir(data_dir: Path, models_dir: Path, config: str | None) -> CheckReport:
+    r = CheckReport()
+    backend = storage_backend(data_dir)
+    if not backend.exists():
+        r.problems.append(f"{backend.describe()} does not exist")
+        return r
+    store = ReferenceStore(data_dir, read_only=True, backend=backend)
+    if not store.holds_tables():
+        r.problems.append(
+            f"{backend.describe()} holds no tables: its content is still in a -wal file that is not here "
+            "(a copy without it?); copy the data dir with `geoloc backup`"
+        )
+        return r
+    counts = {s: store.count(s) for s in ("indexed", "pending", "failed")}
+    r.lines.append(f"rows: {counts['indexed']} indexed, {counts['pending']} pending, {counts['failed']} failed")
+    quarantined = store.quarantined()
+    if quarantined:
+        r.problems.append(
+            f"quarantined references (their encoding never finished, the process stopped each time): "
+            f"{_sample([i for i, _ in quarantined])}; delete them (DELETE /references/ID) or upload a fixed image"
+        )
+    rows = store.stored_rows()
+    named = {row.image for row in rows}
+    on_disk = {p.name for p in store.images_dir.iterdir() if not p.name.startswith(".")}
+    missing = [row.id for row in rows if row.image not in on_disk]
+    orphans = sorted(on_disk - named)
+    r.lines.append(f"images: {len(on_disk)} files, {len(missing)} missing, {len(orphans)} not named by any row")
+    if missing:
+        r.problems.append(f"references whose image file is missing: {_sample(missing)}")
+    if orphans:
+        r.problems.append(f"image files no row names: {_sample(orphans)} (`geoloc check --repair` removes them)")
+    _check_leftovers(store, data_dir, r)
+    name = store.get_meta("config") or config or DEFAULT_CONFIG
+    pipeline = pipeline_source(data_dir, models_dir, store.get_meta("pipeline"), name).load()
+    r.lines.append(f"pipeline: {store.get_meta('pipeline') or 'models:' + name}, generation {store.head()[1]}")
+    fsize = 4 * (pipeline.float_dim or 0)
+    bsize = (pipeline.bits or 0) // 8
+    bad_codes = [
+        row.id
+        for row in rows
+        if row.status == "indexed"
+        and (
+            (fsize and (row.float_code is None or len(row.float_code) != fsize))
+            or (bsize and (row.binary_code is None or len(row.binary_code) != bsize))
+        )
+    ]
+    if bad_codes:
+        r.problems.append(f"indexed references without codes of the pipeline's size: {_sample(bad_codes)}")
+    _check_stored_features(store, pipeline.config.stored_features, rows, r)
+    indexed = np.array(sorted(row.id for row in rows if row.status == "indexed"), np.int64)
+    try:
+        index, manifest = load_snapshot(store.snapshots_dir, pipeline, store)
+    except SnapshotInvalid as e:
+        r.lines.append(f"index: no usable snapshot ({e}); the service rebuilds it from the database")
+        if (store.snapshots_dir / MANIFEST).exists() and not isinstance(e, SnapshotUnverifiable):
+            r.problems.append(f"the snapshot is not usable: {e}")
+        return r
+    from app.usecases.collection import apply_changes
+
+    changes = store.changes_since(manifest.version)
+    apply_changes(index, changes)
+    in_index = np.sort(index.ids())
+    r.lines.append(
+        f"index: snapshot of version {manifest.version} verified, {len(changes)} later changes in the log, "
+        f"{len(in_index)} references after replay"
+    )
+    not_indexed = np.setdiff1d(indexed, in_index)
+    extra = np.setdiff1d(in_index, indexed)
+    if len(not_indexed):
+        r.problems.append(f"indexed rows missing from the index: {_sample(not_indexed.tolist())}")
+    if len(extra):
+        r.problems.append(f"index entries without an indexed row: {_sample(extra.tolist())}")
+    store.close()
+    return r
+
+
+def _check_stored_features(store: ReferenceStore, profile: str | None, rows, r: CheckReport) -> None:
+    """With a configuration that stores local features: the indexed references whose file is missing (they
+    are found, but never verified: a data dir ingested before the configuration stored them, or a crash
+    between the file and its row). One listing of the profile's folders, as the images are listed."""
+    if profile is None:
+        return
+    files = FeatureFiles(profile_root(store.data_dir, profile))
+    stored = set(files.names())
+    indexed = [row for row in rows if row.status == "indexed"]
+    missing = [row.id for row in indexed if row.image.split(".", 1)[0] not in stored]
+    r.lines.append(f"stored features ({profile}): {len(stored)} files, {len(missing)} indexed references without one")
+    if missing:
+        r.problems.append(
+            f"references whose stored features file is missing (found, never verified): {_sample(missing)}"
+        )
+
+
+def _check_leftovers(store: ReferenceStore, data_dir: Path, r: CheckReport) -> None:
+    """Files that no longer belong to anything: removals queued by deletes, temporary files of killed
+    writers older than ``MIN_AGE_S`` (younger ones may be uploads being written)."""
+    queued = store.queued_removals()
+    if queued:
+        r.problems.append(
+            f"{len(queued)} image files of deleted references still to remove: {_sample(queued)} "
+            "(the worker retries; `geoloc check --repair` too)"
+        )
+    now = time.time()
+    stale = [p.name for p in store.images_dir.glob(".*.tmp") if p.is_file() and now - p.stat().st_mtime > MIN_AGE_S]
+    if stale:
+        r.problems.append(f"stale temporary files: {_sample(stale)} (`geoloc check --repair` removes them)")
+
+
+def repair_data_dir(data_dir: Path, min_age_s: float = MIN_AGE_S) -> list[str]:
+    """Remove what no longer belongs to anything: queued removals retried, image files no row names and
+    temporary files, both older than ``min_age_s`` (younger ones may be uploads in flight). Safe while the
+    services run: every unlink is re-checked under the database's write lock. Returns what it did."""
+    backend = storage_backend(data_dir)
+    if not backend.exists():
+        raise OperationRefused(f"{backend.describe()} does not exist: nothing to repair")
+    store = ReferenceStore(data_dir, backend=backend)
+    try:
+        removed, failed = retry_removals(store)
+        lines = [f"removed {len(removed)} queued image files of deleted references"]
+        if failed:
+            lines.append(f"could not remove {len(failed)} queued files yet: {_sample(failed)}")
+        return lines + sweep(store, min_age_s).lines(min_age_s)
+    finally:
+        store.close()
+
+
+def backup_data_dir(data_dir: Path, dest: Path) -> dict:
+    """The storage backend's dump (SQLite's backup API, PostgreSQL's ``pg_dump``: one state while others
+    keep writing). Then the images the copied rows name (from the shared images folder on PostgreSQL), the data dir's
+    re-fitted pipelines, its newest snapshot and its API key file."""
+    if dest.exists() and any(dest.iterdir()):
+        raise OperationRefused(f"{dest} is not empty: back up into a new or empty folder")
+    private_dir(dest, parents=True)
+    os.chmod(dest, 0o700)  # from the start (an existing empty folder too): nothing under it is reachable meanwhile
+    (dest / IMAGES).mkdir(parents=True, exist_ok=True)
+    backend = storage_backend(data_dir)
+    names = backend.dump(dest)  # one state, while others keep writing
+    images, snapshots = backend.images_dir, backend.snapshots_dir
+    copied = missing = 0
+    for name in names:
+        try:
+            shutil.copy2(images / name, dest / IMAGES / name)
+            copied += 1
+        except FileNotFoundError:  # deleted since the database copy was taken
+            missing += 1
+    if (data_dir / PIPELINES).is_dir():  # re-fitted pipelines (`geoloc refit`): the codes need theirs
+        shutil.copytree(data_dir / PIPELINES, dest / PIPELINES, ignore=shutil.ignore_patterns(".*"))
+    version = None
+    try:
+        for path in snapshot_files(snapshots):
+            shutil.copy2(path, dest / path.name)
+        version = read_manifest(dest).version
+    except (SnapshotInvalid, FileNotFoundError):
+        pass  # no snapshot (or replaced meanwhile): a restore rebuilds the index from SQLite
+    holds_key = _copy_key(data_dir, dest)
+    summary = {
+        "references": len(names),
+        "images": copied,
+        "missing_images": missing,
+        "snapshot_version": version,
+        "api_key": holds_key,
+        **({"note": KEY_NOTE} if holds_key else {}),
+        "source": str(data_dir.resolve()),
+        "database": backend.name,
+        "written_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+    }
+    (dest / BACKUP_MANIFEST).write_text(json.dumps(summary, indent=1))
+    private_tree(dest)
+    return summary
+
+
+def restore_data_dir(source: Path, data_dir: Path) -> dict:
+    """Into an empty data dir (and, on PostgreSQL, an empty database: ``pg_restore``, the images into the
+    shared images folder). A backup restores on the engine it was made on."""
+    backend = storage_backend(data_dir)
+    if not (source / BACKUP_MANIFEST).exists() or not (source / backend.backup_name).exists():
+        raise OperationRefused(
+            f"{source} is not a backup written by `geoloc backup` on this storage backend ({backend.name}: "
+            "GEOLOC_DATABASE_URL set for PostgreSQL, unset for SQLite)"
+            if (source / BACKUP_MANIFEST).exists()
+            else f"{source} is not a backup written by `geoloc backup`"
+        )
+    if data_dir.exists() and any(p for p in data_dir.iterdir() if p.name != "README.md"):
+        raise OperationRefused(f"{data_dir} is not empty: restore into a new or empty data dir")
+    private_dir(data_dir, parents=True)
+    backend.restore(source)
+    images, snapshots = _store_dirs(data_dir, backend)  # makes the folders; the restored tables open
+    shutil.copytree(source / IMAGES, images, dirs_exist_ok=True)
+    if (source / PIPELINES).is_dir():
+        shutil.copytree(source / PIPELINES, data_dir / PIPELINES, dirs_exist_ok=True)
+    for path in source.glob("*-v*.faiss"):
+        shutil.copy2(path, snapshots / path.name)
+    if (source / MANIFEST).exists():
+        shutil.copy2(source / MANIFEST, snapshots / MANIFEST)
+    _copy_key(source, data_dir)
+    private_tree(data_dir)  # PostgreSQL's shared images folder keeps the mode its operator gave it
+    return json.loads((source / BACKUP_MANIFEST).read_text())
+
+
+def _store_dirs(data_dir: Path, backend: StorageBackend) -> tuple[Path, Path]:
+    """Where the store keeps its images and its snapshots (shared folders on PostgreSQL, when set), made by
+    a writable open of the restored database (which also migrates it to this version's schema)."""
+    store = ReferenceStore(data_dir, backend=backend)
+    try:
+        return store.images_dir, store.snapshots_dir
+    finally:
+        store.close()
+
+
+def _copy_key(src_dir: Path, dest_dir: Path) -> bool:
+    """Copy the data dir's API key file (clients hold that key: a restore without it would lock them out),
+    created 0600 whatever the source's mode. False when there is none (a key from the environment)."""
+    try:
+        key = key_path(src_dir).read_bytes()
+    except FileNotFoundError:
+        return False
+    fd = os.open(key_path(dest_dir), os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    with os.fdopen(fd, "wb") as f:
+        f.write(key)
+        f.flush()
+        os.fsync(f.fileno())
+    return True

@@ -1,0 +1,318 @@
+"""The application's use cases over one data dir, for every face of the product (HTTP routes, the CLI, the
+ingestion worker, the benchmarks): locate a photo, accept uploads (validated, then stored in bulk as pending
+rows with their job), encode, complete, edit, delete, list, get.
+
+``GeolocService.locate`` is the locate use case, whole, for /locate and `geoloc locate` alike; the search
+itself is ``app.usecases.locate.locate_features``, which the evaluation calls too."""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import AbstractContextManager, nullcontext
+from pathlib import Path
+
+from app.domain import Accepted, LocateAnswer, LocateOptions, ReferenceEdit, Upload
+from app.encoding.items import Encoded, EncodeItem, encode_item
+from app.engine.errors import InvalidPosition
+from app.engine.geo import valid_position
+from app.engine.imageio import ImageLimits, LoadedImage
+from app.engine.pipeline import Features, Pipeline
+from app.errors import InvalidRequest
+from app.runtime import release_free_memory
+from app.storage.backend import StorageBackend
+from app.storage.feature_files import FeatureFiles, profile_root
+from app.storage.queue import Job
+from app.storage.store import KeysetPage, NewReference, Reference, ReferenceStore
+from app.usecases.collection import Collection, SnapshotPolicy
+from app.usecases.locate import StoredReferenceFeatures, StoreReferences, locate_features
+from app.usecases.thumbnails import THUMBNAIL_PX, keep_thumbnail, thumbnail
+from app.usecases.uploads import _differences, prepare_upload
+
+log = logging.getLogger("geoloc.core")
+
+
+def extraction_slots(concurrency: int) -> AbstractContextManager:
+    """How many locates may decode and extract at once (0: no limit). Each holds a decoded photo and its
+    feature maps meanwhile; the limit bounds that memory. One per usable CPU by default (issue 18: with no
+    limit, 8 concurrent 49 MP uploads took RSS up by 2.7 GB; bench/locate_memory.py). Throughput pays a
+    little: on 2 cores, 8 concurrent clients of 1600 px photos (bench/load.py, 4 x 30 s) got 14.7 requests/s
+    without a limit and 12.6 with one per core."""
+    return threading.BoundedSemaphore(concurrency) if concurrency else nullcontext()
+
+
+# -- the service ------------------------------------------------------------------------------------------
+class GeolocService:
+    """The use cases over one data dir. Thread-safe: the HTTP layer calls it from a thread pool."""
+
+    def __init__(
+        self,
+        collection: Collection,
+        limits: ImageLimits | None = None,
+        keep_queries: bool = False,
+        locate_concurrency: int = 0,
+        thumbnail_px: int = THUMBNAIL_PX,
+    ):
+        self.collection = collection
+        self.thumbnail_px = thumbnail_px  # references' thumbnails: made at encoding, served by ``thumbnail``
+        self.limits = limits or ImageLimits()
+        self.keep_queries = keep_queries
+        self.refs = StoreReferences(collection.store)
+        #: Taken by each locate while it reads, decodes and extracts (``extraction_slots``).
+        self.extract_slots = extraction_slots(locate_concurrency)
+
+    @classmethod
+    def open(
+        cls,
+        data_dir: Path,
+        models_dir: Path,
+        config: str | None,
+        limits: ImageLimits | None = None,
+        policy: SnapshotPolicy | None = None,
+        keep_queries: bool = False,
+        locate_concurrency: int = 0,
+        thumbnail_px: int = THUMBNAIL_PX,
+        backend: StorageBackend | None = None,
+    ) -> GeolocService:
+        """``backend``: made once from the process's Settings (``Settings.backend``) and passed down."""
+        collection = Collection.open(data_dir, models_dir, config, policy, backend)
+        return cls(collection, limits, keep_queries, locate_concurrency, thumbnail_px)
+
+    @property
+    def store(self) -> ReferenceStore:
+        return self.collection.store
+
+    @property
+    def pipeline(self) -> Pipeline:
+        return self.collection.pipeline
+
+    # -- locate ---------------------------------------------------------------------------------------
+    def decode(self, data: bytes) -> LoadedImage:
+        """At the scale the pipeline needs (``Pipeline.decode``), under the service's limits."""
+        return self.pipeline.decode(data, self.limits)
+
+    def _extract(self, data: bytes) -> tuple[LoadedImage, Features, float]:
+        """Decode and extract (the expensive, parallel part of a request); returns the decode time too."""
+        t0 = time.perf_counter()
+        img = self.decode(data)
+        decode_ms = (time.perf_counter() - t0) * 1000
+        features = self.pipeline.extract(img.rgb)
+        self.release_memory(img)  # the decode and extraction buffers, before the next request in this slot
+        return img, features, decode_ms
+
+    def release_memory(self, img: LoadedImage) -> None:
+        """After a large upload (decoded at reduced scale, a PNG at full size first), hand the buffers it
+        freed back to the kernel: glibc keeps them in per-thread arenas, and with the server's thread pool
+        8 concurrent 49 MP uploads left RSS 1.5 GB above idle for good (bench/locate_memory.py)."""
+        if max(img.original_size) > 2 * self.limits.decode_long_side:
+            release_free_memory()
+
+    def _locate_extracted(self, img: LoadedImage, features: Features, options: LocateOptions) -> LocateAnswer:
+        """Search with one generation's pipeline and index taken together (a re-fit may swap them at any
+        moment); features extracted under another configuration are extracted again."""
+        col = self.collection
+        col.catch_up()
+        view = col.view()
+        view.check_mode(options.mode)
+        if features.config is not None and features.config != view.pipeline.config.name:
+            features = view.pipeline.extract(img.rgb)
+        calibration = col.calibration(view.pipeline)
+        profile = view.pipeline.config.stored_features
+        stored = None
+        if profile is not None:
+            stored = StoredReferenceFeatures(self.store, FeatureFiles(profile_root(self.store.data_dir, profile)))
+        answer = locate_features(
+            view.pipeline,
+            view,
+            self.refs,
+            features,
+            options,
+            img.rgb,
+            self.limits,
+            calibration=calibration,
+            stored=stored,
+        )
+        answer.index_size, answer.index_generation = view.index.size, view.generation
+        answer.index_version = col.version if col.generation == view.generation else 0
+        answer.extent = col.store.extent()
+        return answer
+
+    def locate(self, image: bytes | Callable[[], bytes], options: LocateOptions) -> LocateAnswer:
+        """The locate use case, whole: a bad mode is refused before the expensive part; the photo is read,
+        decoded, extracted, searched and verified holding an extraction slot; the search runs with one
+        generation's pipeline and index; the query is kept when asked; freed memory goes back to the kernel,
+        once the request holds nothing large. ``image``: the photo's bytes, or a function that reads them (a
+        request body, read only once a slot is free; the wait for it is timed as ``queue``)."""
+        t0 = time.perf_counter()
+        self.collection.check_mode(options.mode)
+        # Everything the request does holds its slot: verification (``rerank``) decodes and extracts each
+        # candidate's photo, and outside the slot 16 such requests at once held 1.7 GB (issue 30).
+        with self.extract_slots:
+            t_slot = time.perf_counter()
+            data = image() if callable(image) else image
+            img, features, decode_ms = self._extract(data)
+            answer = self._locate_extracted(img, features, options)
+            self.keep_query(data, img)
+            self.release_memory(img)  # what the search freed too
+        queue = {"queue": (t_slot - t0) * 1000} if callable(image) else {}
+        timings = {**queue, "decode": decode_ms, **answer.timings_ms}
+        timings["total"] = (time.perf_counter() - t0) * 1000
+        answer.timings_ms = timings
+        return answer
+
+    def keep_query(self, data: bytes, img: LoadedImage) -> None:
+        if not self.keep_queries:
+            return
+        from app.permissions import private_dir
+        from app.storage.files import sha256_of, write_image_file
+
+        try:
+            folder = self.store.data_dir / "queries"
+            private_dir(folder)
+            write_image_file(folder / f"{sha256_of(data)}.{img.format.lower()}", data, sync=False)  # 0600
+        except OSError as e:  # keeping queries is a courtesy; a full disk must not fail the answer
+            log.warning("query not kept: %s", e)
+
+    # -- accept, encode, complete -----------------------------------------------------------------------
+    def accept(self, uploads: Sequence[Upload], source: str = "api") -> Accepted:
+        """Validate every upload, then store them all (images durable, rows and job in one transaction) as
+        pending rows. The index is not touched: the worker encodes them."""
+        prepared = [prepare_upload(u, self.limits, n, source) for n, u in enumerate(uploads)]
+        return self.accept_prepared(prepared, uploads)
+
+    def accept_prepared(self, prepared: Sequence[NewReference], asked: Sequence[Upload] | None = None) -> Accepted:
+        """Store; for identical images already stored, say when the upload's metadata was not applied."""
+        items, job_id = self.store.add_many(prepared, job=True)
+        dups = [(n, i) for n, (i, created) in enumerate(items) if not created]
+        stored = self.store.get_many([i for _, i in dups]) if dups else {}
+        notes = []
+        for n, ref_id in dups:
+            upload = asked[n] if asked is not None else None
+            diff = _differences(prepared[n], stored[ref_id], upload) if ref_id in stored else []
+            if diff:
+                notes.append(
+                    f"image {n} is already stored as reference {ref_id}; its stored metadata was kept: "
+                    + "; ".join(diff)
+                    + f". To change it: PATCH /references/{ref_id}"
+                )
+        return Accepted(job_id, [i for i, _ in items], [not created for _, created in items], notes)
+
+    def update(self, ref_id: int, edit: ReferenceEdit) -> Reference | None:
+        """Edit a reference's metadata (validated here; codes and image unchanged)."""
+        fields = edit.given
+        if any(name in fields and fields[name] is None for name in ("lat", "lon")):
+            raise InvalidRequest("lat and lon cannot be cleared, only changed")
+        if not fields:
+            raise InvalidRequest("give at least one of lat, lon, heading, label, captured_at")
+        current = self.store.get(ref_id)
+        if current is None:
+            return None
+        lat, lon = fields.get("lat", current.lat), fields.get("lon", current.lon)
+        if lat is None or lon is None or not valid_position(lat, lon):
+            raise InvalidPosition(f"position {lat},{lon} is out of range (lat -90..90, lon -180..180)")
+        hd = fields.get("heading")
+        if hd is not None and not (math.isfinite(hd) and 0 <= hd < 360):
+            raise InvalidRequest("heading must be a number in [0, 360)")
+        return self.store.update(ref_id, fields)
+
+    def encode(self, batch: Sequence[tuple[int, Path]], workers: int = 1) -> list[Encoded]:
+        items = [EncodeItem(i, p, thumbnail_px=self.thumbnail_px) for i, p in batch]
+        if workers <= 1 or len(items) <= 1:
+            return [encode_item(self.pipeline, self.limits, item) for item in items]
+        with ThreadPoolExecutor(max_workers=workers) as pool:
+            return list(pool.map(lambda item: encode_item(self.pipeline, self.limits, item), items))
+
+    def complete(self, results: Sequence[Encoded]) -> list[int]:
+        """Record a batch in one transaction (storage failures stay pending) and bring the index up to date.
+        Results made by a pipeline the data dir no longer uses (a re-fit switched while they were encoded)
+        are not recorded: their rows stay pending, and this process loads the new generation before
+        returning, so the next batch is encoded by it."""
+        kept = self._keep_thumbnails(results)  # before the rows: a finished job's thumbnail is there
+        stored = self._keep_stored_features(results)  # before the rows too: an indexed row can be verified
+        by_pipeline: dict[str | None, list] = {}
+        for r in results:
+            if not r.retry:
+                by_pipeline.setdefault(r.fingerprint, []).append((r.ref_id, r.float_code, r.binary_code, r.error))
+        done: list[int] = []
+        stale = False
+        for fingerprint, final in by_pipeline.items():
+            recorded = self.store.complete(final, fingerprint)
+            stale |= fingerprint is not None and not recorded and any(e is None for *_, e in final)
+            done += recorded
+        for ref_id, path in kept.items():  # deleted meanwhile, or left pending: no thumbnail outlives its row
+            if ref_id not in done:
+                path.unlink(missing_ok=True)
+        for ref_id, path in stored.items():
+            if ref_id not in done:
+                path.unlink(missing_ok=True)
+        if stale and self.store.get_meta("fingerprint") != self.pipeline.fingerprint:
+            self.collection.refresh_generation(wait=True)
+        self.collection.catch_up()
+        return done
+
+    def _keep_thumbnails(self, results: Sequence[Encoded]) -> dict[int, Path]:
+        """Keep the thumbnails the encoder made (``app.usecases.thumbnails``); returns where, by reference id."""
+        kept = {}
+        for r in results:
+            if r.thumbnail is not None and r.error is None and not r.retry:
+                image = self.store.image_path(r.ref_id)
+                if image is not None and (path := keep_thumbnail(image, self.thumbnail_px, r.thumbnail)):
+                    kept[r.ref_id] = path
+        return kept
+
+    def stored_features_files(self) -> FeatureFiles | None:
+        """The configuration's stored local-features files (``data_dir/features/<profile>``), or None when
+        it stores none."""
+        profile = self.pipeline.config.stored_features
+        return None if profile is None else FeatureFiles(profile_root(self.store.data_dir, profile))
+
+    def _keep_stored_features(self, results: Sequence[Encoded]) -> dict[int, Path]:
+        """Write the stored local features the encoder made, one file per image (keyed by its sha256, as its
+        image file is named); returns where, by reference id."""
+        files = self.stored_features_files()
+        kept: dict[int, Path] = {}
+        if files is None:
+            return kept
+        for r in results:
+            if r.stored_features is not None and r.error is None and not r.retry:
+                image = self.store.image_path(r.ref_id)
+                if image is not None:
+                    kept[r.ref_id] = files.write(image.name.split(".", 1)[0], r.stored_features)
+        return kept
+
+    # -- the rest ---------------------------------------------------------------------------------------
+    def delete(self, ref_id: int) -> str | None:
+        """None: no such reference; else whether its image file is ``"removed"`` or its removal ``"queued"``
+        (the reference is gone either way: see ``ReferenceStore.delete``)."""
+        outcome = self.store.delete(ref_id)
+        if outcome is not None:
+            self.collection.catch_up()  # gone from this process's searches at once
+        return outcome
+
+    def get(self, ref_id: int) -> Reference | None:
+        return self.store.get(ref_id)
+
+    def list(self, offset: int, limit: int, bbox=None) -> tuple[list[Reference], int]:
+        return self.store.list(offset, limit, bbox)
+
+    def page(self, after: int | None, before: int | None, limit: int, bbox=None) -> KeysetPage:
+        return self.store.page(after, before, limit, bbox)
+
+    def count_in(self, bbox=None) -> int:
+        return self.store.count_in(bbox)
+
+    def job(self, job_id: str) -> Job | None:
+        return self.store.job(job_id)
+
+    def image_path(self, ref_id: int) -> Path | None:
+        return self.store.image_path(ref_id)
+
+    def thumbnail(self, ref_id: int) -> bytes | None:
+        """The reference's JPEG thumbnail (``app.usecases.thumbnails``); None when there is no such reference.
+        FileNotFoundError when its stored image is gone."""
+        path = self.store.image_path(ref_id)
+        return None if path is None else thumbnail(path, self.thumbnail_px, self.limits)

@@ -1,0 +1,77 @@
+"""A collection is judged by its own calibration or by none (issue 34): a data dir that reads the models
+dir's pipeline, calibrated on another collection, answers with the conservative rule and says why; a refit
+calibrates it on itself; a collection too small for a confident answer says what it needs, in the refit's
+summary and on /ready. Real `geoloc fit`, `ingest`, `locate` and `refit` on penn photos, and a real server."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import pytest
+
+from app.engine.calibration import CONFIDENT_FROM_REFERENCES
+from app.usecases.service import GeolocService
+from tests.api.conftest import CONFIG, Server
+from tests.conftest import PENN
+from tests.test_cli import geoloc
+from tests.test_fit_reproducible import _manifest
+
+
+@pytest.fixture(scope="module")
+def calibrated(tmp_path_factory, models_dir, penn_index):
+    """A models dir whose hybrid-bin pipeline is fitted and calibrated by `geoloc fit` on 40 penn captures
+    (120 photos and crops); and that manifest."""
+    root = tmp_path_factory.mktemp("calibrated")
+    models = root / "models"
+    models.mkdir()
+    for f in models_dir.iterdir():
+        if f.is_file():
+            (models / f.name).symlink_to(f)
+    manifest, _ = _manifest(root, penn_index)
+    geoloc("fit", "--manifest", str(manifest), "--config", CONFIG, "--models-dir", str(models))
+    cal = json.loads((models / "pipelines" / CONFIG / "calibration.json").read_text())
+    assert cal["source"] == "collection" and len(cal["references"]) == 120, cal["note"]
+    return models, manifest
+
+
+def _locate(photo, data, models, *extra) -> str:
+    args = ["locate", str(photo), "--data-dir", str(data), "--models-dir", str(models), "--config", CONFIG]
+    return geoloc(*args, *extra).stdout
+
+
+def test_a_new_collection_is_judged_by_its_own_calibration_or_by_none(tmp_path, calibrated, penn_index):
+    models, manifest = calibrated
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    captures = [r for r in penn_index if r["photo"]][41:61]  # 20 photos the fit never saw
+    for r in captures:
+        shutil.copyfile(PENN / r["photo"], photos / r["photo"].split("/")[-1])
+    own, mine = tmp_path / "own", tmp_path / "mine"
+    where = ["--models-dir", str(models), "--config", CONFIG]
+    geoloc("ingest", "--manifest", str(manifest), "--split", "db", "--data-dir", str(own), *where)
+    geoloc("ingest", str(photos), "--data-dir", str(mine), *where)
+    query = PENN / captures[3]["crops"].split(";")[0]  # a crop of a photo of `mine`: its best match is 0 m off
+    # The collection the pipeline was calibrated on is judged by it: probabilities.
+    answer = json.loads(_locate(query, own, models))
+    assert answer["candidates"][0]["p_within_25m"] is not None
+    # Another collection is not: no probability borrowed, and the words say why and what to do.
+    answer = json.loads(_locate(query, mine, models))
+    assert all(c["p_within_25m"] is None for c in answer["candidates"])
+    assert "fitted on another collection" in answer["reason"] and "geoloc refit" in answer["reason"]
+    assert "calibration was fitted on another collection" in _locate(query, mine, models, "--brief")
+    service = GeolocService.open(mine, models, CONFIG)
+    try:  # what /ready says of it
+        assert "fitted on another collection" in service.collection.calibration_summary()
+    finally:
+        service.store.close()
+
+    # A refit calibrates it on itself; 20 photos are too few for a confident answer, and both the refit's
+    # summary and /ready say what it needs.
+    out = geoloc("refit", "--data-dir", str(mine), *where).stdout
+    needs = f"no answer can be confident in this collection yet: it needs about {CONFIDENT_FROM_REFERENCES} references"
+    assert needs in out and "(it has 20)" in out, out
+    with Server(mine, models) as s:
+        ready = s.client.get("/ready").json()
+    assert needs in ready["calibration"], ready
+    assert "fitted on another collection" not in ready["calibration"]
