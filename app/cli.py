@@ -24,6 +24,8 @@ from app.settings import Settings
 app = typer.Typer(add_completion=False, no_args_is_help=True, help=__doc__, pretty_exceptions_enable=False)
 models_app = typer.Typer(no_args_is_help=True, help="Build model artifacts.")
 app.add_typer(models_app, name="models")
+features_app = typer.Typer(no_args_is_help=True, help="Stored local features (verification from stored files).")
+app.add_typer(features_app, name="features")
 app.add_typer(library_app, name="library")  # issue 36: scan, review, write back, export
 
 _S = Settings()
@@ -322,7 +324,14 @@ def locate(
     image: Annotated[Path, typer.Argument(help="the photo to geolocate")],
     top_k: Annotated[int, typer.Option("--top-k", "-k")] = 10,
     mode: Annotated[str | None, typer.Option(help="float, binary or two-stage")] = None,
-    rerank: Annotated[bool, typer.Option("--rerank", help="geometric verification of the top candidates")] = False,
+    rerank: Annotated[
+        bool | None,
+        typer.Option(
+            "--rerank/--no-rerank",
+            help="geometric verification of the top candidates; default: the configuration's (on when it stores "
+            "local features)",
+        ),
+    ] = None,
     lat: Annotated[float | None, typer.Option(help="region centre (with --lon and --radius-m)")] = None,
     lon: Annotated[float | None, typer.Option()] = None,
     radius_m: Annotated[float | None, typer.Option("--radius-m")] = None,
@@ -634,6 +643,26 @@ def check(
             typer.secho(f"  - {p}", fg=typer.colors.RED, err=True)
         raise typer.Exit(1)
     typer.echo("ok: rows, images, codes and index agree")
+
+
+@features_app.command("backfill")
+def features_backfill(
+    data_dir: DataDir = _S.data_dir,
+    models_dir: ModelsDir = _S.models_dir,
+    config: ConfigOpt = _S.config,
+) -> None:
+    """Make the stored local features the data dir's indexed references lack (resumable: a file that exists
+    is done; progress printed). Safe beside a running service."""
+    from app.errors import OperationRefused
+    from app.jobs.backfill_features import backfill_stored_features
+
+    try:
+        report = backfill_stored_features(data_dir, models_dir, config, say=typer.echo)
+    except OperationRefused as e:
+        _fail(str(e))
+    if report.failed:
+        typer.secho(f"{report.failed} references could not be read or decoded: `geoloc check` names them", err=True)
+        raise typer.Exit(1)
 
 
 @app.command()

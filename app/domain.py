@@ -71,8 +71,9 @@ class Region:
 class LocateOptions:
     top_k: int = 10
     mode: str | None = None
-    #: Verify the top candidates with the configuration's matcher (the public option keeps its old name).
-    rerank: bool = False
+    #: Verify the top candidates (the public option keeps its old name). None: the configuration's default,
+    #: verified when it stores local features (``PipelineConfig.stored_features``), else not.
+    rerank: bool | None = None
     region: Region | None = None
     min_score: float = 0.0
 

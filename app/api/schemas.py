@@ -32,7 +32,11 @@ class CandidateOut(BaseModel):
     label: str | None = None
     captured_at: str | None = Field(None, description=CAPTURED_AT_DOC)
     heading: float | None = None
-    inliers: int | None = Field(None, description="geometric verification inliers, when rerank=true")
+    inliers: int | None = Field(
+        None,
+        description="geometric verification inliers, when verified (rerank=true, or by default with stored "
+        "local features); null when this candidate was not verified",
+    )
     p_within_25m: float | None = Field(
         None,
         description="probability that this reference lies within 25 m of where the photo was taken, calibrated on "

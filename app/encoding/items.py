@@ -14,6 +14,7 @@ import numpy as np
 from app.engine.errors import GeolocError
 from app.engine.imageio import ImageLimits, LoadedImage
 from app.engine.pipeline import Pipeline
+from app.engine.stored_features import encode as encode_stored
 from app.usecases.thumbnails import thumbnail_of
 
 log = logging.getLogger("geoloc.encoding")
@@ -40,6 +41,10 @@ class Encoded:
     retry: bool = False  # a storage failure: the row stays pending and is tried again later
     fingerprint: str | None = None  # the pipeline that made the codes (a re-fit may switch meanwhile)
     thumbnail: bytes | None = None  # a JPEG made from the same decode (``app.usecases.thumbnails``), when asked
+    #: The reference's stored local features (``app.engine.stored_features.encode``'s bytes) from the same
+    #: decode, when the configuration names a profile (``PipelineConfig.stored_features``); the writer keeps
+    #: them (``app.storage.feature_files``) before the row completes.
+    stored_features: bytes | None = None
 
 
 def read_item(item: EncodeItem) -> EncodeItem | Encoded:
@@ -68,6 +73,7 @@ def encode_data(
     try:
         img = pipeline.decode(data, limits.stored())
         codes = pipeline.encode_image(img.rgb)
+        stored = _stored_features(pipeline, img)
         thumb = _thumbnail(img, thumbnail_px)
     except GeolocError as e:
         return Encoded(ref_id, None, None, str(e), fingerprint=pipeline.fingerprint)
@@ -77,7 +83,16 @@ def encode_data(
         log.exception("reference %d: encoding failed", ref_id)
         reason = f"encoding failed: {type(e).__name__}: {str(e)[:300]}"
         return Encoded(ref_id, None, None, reason, fingerprint=pipeline.fingerprint)
-    return Encoded(ref_id, codes.float_, codes.binary, fingerprint=pipeline.fingerprint, thumbnail=thumb)
+    return Encoded(
+        ref_id, codes.float_, codes.binary, fingerprint=pipeline.fingerprint, thumbnail=thumb, stored_features=stored
+    )
+
+
+def _stored_features(pipeline: Pipeline, img: LoadedImage) -> bytes | None:
+    """The stored record from the encoder's own decode (the pixels /locate's query is extracted from too:
+    ``Pipeline.decode``), so a reference costs one decode whatever it stores."""
+    extractor = pipeline.stored_extractor
+    return None if extractor is None else encode_stored(extractor.record(img.rgb))
 
 
 def _thumbnail(img: LoadedImage, size: int | None) -> bytes | None:

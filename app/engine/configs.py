@@ -10,7 +10,7 @@ from __future__ import annotations
 import json
 from typing import ClassVar, Literal
 
-from pydantic import BaseModel, ConfigDict
+from pydantic import BaseModel, ConfigDict, field_validator
 
 from app.engine.errors import GeolocError
 
@@ -69,6 +69,11 @@ class PipelineConfig(BaseModel):
     svm_bank: bool = True
     #: The matcher that verifies the top candidates (verification, /locate's ``rerank``), by registry name.
     matcher: str = "sift-mnn"
+    #: The stored local-features profile (``app.engine.stored_profiles``): each reference's record is made at
+    #: encoding and stored beside it, and /locate verifies the top candidates from those records by default
+    #: (the query's features extracted once). None: nothing stored; verification is ``rerank=true``'s, by
+    #: ``matcher``, re-extracting each candidate.
+    stored_features: str | None = None
 
     #: Fields that change what ``Pipeline.extract`` returns (the evaluation caches features by them).
     EXTRACTION_FIELDS: ClassVar[tuple[str, ...]] = (
@@ -81,6 +86,15 @@ class PipelineConfig(BaseModel):
         "cnn_global_weight",
         "gem_p",
     )
+
+    @field_validator("stored_features")
+    @classmethod
+    def _known_profile(cls, name: str | None) -> str | None:
+        if name is not None:
+            from app.engine.stored_profiles import get_profile
+
+            get_profile(name)
+        return name
 
     def extraction_key(self) -> str:
         return json.dumps({f: getattr(self, f) for f in self.EXTRACTION_FIELDS}, sort_keys=True)
@@ -272,6 +286,14 @@ for _config in [
         description="lite2-hybrid-384 with whitening learned from the collection's GPS pairs (references within "
         "25 m as matching pairs; Radenovic, Tolias and Chum 2018) in place of PCA-whitening",
         whitening="learned",
+        **{**_LITE2_HYBRID, "local_long_side": 384, "cnn_short_side": 336},
+    ),
+    PipelineConfig(
+        name="lite2-hybrid-384-sv",
+        description="lite2-hybrid-384 with stored verification: each reference's XFeat features (640 px, 900 "
+        "keypoints, about 60 KB) stored at ingestion, and the top 10 candidates of every answer verified from "
+        "them (the query's XFeat features extracted once)",
+        stored_features="xfeat-640-n900",
         **{**_LITE2_HYBRID, "local_long_side": 384, "cnn_short_side": 336},
     ),
     PipelineConfig(

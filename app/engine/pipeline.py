@@ -31,6 +31,7 @@ from app.engine.matchers.base import Matcher
 from app.engine.models.base import GlobalModel
 from app.engine.pca import PcaWhitening, l2_normalize
 from app.engine.registry import Kind, create, plugin
+from app.engine.stored_profiles import StoredExtractor, get_profile
 from app.engine.svm_bank import SvmBank
 from app.engine.vlad import Codebook, vlad
 
@@ -136,6 +137,7 @@ class Pipeline:
         self.global_model = global_model if config.uses_global_model else None
         self.models_dir = models_dir
         self._matcher: Matcher | None = None
+        self._stored_extractor: StoredExtractor | None = None
         self.codebook = codebook
         self.pca = pca
         self.binariser = binariser
@@ -168,6 +170,8 @@ class Pipeline:
         model = getattr(self._local, "model", None)  # learned extractors hold an OnnxModel
         if model is not None:
             model.load()
+        if self.stored_extractor is not None:
+            self.stored_extractor.load()
 
     @property
     def matcher(self) -> Matcher:
@@ -176,6 +180,19 @@ class Pipeline:
         if self._matcher is None:
             self._matcher = create(Kind.MATCHER, self.config.matcher, self.models_dir)
         return self._matcher
+
+    @property
+    def stored_extractor(self) -> StoredExtractor | None:
+        """The configuration's stored local-features extractor (``app.engine.stored_profiles``), or None when
+        it stores none: the record of each reference at encoding, the query's features at /locate."""
+        name = self.config.stored_features
+        if name is None:
+            return None
+        if self._stored_extractor is None:
+            if self.models_dir is None:
+                raise ModelNotReady(f"configuration {self.config.name} stores XFeat features: give the models dir")
+            self._stored_extractor = StoredExtractor(get_profile(name), self.models_dir)
+        return self._stored_extractor
 
     # -- stage 0: decode ------------------------------------------------------------------------------
     @property

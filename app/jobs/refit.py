@@ -33,6 +33,7 @@ from app.engine.imageio import ImageLimits
 from app.engine.pipeline import Pipeline, PipelineSource
 from app.errors import FitRefused, RefitError, StorageUnavailable
 from app.jobs.writer import write_snapshot_if_free
+from app.storage.feature_files import FeatureFiles, profile_root
 from app.storage.generations import ReindexTarget
 from app.storage.store import ReferenceStore
 from app.usecases.collection import Collection, pipeline_source
@@ -208,6 +209,7 @@ def reindex(
     batch, pass after pass until a pass finds nothing (uploads indexed meanwhile are found by the next one).
     ``limit``: stop after that many (an interrupted re-index, for tests). Returns (encoded, failed)."""
     done = failed = retry_passes = 0
+    keep_stored = stored_features_keeper(store, target.config)
     while True:
         after, found, retried = 0, 0, 0
         while True:
@@ -221,6 +223,7 @@ def reindex(
             for results in batched(engine.run(items), batch):
                 final = [(r.ref_id, r.float_code, r.binary_code, r.error) for r in results if not r.retry]
                 retried += len(results) - len(final)
+                keep_stored(results)  # before the codes, as the worker's complete keeps them
                 if final:
                     store.put_next_codes(target, final)
                 found += len(final)
@@ -237,6 +240,26 @@ def reindex(
             if retry_passes >= MAX_RETRY_PASSES:
                 raise StorageUnavailable(f"{retried} stored images could not be read: re-run `geoloc refit` later")
             time.sleep(1.0)
+
+
+def stored_features_keeper(store: ReferenceStore, config: str) -> Callable[[Sequence[Encoded]], None]:
+    """Writes the stored local features the re-encoding made (``Encoded.stored_features``) when the new
+    generation's configuration stores them: a re-fit re-makes them with the codes. The files are keyed by
+    the image and the folder by the profile, so one that the old generation wrote is replaced by the same
+    extractor's bytes, and a profile the old generation lacked is complete by the switch."""
+    profile = get_config(config).stored_features
+    if profile is None:
+        return lambda results: None
+    files = FeatureFiles(profile_root(store.data_dir, profile))
+
+    def keep(results: Sequence[Encoded]) -> None:
+        for r in results:
+            if r.stored_features is not None and r.error is None and not r.retry:
+                image = store.image_path(r.ref_id)
+                if image is not None:
+                    files.write(image.name.split(".", 1)[0], r.stored_features)
+
+    return keep
 
 
 def switch(store: ReferenceStore, target: Target) -> int | None:

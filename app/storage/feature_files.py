@@ -37,7 +37,24 @@ from pathlib import Path
 from app.permissions import PRIVATE_FILE, private_dir
 
 SUFFIX = ".lf"
+#: The data dir's folder of profiles: ``<data_dir>/features/<profile>/`` is one ``FeatureFiles`` root.
+FEATURES = "features"
 _SHA256 = re.compile(r"[0-9a-f]{64}")
+
+
+def profile_root(data_dir: Path, profile: str) -> Path:
+    """Where a profile's files live in a data dir (one folder per profile: two extractors never mix)."""
+    return Path(data_dir) / FEATURES / profile
+
+
+def delete_everywhere(data_dir: Path, sha: str) -> None:
+    """Remove an image's stored features under every profile (with the image: a removal does not know which
+    profile the data dir used when the image was encoded; there are a handful of folders, no scan)."""
+    folder = Path(data_dir) / FEATURES
+    if _SHA256.fullmatch(sha) and folder.is_dir():
+        for profile in folder.iterdir():
+            if profile.is_dir():
+                FeatureFiles(profile).delete(sha)
 
 
 class FeatureFiles:

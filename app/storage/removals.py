@@ -16,6 +16,7 @@ import time
 from collections.abc import Sequence
 
 from app.storage.database import Part
+from app.storage.feature_files import delete_everywhere
 from app.storage.files import THUMBNAILS
 
 log = logging.getLogger("geoloc.store")
@@ -83,6 +84,7 @@ class Removals(Part):
             try:
                 (self.database.images_dir / name).unlink(missing_ok=True)
                 self._unlink_thumbnails(name)
+                delete_everywhere(self.database.data_dir, name.split(".", 1)[0])
                 removed.append(name)
             except OSError as e:
                 log.warning("cannot remove %s now: %s", self.database.images_dir / name, e)

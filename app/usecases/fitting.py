@@ -460,7 +460,7 @@ def calibrate_collection(
     for i in ids:
         by_group.setdefault(refs[i].group, []).append(i)
     source = GeotaggedReferences(refs, dict(images) if images else None)
-    options = LocateOptions(top_k=ESTIMATE_CANDIDATES)
+    options = LocateOptions(top_k=ESTIMATE_CANDIDATES, rerank=False)  # the unverified rule, whatever the default
     verified_options = LocateOptions(top_k=ESTIMATE_CANDIDATES, rerank=True)
     to_verify = set([i for i in held if i in images][: max(0, verify_sample)] if images else [])
     features_cache = BoundedCache(FEATURES_KEPT)

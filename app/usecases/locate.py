@@ -30,8 +30,11 @@ from app.engine.evidence import gather
 from app.engine.geo import haversine_m
 from app.engine.imageio import ImageLimits, load_image
 from app.engine.matchers.base import Matcher, Verification
-from app.engine.matchers.fusion import fused_score
+from app.engine.matchers.fusion import FUSION_FLOOR, fused_score
 from app.engine.pipeline import Codes, Features, Pipeline
+from app.engine.stored_features import StoredFeatures, StoredFeaturesError, decode
+from app.engine.stored_verification import verify_stored
+from app.storage.feature_files import FeatureFiles
 from app.storage.store import ReferenceStore
 
 log = logging.getLogger("geoloc.locate")
@@ -83,6 +86,35 @@ class StoreReferences:
             return path.read_bytes() if path is not None else None
         except OSError:
             return None
+
+
+class StoredFeaturesSource(Protocol):
+    """Where the candidates' stored local features come from (``PipelineConfig.stored_features``)."""
+
+    def stored_features(self, ids: Sequence[int]) -> dict[int, StoredFeatures]: ...
+
+
+class StoredReferenceFeatures:
+    """The data dir's stored features: the candidates' image names in one batched read, then one small file
+    read each (never all in memory: ``app.storage.feature_files``)."""
+
+    def __init__(self, store: ReferenceStore, files: FeatureFiles):
+        self.store = store
+        self.files = files
+
+    def stored_features(self, ids: Sequence[int]) -> dict[int, StoredFeatures]:
+        """Those of ``ids`` with a readable file; a missing one (not back-filled yet) or a corrupt one is left
+        out, so its candidate is unverified rather than the request failed."""
+        out = {}
+        for i, ref in self.store.get_many(ids).items():
+            data = self.files.read(ref.sha256)
+            if data is None:
+                continue
+            try:
+                out[i] = decode(data)
+            except StoredFeaturesError as e:
+                log.warning("reference %d: its stored features are unreadable (%s); left unverified", i, e)
+        return out
 
 
 class Excluding:
@@ -169,15 +201,49 @@ def verify_candidate_pairs(
     return out
 
 
+def verify_from_stored(
+    query_rgb: np.ndarray,
+    head: Sequence[tuple[int, float]],
+    pipeline: Pipeline,
+    stored: StoredFeaturesSource,
+) -> dict[int, Verification | None]:
+    """Verify the ``head`` candidates ((id, global score), retrieval order) against their stored features:
+    the query's extracted once by the configuration's profile, the candidates' read from their files, all
+    matched in one batch (``verify_stored``, with the profile's adaptive stop). None where a candidate was
+    not verified: no stored file, another extractor's record, left out by the stop, or OpenCV refused it."""
+    extractor = pipeline.stored_extractor
+    if extractor is None:
+        raise ValueError(f"configuration {pipeline.config.name} stores no local features")
+    profile = extractor.profile
+    ids = [i for i, _ in head]
+    records = stored.stored_features(ids)
+    given = [r if r is not None and r.kind == profile.kind else None for r in (records.get(i) for i in ids)]
+    out: dict[int, Verification | None] = dict.fromkeys(ids)
+    if not any(r is not None for r in given):
+        return out
+    try:
+        outcome = verify_stored(
+            extractor.query(query_rgb), given, [s for _, s in head], profile.settings, profile.stop_margin
+        )
+    except (cv2.error, GeolocError) as e:
+        log.debug("verification of references %s skipped: %s", ids, e)
+        return out
+    for i, v in zip(ids, outcome.verifications, strict=True):
+        if v is not None and v.error is not None:
+            log.debug("verification of reference %s skipped: %s", i, v.error)
+        out[i] = None if v is None or v.error is not None else v
+    return out
+
+
 def order_by_verification(
-    ranked: Sequence[tuple[int, float]], inliers: dict[int, int | None]
+    ranked: Sequence[tuple[int, float]], inliers: dict[int, int | None], floor: int = FUSION_FLOOR
 ) -> list[tuple[int, float]]:
     """(id, global score) pairs re-ordered by ``fused_score``; ties keep the retrieval order.
 
     Unverified candidates (None, 0 inliers, or not in ``inliers``) keep their global score, so verification
     only ever lifts a candidate and never reorders the unverified among themselves. The scores returned
     stay the global ones: calibration and the estimate are fitted on them."""
-    by_fused = [(fused_score(s, inliers.get(i) or 0), n) for n, (i, s) in enumerate(ranked)]
+    by_fused = [(fused_score(s, inliers.get(i) or 0, floor=floor), n) for n, (i, s) in enumerate(ranked)]
     return [ranked[n] for _, n in sorted(by_fused, key=lambda p: (-p[0], p[1]))]
 
 
@@ -193,14 +259,19 @@ def locate_features(
     codes: Codes | None = None,
     features_cache: dict[int, object] | None = None,
     calibration: Calibration | None = None,
+    stored: StoredFeaturesSource | None = None,
 ) -> LocateAnswer:
     """Search, verify, fuse, shape. ``query_rgb`` is needed only for verification (``options.rerank``, the public
-    option's name).
+    option's name; None: verified when the configuration stores local features).
+    ``stored``: the candidates' stored local features; with a configuration that stores them, verification
+    reads them (``verify_from_stored``) instead of re-extracting each candidate with the matcher.
     ``calibration``: the rule that judges this collection (``Collection.calibration``), else the pipeline's.
     ``codes``: the features already encoded by ``pipeline`` (calibration and the evaluation locate one photo
     twice, its place present and absent: the second search reuses the first's codes). ``features_cache``:
     the references' matcher features kept across calls (``verify_candidate_pairs``)."""
     mode = index.check_mode(options.mode)
+    profile = pipeline.config.stored_features
+    verify = options.rerank if options.rerank is not None else profile is not None
     t: dict[str, float] = {}
     allowed = None
     if options.region is not None:
@@ -225,16 +296,21 @@ def locate_features(
     ranked = [(int(i), float(s)) for i, s in zip(ids, scores, strict=True) if int(i) in info]
     inliers: dict[int, int | None] = {}
     verification: dict[int, Verification | None] = {}
-    if options.rerank and ranked:
+    if verify and ranked:
         if query_rgb is None:
             raise ValueError("verification needs the query image")
         t0 = time.perf_counter()
-        head = [i for i, _ in ranked[:VERIFIED_CANDIDATES]]
-        verification = verify_candidate_pairs(
-            query_rgb, head, refs, limits or ImageLimits(), pipeline.matcher, features_cache
-        )
+        floor = FUSION_FLOOR
+        if profile is not None and stored is not None:
+            verification = verify_from_stored(query_rgb, ranked[:VERIFIED_CANDIDATES], pipeline, stored)
+            floor = pipeline.stored_extractor.profile.fusion_floor
+        else:
+            head = [i for i, _ in ranked[:VERIFIED_CANDIDATES]]
+            verification = verify_candidate_pairs(
+                query_rgb, head, refs, limits or ImageLimits(), pipeline.matcher, features_cache
+            )
         inliers = {i: None if v is None else v.inliers for i, v in verification.items()}
-        ranked = order_by_verification(ranked, inliers)
+        ranked = order_by_verification(ranked, inliers, floor)
         t["rerank"] = (time.perf_counter() - t0) * 1000  # the public timing's name: verification
     t0 = time.perf_counter()
     fused = ranked[:ESTIMATE_CANDIDATES]
@@ -249,11 +325,11 @@ def locate_features(
         np.array([info[i].lat for i in fused_ids]),
         np.array([info[i].lon for i in fused_ids]),
         np.array([s for _, s in fused]),
-        verification if options.rerank else None,
+        verification if verify else None,
         fused_ids,
     )
     # A verified answer is judged by the rule fitted on verified answers, when the collection has one.
-    calibration = (calibration or pipeline.calibration).for_answer(bool(options.rerank))
+    calibration = (calibration or pipeline.calibration).for_answer(verify)
     if mode != index.check_mode(None) and calibration.calibrated:
         # The calibration located its sample in the default mode: another mode's scores (Hamming similarities
         # in binary mode) are on another scale, and reading them through it would invent probabilities.
@@ -278,7 +354,7 @@ def locate_features(
             label=info[i].label,
             captured_at=info[i].captured_at,
             heading=info[i].heading,
-            inliers=inliers.get(i) if options.rerank else None,
+            inliers=inliers.get(i) if verify else None,
             p_within_25m=round(float(probability[i]), 4) if i in probability else None,
             distance_m=float(haversine_m(confident.lat, confident.lon, info[i].lat, info[i].lon))
             if confident

@@ -22,6 +22,7 @@ from app.engine.configs import DEFAULT_CONFIG
 from app.errors import OperationRefused
 from app.permissions import private_dir, private_tree
 from app.storage.backend import StorageBackend
+from app.storage.feature_files import FeatureFiles, profile_root
 from app.storage.files import IMAGES
 from app.storage.orphans import MIN_AGE_S, retry_removals, sweep
 from app.storage.settings import storage_backend
@@ -100,6 +101,7 @@ def check_data_dir(data_dir: Path, models_dir: Path, config: str | None) -> Chec
     ]
     if bad_codes:
         r.problems.append(f"indexed references without codes of the pipeline's size: {_sample(bad_codes)}")
+    _check_stored_features(store, pipeline.config.stored_features, rows, r)
     indexed = np.array(sorted(row.id for row in rows if row.status == "indexed"), np.int64)
     try:
         index, manifest = load_snapshot(store.snapshots_dir, pipeline, store)
@@ -125,6 +127,23 @@ def check_data_dir(data_dir: Path, models_dir: Path, config: str | None) -> Chec
         r.problems.append(f"index entries without an indexed row: {_sample(extra.tolist())}")
     store.close()
     return r
+
+
+def _check_stored_features(store: ReferenceStore, profile: str | None, rows, r: CheckReport) -> None:
+    """With a configuration that stores local features: the indexed references whose file is missing (they
+    are found, but never verified: a data dir ingested before the configuration stored them, or a crash
+    between the file and its row). One listing of the profile's folders, as the images are listed."""
+    if profile is None:
+        return
+    files = FeatureFiles(profile_root(store.data_dir, profile))
+    stored = set(files.names())
+    indexed = [row for row in rows if row.status == "indexed"]
+    missing = [row.id for row in indexed if row.image.split(".", 1)[0] not in stored]
+    r.lines.append(f"stored features ({profile}): {len(stored)} files, {len(missing)} indexed references without one")
+    if missing:
+        r.problems.append(
+            f"references whose stored features file is missing (found, never verified): {_sample(missing)}"
+        )
 
 
 def _check_leftovers(store: ReferenceStore, data_dir: Path, r: CheckReport) -> None:

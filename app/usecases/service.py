@@ -25,10 +25,11 @@ from app.engine.pipeline import Features, Pipeline
 from app.errors import InvalidRequest
 from app.runtime import release_free_memory
 from app.storage.backend import StorageBackend
+from app.storage.feature_files import FeatureFiles, profile_root
 from app.storage.queue import Job
 from app.storage.store import KeysetPage, NewReference, Reference, ReferenceStore
 from app.usecases.collection import Collection, SnapshotPolicy
-from app.usecases.locate import StoreReferences, locate_features
+from app.usecases.locate import StoredReferenceFeatures, StoreReferences, locate_features
 from app.usecases.thumbnails import THUMBNAIL_PX, keep_thumbnail, thumbnail
 from app.usecases.uploads import _differences, prepare_upload
 
@@ -120,8 +121,20 @@ class GeolocService:
         if features.config is not None and features.config != view.pipeline.config.name:
             features = view.pipeline.extract(img.rgb)
         calibration = col.calibration(view.pipeline)
+        profile = view.pipeline.config.stored_features
+        stored = None
+        if profile is not None:
+            stored = StoredReferenceFeatures(self.store, FeatureFiles(profile_root(self.store.data_dir, profile)))
         answer = locate_features(
-            view.pipeline, view, self.refs, features, options, img.rgb, self.limits, calibration=calibration
+            view.pipeline,
+            view,
+            self.refs,
+            features,
+            options,
+            img.rgb,
+            self.limits,
+            calibration=calibration,
+            stored=stored,
         )
         answer.index_size, answer.index_generation = view.index.size, view.generation
         answer.index_version = col.version if col.generation == view.generation else 0
@@ -219,6 +232,7 @@ class GeolocService:
         are not recorded: their rows stay pending, and this process loads the new generation before
         returning, so the next batch is encoded by it."""
         kept = self._keep_thumbnails(results)  # before the rows: a finished job's thumbnail is there
+        stored = self._keep_stored_features(results)  # before the rows too: an indexed row can be verified
         by_pipeline: dict[str | None, list] = {}
         for r in results:
             if not r.retry:
@@ -230,6 +244,9 @@ class GeolocService:
             stale |= fingerprint is not None and not recorded and any(e is None for *_, e in final)
             done += recorded
         for ref_id, path in kept.items():  # deleted meanwhile, or left pending: no thumbnail outlives its row
+            if ref_id not in done:
+                path.unlink(missing_ok=True)
+        for ref_id, path in stored.items():
             if ref_id not in done:
                 path.unlink(missing_ok=True)
         if stale and self.store.get_meta("fingerprint") != self.pipeline.fingerprint:
@@ -245,6 +262,26 @@ class GeolocService:
                 image = self.store.image_path(r.ref_id)
                 if image is not None and (path := keep_thumbnail(image, self.thumbnail_px, r.thumbnail)):
                     kept[r.ref_id] = path
+        return kept
+
+    def stored_features_files(self) -> FeatureFiles | None:
+        """The configuration's stored local-features files (``data_dir/features/<profile>``), or None when
+        it stores none."""
+        profile = self.pipeline.config.stored_features
+        return None if profile is None else FeatureFiles(profile_root(self.store.data_dir, profile))
+
+    def _keep_stored_features(self, results: Sequence[Encoded]) -> dict[int, Path]:
+        """Write the stored local features the encoder made, one file per image (keyed by its sha256, as its
+        image file is named); returns where, by reference id."""
+        files = self.stored_features_files()
+        kept: dict[int, Path] = {}
+        if files is None:
+            return kept
+        for r in results:
+            if r.stored_features is not None and r.error is None and not r.retry:
+                image = self.store.image_path(r.ref_id)
+                if image is not None:
+                    kept[r.ref_id] = files.write(image.name.split(".", 1)[0], r.stored_features)
         return kept
 
     # -- the rest ---------------------------------------------------------------------------------------

@@ -35,7 +35,13 @@ def locate(
     image: Annotated[UploadFile, File(description="the photo (JPEG, PNG, WebP or TIFF)")],
     top_k: Annotated[int, Form(ge=1, le=100)] = 10,
     mode: Annotated[str | None, Form(description="float, binary or two-stage; default: the best available")] = None,
-    rerank: Annotated[bool, Form(description="geometric verification of the top candidates (slower)")] = False,
+    rerank: Annotated[
+        bool | None,
+        Form(
+            description="geometric verification of the top candidates; default: on for a configuration that "
+            "stores local features, off (slower, re-extracting) otherwise"
+        ),
+    ] = None,
     lat: Annotated[float | None, Form(description="region centre (with lon and radius_m)")] = None,
     lon: Annotated[float | None, Form()] = None,
     radius_m: Annotated[float | None, Form()] = None,
