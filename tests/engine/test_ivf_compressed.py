@@ -112,8 +112,11 @@ def test_binary_ivf_round_trip_and_agreement_with_exact_hamming(codes, tmp_path)
     distances = np.unpackbits(bits[:50, None] ^ bits[None], axis=2).sum(axis=2)
     assert np.allclose(1 - np.sort(distances, axis=1)[:, :5] / 256, scores)
     assert index.remove([0, 1]) == 2 and not np.isin([0, 1], index.search(bits[:2], 5)[1]).any()
-    _, ids = index.search(bits[:1], 5, allowed=np.array([9, 10]))
-    assert set(ids[0][ids[0] >= 0]) == {9, 10}
+    _, ids = index.search(bits[:1], 5, allowed=np.array([9, 10, 0]))
+    assert set(ids[0][ids[0] >= 0]) == {9, 10}  # 0 was removed
+    index.exact_filter_max = 1  # a large region: the over-fetched result is filtered
+    _, ids = index.search(bits[4:5], 5, allowed=np.arange(2, 4000, 2))
+    assert ids[0, 0] == 4 and np.isin(ids[ids >= 0], np.arange(2, 4000, 2)).all()
     path = tmp_path / "binary.faiss"
     index.dump(path)
     loaded = BinaryIvfIndex(256, nprobe=64)

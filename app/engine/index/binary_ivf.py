@@ -31,10 +31,11 @@ class BinaryIvfIndex:
     kind = "binary-ivf"
     binary = True
 
-    def __init__(self, dim: int, *, nlist: int | None = None, nprobe: int = 32):
+    def __init__(self, dim: int, *, nlist: int | None = None, nprobe: int = 32, exact_filter_max: int = 4096):
         if dim % 8:
             raise ValueError("binary codes need a multiple of 8 bits")
-        self.dim, self.nlist, self.nprobe = dim, nlist, nprobe
+        self.dim, self.nlist, self.nprobe, self.exact_filter_max = dim, nlist, nprobe, exact_filter_max
+        self._owner: faiss.IndexBinary | None = None
         self._index: faiss.IndexBinaryIVF | None = None
 
     @property
@@ -89,7 +90,11 @@ class BinaryIvfIndex:
         return int(self._index.remove_ids(faiss.IDSelectorArray(ids)))
 
     def search(self, q: np.ndarray, k: int, allowed: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """Top ``k`` per query as (1 - Hamming / bits, ids), best first, ids -1 where fewer exist."""
+        """Top ``k`` per query as (1 - Hamming / bits, ids), best first, ids -1 where fewer exist.
+
+        ``allowed`` (the region filter): FAISS 1.15's ``IndexBinaryIVF`` refuses id selectors, so a region of
+        up to ``exact_filter_max`` ids is scored exactly from its stored codes (read through the direct map),
+        and a larger one filters an over-fetched result (which may then hold fewer than ``k``)."""
         q = self._prepare(q)
         nq = len(q)
         scores = np.zeros((nq, k), np.float32)
@@ -98,15 +103,42 @@ class BinaryIvfIndex:
             return scores, out_ids
         params = faiss.SearchParametersIVF(nprobe=self.nprobe)
         if allowed is not None:
-            allowed = np.ascontiguousarray(allowed, np.int64)
+            allowed = np.unique(np.asarray(allowed, np.int64))
             if not len(allowed):
                 return scores, out_ids
-            sel = faiss.IDSelectorBatch(allowed)
-            params.sel = sel
-        d, i = self._index.search(q, k, params=params)
+            if len(allowed) <= self.exact_filter_max:
+                return self._search_exact(q, k, allowed)
+        depth = k if allowed is None else min(self._index.ntotal, 8 * k)
+        d, i = self._index.search(q, depth, params=params)
+        if allowed is not None:
+            for r in range(nq):
+                keep = np.flatnonzero(np.isin(i[r], allowed) & (i[r] >= 0))[:k]
+                d[r, : len(keep)], i[r, : len(keep)] = d[r, keep], i[r, keep]
+                i[r, len(keep) :] = -1
+        d, i = d[:, :k], i[:, :k]
         ok = i >= 0
         scores[ok] = 1.0 - d[ok].astype(np.float32) / self.dim
         out_ids[ok] = i[ok]
+        return scores, out_ids
+
+    def _search_exact(self, q: np.ndarray, k: int, allowed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        present, codes = [], []
+        for ref_id in allowed:
+            try:
+                codes.append(self._index.reconstruct(int(ref_id)))
+                present.append(ref_id)
+            except RuntimeError:  # not in the index
+                continue
+        scores = np.zeros((len(q), k), np.float32)
+        out_ids = np.full((len(q), k), -1, np.int64)
+        if not present:
+            return scores, out_ids
+        bits = np.unpackbits(np.stack(codes), axis=1)
+        d = (np.unpackbits(q, axis=1)[:, None, :] != bits[None]).sum(axis=2)
+        order = np.argsort(d, axis=1, kind="stable")[:, :k]
+        m = order.shape[1]
+        scores[:, :m] = 1.0 - np.take_along_axis(d, order, axis=1).astype(np.float32) / self.dim
+        out_ids[:, :m] = np.asarray(present, np.int64)[order]
         return scores, out_ids
 
     def ids(self) -> np.ndarray:
@@ -133,10 +165,14 @@ class BinaryIvfIndex:
         os.replace(tmp, path)
 
     def load(self, path: Path) -> None:
-        index = faiss.read_index_binary(str(path))
-        if index.d != self.dim:
-            raise ValueError(f"{path} holds a {index.d}-bit index; this one is {self.dim}-bit")
-        index = faiss.downcast_IndexBinary(index) if hasattr(faiss, "downcast_IndexBinary") else index
+        owner = faiss.read_index_binary(str(path))
+        if owner.d != self.dim:
+            raise ValueError(f"{path} holds a {owner.d}-bit index; this one is {self.dim}-bit")
+        # a downcast view does not own the C++ index: keep the owner alive beside it
+        index = owner if isinstance(owner, faiss.IndexBinaryIVF) else faiss.downcast_IndexBinary(owner)
+        if not isinstance(index, faiss.IndexBinaryIVF):
+            raise ValueError(f"{path} does not hold a binary IVF index")
+        self._owner = owner
         if index.direct_map.type != faiss.DirectMap.Hashtable:
             index.set_direct_map_type(faiss.DirectMap.Hashtable)
         index.nprobe = self.nprobe
@@ -147,6 +183,7 @@ class BinaryIvfIndex:
             "kind": self.kind,
             "nlist": self.nlist,
             "nprobe": self.nprobe,
+            "exact_filter_max": self.exact_filter_max,
             "code_bytes": self.dim // 8,
             "trained": self.is_trained,
             "size": self.size,
