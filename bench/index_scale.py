@@ -32,9 +32,9 @@ from pathlib import Path
 import faiss
 import numpy as np
 
-from app.engine.index.binary_ivf import BinaryIvfIndex
-from app.engine.index.binary_ivf import default_nlist as binary_default_nlist
-from app.engine.index.ivf_compressed import IvfCompressedIndex, default_nlist, training_sample_size
+from app.engine.index.ivf_lists import MAX_POINTS_PER_LIST, default_nlist
+from app.engine.index.kinds.binary_ivf import BinaryIvfIndex
+from app.engine.index.kinds.ivf_rabitq import IvfCompressedIndex
 from bench.scale_codes import (
     CodeGenerator,
     PennCodes,
@@ -121,40 +121,47 @@ def _change_costs(index, fresh: np.ndarray, first_id: int) -> tuple[float, float
 _LOAD_PROBE = """
 import json, resource, sys, time
 import faiss
+from app.engine.index.base import build_index
+import app.engine.index.kinds.binary_ivf, app.engine.index.kinds.ivf_rabitq  # imports outside the measure
 def rss():
     return int(open('/proc/self/statm').read().split()[1]) * 4096
 before = rss(); peak_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
 t0 = time.perf_counter()
-index = (faiss.read_index_binary if sys.argv[2] == 'binary' else faiss.read_index)(sys.argv[1])
-if sys.argv[2] != 'binary':
-    ivf = faiss.extract_index_ivf(index)
+binary = sys.argv[2] == 'binary'
+# the float kind's re-rank codes are the bench's memory-mapped synthetic codes, not in its file: an external
+# reader (never called here) loads the FAISS part alone
+index = build_index(sys.argv[3], int(sys.argv[4]), binary, **({} if binary else {"float_codes": print}))
+index.load(sys.argv[1])
 seconds = time.perf_counter() - t0
 after = rss(); peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
 # the process's peak before the load (import transients) hides the load's own peak unless the load raised it
 print(json.dumps({"seconds": seconds, "resident": after - before,
                   "peak": (peak if peak > peak_before else after) - before,
-                  "ntotal": index.ntotal}))
+                  "ntotal": index.size}))
 """
 
 
-def measure_load(path: Path, binary: bool) -> dict:
-    """Load the dumped index in a fresh process: its time, the resident memory it adds and its peak."""
+def measure_load(path: Path, index) -> dict:
+    """Load the dumped index through its kind in a fresh process: its time, the resident memory it adds and
+    its peak."""
+    binary = "binary" if index.binary else "float"
+    root = str(Path(__file__).resolve().parents[1])
     out = subprocess.run(
-        [sys.executable, "-c", _LOAD_PROBE, str(path), "binary" if binary else "float"],
+        [sys.executable, "-c", _LOAD_PROBE, str(path), binary, index.kind, str(index.dim)],
         capture_output=True,
         text=True,
         check=True,
-        env={**os.environ, "OMP_NUM_THREADS": "1"},
+        env={**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": root},
     )
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
-def _persist(index, n: int, path: Path, binary: bool) -> dict:
+def _persist(index, n: int, path: Path) -> dict:
     t0 = time.perf_counter()
     index.dump(path)
     dump_s = time.perf_counter() - t0
     size = path.stat().st_size
-    load = measure_load(path, binary)
+    load = measure_load(path, index)
     path.unlink()
     return {
         "dump_s": dump_s,
@@ -172,8 +179,10 @@ def _sample(codes: np.ndarray, n: int, m: int, rng: np.random.Generator) -> np.n
 
 def build_float(codes, n: int, codec: str, rng, progress) -> tuple[IvfCompressedIndex, float, float]:
     """Train on a sample of the first ``n`` codes, then add them all in chunks; returns (index, train s, add s)."""
-    index = IvfCompressedIndex(codes.shape[1], lambda ids: np.asarray(codes[ids], dtype=np.float32), codec=codec)
-    sample = _sample(codes, n, training_sample_size(default_nlist(n)), rng)
+    index = IvfCompressedIndex(
+        codes.shape[1], codec=codec, float_codes=lambda ids: np.asarray(codes[ids], dtype=np.float32)
+    )
+    sample = _sample(codes, n, MAX_POINTS_PER_LIST * default_nlist(n), rng)
     t0 = time.perf_counter()
     index.nlist = default_nlist(n)
     index.train(sample)
@@ -195,8 +204,7 @@ def measure_float_kind(
     sweep = []
     for nprobe in sweep_nprobe:
         for shortlist in sweep_shortlist:
-            index.nprobe, index.shortlist = nprobe, shortlist
-            index._tune()
+            index.set_search(nprobe, shortlist)
             p50, res = _p50_ms(lambda q: index.search(q, K)[1][0], queries)
             found = np.stack(res)
             sweep.append(
@@ -211,11 +219,10 @@ def measure_float_kind(
             )
             progress(f"    nprobe {nprobe:4d} shortlist {shortlist:4d}: {sweep[-1]}")
     best = choose(sweep)
-    index.nprobe, index.shortlist = best["nprobe"], best["shortlist"]
-    index._tune()
+    index.set_search(best["nprobe"], best["shortlist"])
     add_ms, remove_ms = _change_costs(index, gen.draw(200, rng), first_id=10**12)
     faiss.omp_set_num_threads(BUILD_THREADS)
-    persist = _persist(index, n, OUT / f"float-{codec}-{n}.faiss", binary=False)
+    persist = _persist(index, n, OUT / f"float-{codec}-{n}.faiss")
     fig = KindFigures(
         n,
         f"ivf-{codec.lower()}",
@@ -275,7 +282,7 @@ def measure_binary(codes, n, queries, n_synth_q, sweep_nprobe, gen, rng, progres
     faiss.omp_set_num_threads(SEARCH_THREADS)
     flat_p50, _ = _p50_ms(lambda q: flat.search(q, K), qb[:100])
     faiss.omp_set_num_threads(BUILD_THREADS)
-    nlist = binary_default_nlist(n)
+    nlist = default_nlist(n)
     sample = sign_bits(_sample(codes, n, 64 * nlist, rng))
     index = BinaryIvfIndex(bits, nlist=nlist)
     t0 = time.perf_counter()
@@ -300,7 +307,7 @@ def measure_binary(codes, n, queries, n_synth_q, sweep_nprobe, gen, rng, progres
     index.nprobe = best["nprobe"]
     add_ms, remove_ms = _change_costs(index, sign_bits(gen.draw(200, rng)), first_id=10**12)
     faiss.omp_set_num_threads(BUILD_THREADS)
-    persist = _persist(index, n, OUT / f"binary-{n}.faiss", binary=True)
+    persist = _persist(index, n, OUT / f"binary-{n}.faiss")
     exact = KindFigures(n, "binary flat (exact Hamming)", {}, flat_p50, 1.0, 1.0, ram_bytes_per_ref=bits / 8 + 8)
     fig = KindFigures(
         n,

@@ -3,8 +3,9 @@
 import numpy as np
 import pytest
 
-from app.engine.index.binary_ivf import BinaryIvfIndex
-from app.engine.index.ivf_compressed import IvfCompressedIndex
+from app.engine.index.base import IndexNotTrained, build_index
+from app.engine.index.kinds.binary_ivf import BinaryIvfIndex
+from app.engine.index.kinds.ivf_rabitq import IvfCompressedIndex
 
 
 def clustered(n: int, dim: int = 256, places: int = 100, seed: int = 0) -> np.ndarray:
@@ -21,7 +22,7 @@ def codes() -> np.ndarray:
 
 
 def make(codes: np.ndarray, **params) -> IvfCompressedIndex:
-    index = IvfCompressedIndex(codes.shape[1], lambda ids: codes[ids], nlist=64, **params)
+    index = IvfCompressedIndex(codes.shape[1], nlist=64, **params)
     index.train(codes)
     index.add(np.arange(len(codes)), codes)
     return index
@@ -32,9 +33,10 @@ def exact_top(codes: np.ndarray, q: np.ndarray, k: int) -> np.ndarray:
 
 
 def test_untrained_index_refuses_changes_and_searches_empty(codes):
-    index = IvfCompressedIndex(256, lambda ids: codes[ids])
+    index = build_index("ivf-rabitq", 256, False)
+    assert isinstance(index, IvfCompressedIndex)
     assert not index.is_trained and index.size == 0
-    with pytest.raises(RuntimeError, match="trained"):
+    with pytest.raises(IndexNotTrained, match="training"):
         index.add(np.arange(3), codes[:3])
     scores, ids = index.search(codes[:1], 5)
     assert (ids == -1).all()
@@ -72,10 +74,11 @@ def test_add_search_remove_allowed_round_trip(codes, tmp_path):
 
     path = tmp_path / "index.faiss"
     index.dump(path)
-    loaded = IvfCompressedIndex(256, lambda ids: codes[ids], nprobe=16)
-    loaded.load(path)
+    loaded = IvfCompressedIndex(256, nprobe=16)
+    loaded.load(path)  # the float codes come back mapped from the file, not read into RAM
+    assert isinstance(loaded.table._base_codes, np.memmap) and not loaded.table.recent
     assert loaded.size == index.size and np.array_equal(loaded.ids(), index.ids())
-    assert loaded.stats()["nlist"] == 64 and loaded.stats()["code_bytes"] == 32
+    assert loaded.stats()["nlist"] == 64 and loaded.stats()["code_bytes"] == 40  # RaBitQ: 256 bits + 2 floats
     q = codes[100:140]
     assert np.array_equal(loaded.search(q, 10)[1], index.search(q, 10)[1])
     assert loaded.remove([100]) == 1 and 100 not in loaded.search(codes[100:101], 10)[1]
@@ -94,13 +97,32 @@ def test_recall_against_exact_search(codes, codec):
     assert (found[:, 0] == exact[:, 0]).mean() >= 0.95
 
 
-def test_without_a_rerank_source_the_compressed_scores_are_returned(codes):
-    index = IvfCompressedIndex(256, None, nlist=64, nprobe=64)
-    index.train(codes)
-    index.add(np.arange(len(codes)), codes)
-    scores, ids = index.search(codes[:10], 3)
-    assert (ids[:, 0] == np.arange(10)).mean() >= 0.8
-    assert ((scores >= 0) & (scores <= 1)).all()
+def test_a_copy_is_independent_and_a_snapshot_of_a_loaded_index_keeps_every_code(codes, tmp_path):
+    index = make(codes[:1000], nprobe=64)
+    path = tmp_path / "index.faiss"
+    index.dump(path)
+    loaded = IvfCompressedIndex(256, nprobe=64)
+    loaded.load(path)
+    twin = loaded.copy()
+    twin.remove([1, 2])
+    twin.add(np.array([5000]), codes[3000:3001])
+    assert loaded.size == 1000 and 1 in loaded.search(codes[1:2], 1)[1]  # the original is untouched
+    twin.dump(path)  # over the file ``loaded`` maps: written beside it and renamed, so ``loaded`` still reads
+    assert loaded.search(codes[2:3], 1)[1][0, 0] == 2
+    again = IvfCompressedIndex(256, nprobe=64)
+    again.load(path)
+    assert again.size == 999 and np.array_equal(again.ids(), twin.ids())
+    assert again.search(codes[3000:3001], 1)[1][0, 0] == 5000 and not np.isin([1, 2], again.ids()).any()
+    assert np.allclose(
+        again.score_ids(codes[10], np.array([10, 5000])), twin.score_ids(codes[10], np.array([10, 5000]))
+    )
+
+
+def test_the_kinds_refuse_the_other_kind_of_codes():
+    with pytest.raises(ValueError, match="binary-ivf"):
+        build_index("ivf-rabitq", 64, True)
+    with pytest.raises(ValueError, match="ivf-rabitq"):
+        build_index("binary-ivf", 64, False)
 
 
 def test_binary_ivf_round_trip_and_agreement_with_exact_hamming(codes, tmp_path):
