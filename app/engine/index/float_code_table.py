@@ -9,7 +9,8 @@ sorted by id, and ``load`` maps that region read-only: the pages live in the OS'
 evictable), not in the process's heap, and the ids (8 bytes per reference) are the only copy in RAM.
 
 Live changes: codes added since the file was written are held in RAM (``recent``) until the next snapshot
-writes them into a new file; a removed or replaced id is marked dead in the mapped part. A snapshot
+writes them into a new file, which the snapshotted index then maps (the collection swaps that copy in to
+serve); a removed or replaced id is marked dead in the mapped part. A snapshot
 replaces its file by rename, so the inode this table maps stays valid after the path moves on.
 Known limit: a collection built from the database without a snapshot (a first start, a rebuild) holds
 every code in ``recent`` until its first snapshot is written and loaded.

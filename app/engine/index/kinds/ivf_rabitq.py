@@ -167,7 +167,8 @@ class IvfCompressedIndex(IvfListsIndex):
         return twin
 
     def dump(self, path: Path) -> None:
-        """One file, streamed: header, FAISS's index, then the float codes (``FloatCodeTable.write``). Written
+        """One file, streamed: header, FAISS's index, then the float codes (``FloatCodeTable.write``), which
+        this index then maps instead of holding them (the collection serves the copy it snapshotted). Written
         beside ``path`` and renamed over it: truncating a file in place would pull the pages from under an
         index that maps it (a bus error, not an exception)."""
         index = self._require_trained()
@@ -183,7 +184,9 @@ class IvfCompressedIndex(IvfListsIndex):
             (self.table if self.external_codes is None else FloatCodeTable(self.dim)).write(f)
             f.seek(0)
             f.write(_HEAD.pack(MAGIC, faiss_bytes, table_at))
-        os.replace(tmp, path)
+        if self.external_codes is None:  # the codes just written replace the RAM-held ones: a snapshot's
+            self.table = FloatCodeTable.read(tmp, table_at)  # copy is swapped in to serve, mapped (the
+        os.replace(tmp, path)  # mapping holds the inode, whatever becomes of the path)
 
     def load(self, path: Path) -> None:
         """Read what ``dump`` wrote: FAISS's part into RAM, the float codes mapped (not read)."""
