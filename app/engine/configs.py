@@ -310,6 +310,24 @@ for _config in [
 ]:
     CONFIGS[_config.name] = _config
 
+# Issue 35: the same pipelines over the index kinds for 10^6-10^7 references (IVF with an HNSW quantizer:
+# RaBitQ codes re-ranked exactly from the float codes; binary IVF for Hamming codes). The codes, and so the
+# fitted pipelines, are those of the configurations they derive from; only the index differs.
+for _base, _kinds in [
+    ("lite2-hybrid-384", dict(float_index="ivf-rabitq")),
+    ("hybrid-bin", dict(float_index="ivf-rabitq", binary_index="binary-ivf")),
+]:
+    _config = CONFIGS[_base].model_copy(
+        update={
+            "name": f"{_base}-ivf",
+            "description": f"{_base} searched through "
+            + " and ".join(sorted(set(_kinds.values())))
+            + " (the index kinds for 10^6-10^7 references)",
+            **_kinds,
+        }
+    )
+    CONFIGS[_config.name] = _config
+
 # The default since issue 21: it wins R@1 (0.360 against hybrid's 0.320), R@5 (0.593 against 0.549) and
 # confident-and-right answers (10.7 % of queries against 9.7 %) on penn-campus-gps, 5 folds, in 0.78x hybrid's
 # /locate time (docs/RESULTS.md, "A faster default"). Data dirs built before keep the configuration they record.
