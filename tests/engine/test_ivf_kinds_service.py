@@ -60,7 +60,7 @@ def test_fit_ingest_locate_delete_snapshot_reopen(ivf_models, mini_manifest, tmp
     from app.engine.index.kinds.ivf_rabitq import IvfCompressedIndex
     from app.engine.pipeline import pipeline_dir
     from app.jobs.worker import IngestWorker
-    from app.service import GeolocService
+    from app.usecases.service import GeolocService
 
     name = IVF_CONFIG.name
     fit(manifest=mini_manifest, config=name, models_dir=ivf_models, seed=0, svm_bank=None, svm_bank_kind="contrastive")
