@@ -85,6 +85,8 @@ ENGINE_CODES: dict[str, str] = {
     # fit: the collection cannot be served until the kind is installed or the data dir is refitted.
     "app.engine.index.base.UnknownIndexKind": "not_ready",
     "app.engine.index.base.IndexNotTrained": "not_ready",
+    # A configuration naming a stored-features profile no module defines: like an unknown configuration.
+    "app.engine.stored_profiles.UnknownProfile": "invalid_request",
     _name(engine.ModelNotReady): "not_ready",
     _name(engine.IncompatibleArtifact): "not_ready",
     _name(engine.ModelBuildError): "not_ready",
