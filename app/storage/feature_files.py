@@ -30,11 +30,11 @@ from __future__ import annotations
 
 import os
 import re
-import threading
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 
-from app.permissions import PRIVATE_FILE, private_dir
+from app.permissions import private_dir
+from app.storage.files import write_image_file
 
 SUFFIX = ".lf"
 #: The data dir's folder of profiles: ``<data_dir>/features/<profile>/`` is one ``FeatureFiles`` root.
@@ -75,19 +75,7 @@ class FeatureFiles:
         path = self.path(sha)
         private_dir(self.root, parents=True)
         private_dir(path.parent)
-        tmp = path.with_name(f".{path.name}.{os.getpid()}.{threading.get_ident()}.tmp")
-        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, PRIVATE_FILE)
-        try:
-            os.fchmod(fd, PRIVATE_FILE)
-            with os.fdopen(fd, "wb") as f:
-                f.write(data)
-                f.flush()
-                if sync:
-                    os.fdatasync(f.fileno())
-            os.replace(tmp, path)
-        except BaseException:
-            tmp.unlink(missing_ok=True)
-            raise
+        write_image_file(path, data, sync)  # the images' own atomic write: temporary name, then rename
         return path
 
     def read(self, sha: str) -> bytes | None:
