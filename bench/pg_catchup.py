@@ -11,7 +11,7 @@ their change log entries as ``add_many`` writes them, in big batches (COPY on Po
 ``executemany`` on SQLite), without image files: nothing measured here reads an image, and writing and
 syncing 10^6 files per engine was where a 10^6 run spent its time (see docs/BENCHMARKS.md).
 
-What is measured is the store's real code, as the service runs it: the cold start is ``all_codes`` (the
+What is measured is the store's real code, as the service runs it: the cold start is ``code_stream`` (the
 bulk read a replica starting without a snapshot makes, in a process started for it, with that process's
 peak resident memory); then,
 ``--changes`` times, one change is committed on one connection and another connection, holding the
@@ -124,7 +124,7 @@ def _catch_up_ms(writer: ReferenceStore, reader: ReferenceStore, changes: int) -
 
 
 def _cold_start(data: Path) -> dict:
-    """The bulk read a replica starting cold makes (``all_codes``, then the codes as one array), in a fresh
+    """The bulk read a replica starting cold makes (``code_stream``, chunk by chunk), in a fresh
     process as a replica would run it: seconds, codes read, and that process's resident memory before the
     read and at its peak."""
     out = subprocess.run(
@@ -139,10 +139,10 @@ def _cold_read(data: Path) -> None:
     store = ReferenceStore(data, read_only=True)
     base = _rss_mb()
     t0 = time.perf_counter()
-    _, ids, fcodes, _ = store.all_codes()
-    codes = np.frombuffer(b"".join(fcodes), np.float32).reshape(len(ids), FLOAT_DIM)
+    with store.code_stream() as stream:
+        n = sum(len(c.ids) for c in stream.chunks)
     took = time.perf_counter() - t0
-    print(json.dumps({"s": took, "n": len(codes), "base_mb": base, "peak_mb": _peak_rss_mb()}))
+    print(json.dumps({"s": took, "n": n, "base_mb": base, "peak_mb": _peak_rss_mb()}))
 
 
 def _plan(store: ReferenceStore, sql: str, params) -> list[str]:

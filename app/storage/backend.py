@@ -12,7 +12,7 @@ is one module implementing ``StorageBackend`` plus one line in ``StorageSettings
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
 
@@ -101,9 +101,13 @@ class StorageBackend(ABC):
         default nothing: processes of one host catch up at their next search (they compare versions)."""
         return None
 
-    def fetch_bulk(self, db, sql: str) -> list[tuple]:
-        """Every row of a bulk read (all the codes: a cold start, a new generation)."""
-        return db.execute(sql).fetchall()
+    def stream_rows(self, db, sql: str, chunk: int) -> Iterator[list[tuple]]:
+        """The rows of one bulk read (every code: a cold start, a new generation) ``chunk`` at a time, as the
+        engine produces them: never the whole result in memory at once. ``db`` is inside a read transaction.
+        SQLite steps its statement (``fetchmany``)."""
+        cursor = db.execute(sql)
+        while rows := cursor.fetchmany(chunk):
+            yield rows
 
     # -- durability and identity -------------------------------------------------------------------------
     def checkpoint(

@@ -61,17 +61,6 @@ class ChangeLog(Part):
             ).fetchall()
         return [Change(*r) for r in rows]
 
-    def all_codes(self) -> tuple[int, np.ndarray, list[bytes | None], list[bytes | None]]:
-        """Every indexed row's codes and the index version they make up, read in one consistent snapshot."""
-        with self.database.read_snapshot() as db:
-            version = int(db.execute("SELECT COALESCE(MAX(version), 0) FROM changes").fetchone()[0])
-            rows = self.database.backend.fetch_bulk(
-                db,
-                f"SELECT r.id, {CODES} FROM refs r LEFT JOIN switched_codes s ON s.ref_id = r.id "
-                "WHERE r.status='indexed' ORDER BY r.id",
-            )
-        return version, np.array([r[0] for r in rows], np.int64), [r[1] for r in rows], [r[2] for r in rows]
-
     def indexed_ids(self) -> np.ndarray:
         rows = self.database.db.execute("SELECT id FROM refs WHERE status='indexed' ORDER BY id").fetchall()
         return np.array([r[0] for r in rows], np.int64)

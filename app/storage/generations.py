@@ -11,8 +11,10 @@ the collection.
 
 from __future__ import annotations
 
+import contextlib
 import json
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -20,6 +22,7 @@ import numpy as np
 
 from app.errors import StaleReindex
 from app.storage.database import Part, blob
+from app.storage.errors import storage_guard
 
 #: A fresh ``next_codes`` after the switch renamed the filled one (the same table as the baseline's).
 NEXT_CODES = """
@@ -35,6 +38,42 @@ CODES = (
     "CASE WHEN s.ref_id IS NULL THEN r.float_code ELSE s.float_code END, "
     "CASE WHEN s.ref_id IS NULL THEN r.binary_code ELSE s.binary_code END"
 )
+
+
+#: References per chunk of a bulk code read: 64 MB of 256-float codes, a few ms of work each.
+CODE_CHUNK = 65536
+
+
+@dataclass(frozen=True)
+class CodeChunk:
+    """Consecutive indexed references (by id) and their codes, one row each (None: the configuration has no
+    codes of that kind)."""
+
+    ids: np.ndarray  # int64
+    float_codes: np.ndarray | None  # (n, dim) float32
+    binary_codes: np.ndarray | None  # (n, bytes) uint8
+
+
+@dataclass(frozen=True)
+class CodeStream:
+    """One consistent read of every code (``Generations.code_stream``): ``chunks`` is read once."""
+
+    generation: int
+    version: int
+    chunks: Iterator[CodeChunk]
+
+
+def _codes(column: Sequence[bytes | None], dtype, n: int) -> np.ndarray | None:
+    """One chunk's column of codes as an (n, d) array over one joined buffer (no array per row)."""
+    if n == 0 or column[0] is None:
+        return None
+    return np.frombuffer(b"".join(column), dtype).reshape(n, -1)
+
+
+def _chunk(rows: Sequence[tuple]) -> CodeChunk:
+    n = len(rows)
+    ids = np.fromiter((r[0] for r in rows), np.int64, n)
+    return CodeChunk(ids, _codes([r[1] for r in rows], np.float32, n), _codes([r[2] for r in rows], np.uint8, n))
 
 
 @dataclass(frozen=True)
@@ -92,18 +131,42 @@ class Generations(Part):
             _bind_pipeline(db, target)
         return True
 
-    def generation_codes(self) -> tuple[int, int, np.ndarray, list[bytes | None], list[bytes | None]]:
-        """``all_codes`` plus the generation they belong to, read in one consistent snapshot."""
-        with self.database.read_snapshot() as db:
+    @contextmanager
+    def code_stream(self, chunk: int = CODE_CHUNK) -> Iterator[CodeStream]:
+        """Every indexed reference's codes of the generation in use, with the generation and the index version
+        they make up, read in one consistent snapshot and handed out ``chunk`` references at a time (a cold
+        start, a new generation): what the reader holds is one chunk, never a Python object per reference.
+        The read runs on a connection of its own, so the process's other threads keep the store's connection
+        (and its lock) while the index is built from the chunks."""
+        with storage_guard("reading the codes"):
+            db = self.database.backend.connect(read_only=True)
+        try:
+            db.execute("BEGIN")
             gen = db.execute("SELECT value FROM meta WHERE key='generation'").fetchone()
             version = int(db.execute("SELECT COALESCE(MAX(version), 0) FROM changes").fetchone()[0])
-            rows = self.database.backend.fetch_bulk(
+            rows = self.database.backend.stream_rows(
                 db,
                 f"SELECT r.id, {CODES} FROM refs r LEFT JOIN switched_codes s ON s.ref_id = r.id "
                 "WHERE r.status='indexed' ORDER BY r.id",
+                chunk,
             )
-        ids = np.array([r[0] for r in rows], np.int64)
-        return int(gen[0]) if gen else 0, version, ids, [r[1] for r in rows], [r[2] for r in rows]
+            yield CodeStream(int(gen[0]) if gen else 0, version, (_chunk(r) for r in rows))
+        finally:
+            with contextlib.suppress(Exception):  # a broken connection ends its transaction by closing
+                db.execute("COMMIT")
+            db.close()
+
+    def all_codes(self) -> tuple[int, np.ndarray, np.ndarray | None, np.ndarray | None]:
+        """(version, ids, float codes, binary codes) of every indexed reference in single arrays: for tools and
+        tests on small collections; a process building its index reads ``code_stream``."""
+        with self.code_stream() as stream:
+            chunks = list(stream.chunks)
+        if not chunks:
+            return stream.version, np.zeros(0, np.int64), None, None
+        ids = np.concatenate([c.ids for c in chunks])
+        f = None if chunks[0].float_codes is None else np.concatenate([c.float_codes for c in chunks])
+        b = None if chunks[0].binary_codes is None else np.concatenate([c.binary_codes for c in chunks])
+        return stream.version, ids, f, b
 
     def reindex_target(self) -> ReindexTarget | None:
         value = self.database.get_meta("reindex_target")

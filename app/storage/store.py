@@ -224,7 +224,6 @@ class ReferenceStore:
     # -- the parts' methods ---------------------------------------------------------------------------
     version = property(lambda self: self.changes.version, doc="The index version (``ChangeLog.version``).")
     changes_since = _forward("changes", ChangeLog.changes_since)
-    all_codes = _forward("changes", ChangeLog.all_codes)
     indexed_ids = _forward("changes", ChangeLog.indexed_ids)
     pending = _forward("queue", Queue.pending)
     claim = _forward("queue", Queue.claim)
@@ -238,7 +237,8 @@ class ReferenceStore:
     head = _forward("generations", Generations.head)
     generation_state = _forward("generations", Generations.generation_state)
     record_first_pipeline = _forward("generations", Generations.record_first_pipeline)
-    generation_codes = _forward("generations", Generations.generation_codes)
+    code_stream = _forward("generations", Generations.code_stream)
+    all_codes = _forward("generations", Generations.all_codes)
     reindex_target = _forward("generations", Generations.reindex_target)
     start_reindex = _forward("generations", Generations.start_reindex)
     abandon_reindex = _forward("generations", Generations.abandon_reindex)

@@ -16,6 +16,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -27,6 +28,7 @@ from app.engine.index.references import ReferenceIndex
 from app.engine.pipeline import Pipeline, PipelineSource
 from app.storage.backend import StorageBackend
 from app.storage.changes import Change
+from app.storage.generations import CodeChunk
 from app.storage.snapshots import SnapshotInvalid, SnapshotMismatch, load_snapshot, write_snapshot
 from app.storage.store import ReferenceStore
 
@@ -88,12 +90,12 @@ def apply_changes(index: ReferenceIndex, changes: list[Change]) -> None:
     flush()
 
 
-def index_from_codes(pipeline: Pipeline, ids: np.ndarray, fcodes: list, bcodes: list) -> ReferenceIndex:
+def index_from_stream(pipeline: Pipeline, chunks: Iterable[CodeChunk]) -> ReferenceIndex:
+    """A new index of ``pipeline``'s kinds holding the streamed codes, added chunk by chunk as they are read
+    (``Generations.code_stream``): the reader holds one chunk, the index the rest."""
     index = pipeline.new_index()
-    if len(ids):
-        f = np.stack([np.frombuffer(c, np.float32) for c in fcodes]) if index.float is not None else None
-        b = np.stack([np.frombuffer(c, np.uint8) for c in bcodes]) if index.binary is not None else None
-        index.add(ids, f, b)
+    for c in chunks:
+        index.add(c.ids, c.float_codes, c.binary_codes)
     return index
 
 
@@ -202,11 +204,11 @@ class Collection:
 
     def _rebuild(self) -> tuple[ReferenceIndex, int]:
         t0 = time.perf_counter()
-        version, ids, fcodes, bcodes = self.store.all_codes()
-        index = index_from_codes(self.pipeline, ids, fcodes, bcodes)
+        with self.store.code_stream() as stream:
+            index, version = index_from_stream(self.pipeline, stream.chunks), stream.version
         self.stats.full_rebuilds += 1
         self.rebuilt = True
-        log.info("index rebuilt from %d stored codes in %.1f s", len(ids), time.perf_counter() - t0)
+        log.info("index rebuilt from %d stored codes in %.1f s", index.size, time.perf_counter() - t0)
         return index, version
 
     # -- switching generation -------------------------------------------------------------------------
@@ -229,10 +231,10 @@ class Collection:
             if isinstance(e, SnapshotMismatch):
                 log.warning("snapshot not used (%s)", e)
                 self.store.retire_snapshot(e.manifest.version, e.manifest.ref_high_water)
-            gen, version, ids, fcodes, bcodes = self.store.generation_codes()
-            if gen != generation:  # switched again while we loaded: the next catch-up loads that one
-                return False
-            index, rebuilt = index_from_codes(pipeline, ids, fcodes, bcodes), True
+            with self.store.code_stream() as stream:
+                if stream.generation != generation:  # switched again while we loaded: the next catch-up loads it
+                    return False
+                index, version, rebuilt = index_from_stream(pipeline, stream.chunks), stream.version, True
         with self.lock:
             if self.generation >= generation:
                 return False

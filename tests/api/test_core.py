@@ -15,7 +15,7 @@ from app.engine.configs import get_config
 from app.engine.imageio import load_image
 from app.engine.pipeline import load_pipeline
 from app.storage.store import ReferenceStore
-from app.usecases.collection import index_from_codes
+from app.usecases.collection import index_from_stream
 from app.usecases.locate import StoreReferences, locate_features
 from tests.api.conftest import CONFIG, Server
 from tests.conftest import PENN
@@ -39,8 +39,8 @@ def test_every_face_gives_the_same_answer(ingested, fitted_models):
         api = r.json()
     pipe = load_pipeline(fitted_models, CONFIG)
     store = ReferenceStore(ingested)
-    version, ids, f, b = store.all_codes()
-    index = index_from_codes(pipe, ids, f, b)
+    with store.code_stream() as stream:
+        index = index_from_stream(pipe, stream.chunks)
     features = pipe.extract(pipe.decode(photo.read_bytes()).rgb)  # as the service decodes
     core = LocateOut.of(
         locate_features(pipe, index, StoreReferences(store), features, LocateOptions(top_k=5))
@@ -65,8 +65,8 @@ def test_every_face_gives_the_same_answer(ingested, fitted_models):
 def test_the_estimate_does_not_depend_on_top_k(ingested, fitted_models):
     pipe = load_pipeline(fitted_models, CONFIG)
     store = ReferenceStore(ingested)
-    _, ids, f, b = store.all_codes()
-    index = index_from_codes(pipe, ids, f, b)
+    with store.code_stream() as stream:
+        index = index_from_stream(pipe, stream.chunks)
     refs = StoreReferences(store)
     for name in ("img_00001.jpg", "img_00006.jpg", "img_00011.jpg"):
         features = pipe.extract(load_image((PENN / "photos" / name).read_bytes()).rgb)
@@ -176,8 +176,8 @@ def test_a_verified_answer_is_judged_by_the_verified_rule(ingested, fitted_model
     pipe.calibration = rule(GLOBAL_NAMES, -3.0)
     pipe.calibration.verified = asdict(rule(GLOBAL_NAMES + VERIFIED_NAMES, 3.0))
     store = ReferenceStore(ingested)
-    _, ids, f, b = store.all_codes()
-    index = index_from_codes(pipe, ids, f, b)
+    with store.code_stream() as stream:
+        index = index_from_stream(pipe, stream.chunks)
     rgb = pipe.decode((PENN / "photos" / "img_00006.jpg").read_bytes()).rgb
     features = pipe.extract(rgb)
     refs = StoreReferences(store)

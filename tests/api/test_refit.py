@@ -103,7 +103,7 @@ def test_refit_switches_generation_while_the_server_keeps_answering(template, fi
     assert "reindex_target" not in meta
     now = ReferenceStore(data).all_codes()
     assert list(now[1]) == list(before[1])  # the same references ...
-    changed = sum(a != b for a, b in zip(now[3], before[3], strict=True))
+    changed = int((now[3] != before[3]).any(axis=1).sum())
     assert changed > 20  # ... with new codes
     # A second process opening the data dir uses the new generation.
     cli = json.loads(geoloc("locate", str(photo), "--data-dir", str(data), "--models-dir", str(fitted_models)).stdout)
@@ -218,8 +218,8 @@ def test_refit_on_ray_gives_the_codes_of_the_local_path(template, fitted_models,
     assert fp_local == fp_ray  # the same seeded fit
     assert local.keys() == ray.keys() and len(local) == 30
     for i, (f, b) in local.items():
-        assert np.allclose(np.frombuffer(f, np.float32), np.frombuffer(ray[i][0], np.float32), atol=1e-5)
-        assert np.unpackbits(np.frombuffer(b, np.uint8) ^ np.frombuffer(ray[i][1], np.uint8)).sum() <= 2
+        assert np.allclose(f, ray[i][0], atol=1e-5)
+        assert np.unpackbits(b ^ ray[i][1]).sum() <= 2
 
 
 def test_refit_trains_the_bank_on_the_references_or_a_train_manifest(template, fitted_models, tmp_path, mini_manifest):

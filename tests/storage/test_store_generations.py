@@ -27,7 +27,7 @@ def _store(tmp_path, n=4):
 
 def _codes(store) -> dict[int, float]:
     _, ids, f, _ = store.all_codes()
-    return {int(i): float(np.frombuffer(c, np.float32)[0]) for i, c in zip(ids, f, strict=True)}
+    return {int(i): float(c[0]) for i, c in zip(ids, f, strict=True)}
 
 
 def test_switch_needs_every_code_then_readers_see_the_new_ones_before_and_after_the_copy(tmp_path):
@@ -75,3 +75,22 @@ def test_completion_by_another_pipeline_than_the_data_dirs_records_nothing(tmp_p
     assert store.complete([(pending, code, None, None)], fingerprint="x:stale") == []
     assert store.get(pending).status == "pending"
     assert store.complete([(pending, code, None, None)], fingerprint="x:old") == [pending]
+
+
+def test_the_code_stream_hands_out_chunks_of_one_consistent_read(tmp_path):
+    """A cold start reads every code chunk by chunk on a connection of its own: the chunks hold each indexed
+    reference once, in id order, as arrays; a change committed while the stream is open is not in it (it is
+    after the version the stream reports, so the catch-up applies it)."""
+    store, ids = _store(tmp_path, n=7)
+    with store.code_stream(chunk=3) as stream:
+        version = stream.version
+        first = next(stream.chunks)
+        store.add_many([NewReference(b"late" * 3, "jpg", 1.0, 2.0, float_code=np.full(4, 99, np.float32))])
+        chunks = [first, *stream.chunks]
+    assert [len(c.ids) for c in chunks] == [3, 3, 1]
+    assert np.concatenate([c.ids for c in chunks]).tolist() == ids
+    assert all(c.float_codes.dtype == np.float32 and c.float_codes.shape == (len(c.ids), 4) for c in chunks)
+    assert [float(c.float_codes[i, 0]) for c in chunks for i in range(len(c.ids))] == list(range(7))
+    assert all(c.binary_codes is None for c in chunks)  # this configuration stores no binary codes
+    assert stream.generation == 0 and version == store.version - 1
+    assert len(store.all_codes()[1]) == 8

@@ -1,0 +1,187 @@
+"""A real server's cold start at size, and where its resident memory goes, this tree against a baseline tree.
+
+    .venv/bin/python -m bench.cold_start --sizes 10000,1000000 --engines sqlite,postgres \
+        --baseline /tmp/base --repeats 2
+
+``--baseline`` is another tree's ``app`` (``git archive <commit> app | tar -x -C DIR``), run by the same
+interpreter: the two are started in turn on the same data dir, ``--repeats`` times, so both see the same
+machine load (interleaved, medians reported).
+
+Per engine and size a data dir is seeded once: the first ``--images`` references through ``bench.seed`` (the
+bulk path with placeholder images; it also binds the data dir to the fitted pipeline), the rest straight into
+the store's tables by ``bench.pg_catchup``'s seeding (rows and change log entries as ``add_many`` writes them,
+COPY on PostgreSQL, no image files: nothing here reads a reference's image). PostgreSQL is a throw-away server
+(``tools.postgres_server``, Debian's package, as the tests use).
+
+Each start: every snapshot of the data dir is deleted first, so the server rebuilds its index from the store
+(the cold start: ``Collection._rebuild``); then ``geoloc serve`` (``tools.server_process``) is started and
+timed until /ready answers 200. Read from /proc: the server's peak resident memory up to ready (VmHWM) and its
+resident memory at ready; again after the snapshot the rebuild makes due has been written (a memory copy of
+the index, compacted and written while the first keeps serving); and after ``--locates`` /locate of real
+penn photos. The rebuild's own seconds come from the server's log line ("index rebuilt from N stored codes
+in S s").
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import re
+import shutil
+import statistics
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from app.engine.configs import DEFAULT_CONFIG
+from app.engine.pipeline import load_pipeline
+from app.storage.store import ReferenceStore
+from bench.common import is_photo, machine, penn_rows
+from bench.pg_catchup import FLOAT_DIM, _seed_rows
+from bench.seed import seed
+from tools.process_memory import MiB, PeakRss, rss_bytes
+from tools.server_process import ServerProcess
+
+REBUILT = re.compile(r"index rebuilt from (\d+) stored codes in ([0-9.]+) s")
+
+
+def _status_kb(pid: int, field: str) -> int:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith(field + ":"):
+            return int(line.split()[1])
+    raise RuntimeError(f"no {field} for {pid}")
+
+
+def seed_data_dir(data: Path, refs: int, images: int, models: Path, config: str, batch: int = 50_000) -> float:
+    """``refs`` indexed references in ``data`` (and in GEOLOC_DATABASE_URL's database when set); seconds."""
+    t0 = time.perf_counter()
+    seed(data, min(images, refs), models, config)
+    store = ReferenceStore(data)
+    rng = np.random.default_rng(1)
+    for start in range(min(images, refs), refs, batch):
+        _seed_rows(store, rng, start, min(batch, refs - start))
+    if store.engine == "postgres":  # what add_many's after_bulk_insert does after a load
+        store.db.execute("ANALYZE refs, changes")
+    store.close()
+    return time.perf_counter() - t0
+
+
+def _drop_snapshots(data: Path) -> None:
+    for f in [data / "index.json", *data.glob("*-v*.faiss")]:
+        f.unlink(missing_ok=True)
+
+
+def _wait_snapshot(server: ServerProcess, timeout: float = 600) -> float:
+    """Seconds until the server's first snapshot (``geoloc_snapshot_writes`` >= 1)."""
+    t0 = time.perf_counter()
+    while time.perf_counter() - t0 < timeout:
+        text = server.client.get("/metrics").text
+        m = re.search(r"^geoloc_snapshot_writes (\S+)", text, re.M)
+        if m and float(m.group(1)) >= 1:
+            return time.perf_counter() - t0
+        time.sleep(0.5)
+    raise TimeoutError("no snapshot written")
+
+
+def one_start(data: Path, models: Path, config: str, code: Path | None, photos: list[Path], locates: int) -> dict:
+    _drop_snapshots(data)
+    t0 = time.perf_counter()
+    server = ServerProcess(data, models, config, code=code)
+    pid = server.proc.pid
+    try:
+        with PeakRss(pid, every_s=0.05):
+            server.wait_ready(timeout=900)
+        out = {"ready_s": time.perf_counter() - t0, "hwm_ready_mb": _status_kb(pid, "VmHWM") / 1024}
+        out["rss_ready_mb"] = rss_bytes(pid) / MiB
+        out["snapshot_s"] = _wait_snapshot(server)
+        time.sleep(1.0)
+        out["rss_snapshot_mb"] = rss_bytes(pid) / MiB
+        out["hwm_snapshot_mb"] = _status_kb(pid, "VmHWM") / 1024
+        ms = []
+        for i in range(locates):
+            photo = photos[i % len(photos)]
+            t = time.perf_counter()
+            r = server.client.post("/locate", files=[("image", ("q.jpg", photo.read_bytes(), "image/jpeg"))])
+            ms.append((time.perf_counter() - t) * 1e3)
+            if r.status_code != 200:
+                raise RuntimeError(f"/locate answered {r.status_code}: {r.text[:300]}")
+        out["locate_p50_ms"] = statistics.median(ms) if ms else float("nan")
+        out["rss_locates_mb"] = rss_bytes(pid) / MiB
+        out["hwm_end_mb"] = _status_kb(pid, "VmHWM") / 1024
+    finally:
+        server.stop()
+    m = REBUILT.search(Path(server.log.name).read_text())
+    out["rebuild_s"] = float(m.group(2)) if m else float("nan")
+    out["rebuilt_refs"] = int(m.group(1)) if m else -1
+    return out
+
+
+FIELDS = (
+    ("rebuild_s", "rebuild s (log)", "{:.2f}"),
+    ("ready_s", "start to /ready s", "{:.1f}"),
+    ("hwm_ready_mb", "peak RSS to ready MB", "{:,.0f}"),
+    ("rss_ready_mb", "RSS at ready MB", "{:,.0f}"),
+    ("rss_snapshot_mb", "RSS after first snapshot MB", "{:,.0f}"),
+    ("hwm_snapshot_mb", "peak RSS with snapshot MB", "{:,.0f}"),
+    ("rss_locates_mb", "RSS after /locates MB", "{:,.0f}"),
+    ("locate_p50_ms", "/locate p50 ms", "{:.0f}"),
+)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--sizes", default="10000,1000000")
+    ap.add_argument("--engines", default="sqlite,postgres")
+    ap.add_argument("--baseline", type=Path, help="another tree holding an `app` package (the code before)")
+    ap.add_argument("--repeats", type=int, default=2)
+    ap.add_argument("--locates", type=int, default=5)
+    ap.add_argument("--images", type=int, default=2000, help="of each size, seeded with image files")
+    ap.add_argument("--config", default=DEFAULT_CONFIG)
+    ap.add_argument("--models-dir", type=Path, default=Path("models"))
+    ap.add_argument("--work", type=Path, help="where the data dirs go (default: a temporary folder)")
+    args = ap.parse_args()
+    pipe = load_pipeline(args.models_dir, args.config)
+    if pipe.float_dim != FLOAT_DIM or pipe.bits:
+        raise SystemExit(f"the seeding writes {FLOAT_DIM}-float codes only; {args.config} has others")
+    photos = [r.image for r in penn_rows() if is_photo(r) and r.split == "query"][: max(args.locates, 1)]
+    trees = {"this tree": None, **({"baseline": args.baseline.resolve()} if args.baseline else {})}
+    print(machine(), f"config {args.config}", flush=True)
+    results: dict[tuple[str, int, str], list[dict]] = {}
+    work = Path(args.work or tempfile.mkdtemp(prefix="geoloc-cold-"))
+    for engine in args.engines.split(","):
+        server = None
+        if engine == "postgres":
+            from tools.postgres_server import PostgresServer
+
+            server = PostgresServer().start()
+        try:
+            for size in (int(s) for s in args.sizes.split(",")):
+                data = work / f"{engine}-{size}" / "data"
+                shutil.rmtree(data.parent, ignore_errors=True)
+                if server is not None:
+                    os.environ["GEOLOC_DATABASE_URL"] = server.create_database()
+                took = seed_data_dir(data, size, args.images, args.models_dir, args.config)
+                print(f"{engine} {size:,d}: seeded in {took:.0f} s", flush=True)
+                for rep in range(args.repeats):
+                    for name, code in trees.items() if rep % 2 == 0 else reversed(trees.items()):
+                        r = one_start(data, args.models_dir, args.config, code, photos, args.locates)
+                        results.setdefault((engine, size, name), []).append(r)
+                        print(f"  {engine} {size:,d} {name} #{rep + 1}: " + ", ".join(
+                            f"{k} {v:.1f}" for k, v in r.items()), flush=True)  # fmt: skip
+                shutil.rmtree(data.parent, ignore_errors=True)
+        finally:
+            os.environ.pop("GEOLOC_DATABASE_URL", None)
+            if server is not None:
+                server.stop()
+    print()
+    print("| engine | references | code | " + " | ".join(label for _, label, _ in FIELDS) + " |")
+    print("|---|---|---|" + "---|" * len(FIELDS))
+    for (engine, size, name), runs in results.items():
+        cells = [fmt.format(statistics.median(r[key] for r in runs)) for key, _, fmt in FIELDS]
+        print(f"| {engine} | {size:,d} | {name} | " + " | ".join(cells) + " |")
+
+
+if __name__ == "__main__":
+    main()
