@@ -142,6 +142,7 @@ def main() -> None:
     ap.add_argument("--models-dir", type=Path, default=Path("models"))
     ap.add_argument("--work", type=Path, help="where the data dirs go (default: a temporary folder)")
     args = ap.parse_args()
+    args.models_dir = args.models_dir.resolve()  # the baseline server runs in its own tree
     pipe = load_pipeline(args.models_dir, args.config)
     if pipe.float_dim != FLOAT_DIM or pipe.bits:
         raise SystemExit(f"the seeding writes {FLOAT_DIM}-float codes only; {args.config} has others")
