@@ -273,6 +273,7 @@ def main(argv: Sequence[str] | None = None) -> None:
         default="all",
         help="judge only these queries (and take the far-pair threshold from theirs alone)",
     )
+    ap.add_argument("--sample", type=int, help="judge a random sample of this many of the queries (seed 0)")
     ap.add_argument("--cache-dir", type=Path, default=Path("out/cache/view-loss"), help="features, one file a photo")
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--reuse", action="store_true", help="read the verification outcomes from --out again")
@@ -303,6 +304,9 @@ def main(argv: Sequence[str] | None = None) -> None:
         pairs = query_databases(rows, a.folds)
         if a.queries != "all":
             pairs = [(q, db) for q, db in pairs if is_crop(rows[q]) == (a.queries == "crops")]
+        if a.sample is not None and a.sample < len(pairs):  # in manifest order, so folds stay mixed
+            keep = np.random.default_rng(0).choice(len(pairs), a.sample, replace=False)
+            pairs = [pairs[i] for i in sorted(keep)]
         judge = make_judge(a.judge, a.models_dir)
         result = analyse(
             rows,
@@ -315,7 +319,7 @@ def main(argv: Sequence[str] | None = None) -> None:
             max_near=a.max_near,
             cache_dir=a.cache_dir,
         )
-        result["queries"] = a.queries
+        result["queries"] = a.queries if a.sample is None else f"{a.queries}, a sample of {len(pairs)}"
     result["summary"] = summarise(rows, result, a.eval, a.radius_m)
     result["per_query"] = {rows[q].image.name + f"@{q}": v for q, v in result["per_query"].items()}
     a.out.parent.mkdir(parents=True, exist_ok=True)
