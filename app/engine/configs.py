@@ -35,6 +35,10 @@ class PipelineConfig(BaseModel):
     #: registry and stay, so pipelines fitted before it load unchanged).
     global_model: str = "squeezenet"
     cnn_short_side: int = 448
+    #: A second input size (short side) whose map's GeM is averaged with the first's (multi-scale pooling,
+    #: Radenovic et al.: the two L2-normalised GeM vectors summed, then normalised); the keypoints sample the
+    #: first size's map only. None: one size.
+    cnn_second_short_side: int | None = None
     cnn_local_weight: float = 0.0  # > 0: feature-level hybrid, fire9 sampled at each keypoint
     cnn_global_weight: float = 0.0  # > 0: GeM vector joined to the aggregated one (image-level hybrid)
     gem_p: float = 3.0
@@ -82,6 +86,7 @@ class PipelineConfig(BaseModel):
         "max_keypoints",
         "global_model",
         "cnn_short_side",
+        "cnn_second_short_side",
         "cnn_local_weight",
         "cnn_global_weight",
         "gem_p",
@@ -286,6 +291,13 @@ for _config in [
         description="lite2-hybrid-384 with whitening learned from the collection's GPS pairs (references within "
         "25 m as matching pairs; Radenovic, Tolias and Chum 2018) in place of PCA-whitening",
         whitening="learned",
+        **{**_LITE2_HYBRID, "local_long_side": 384, "cnn_short_side": 336},
+    ),
+    PipelineConfig(
+        name="lite2-hybrid-384-2s",
+        description="lite2-hybrid-384 with the EfficientNet-Lite2 map GeM-pooled at two input sizes (336 and "
+        "448 px short side, the two GeM vectors averaged); the keypoints sample the 336 px map",
+        cnn_second_short_side=448,
         **{**_LITE2_HYBRID, "local_long_side": 384, "cnn_short_side": 336},
     ),
     PipelineConfig(

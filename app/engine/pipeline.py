@@ -201,7 +201,7 @@ class Pipeline:
         and the global model's short side. ``decode`` keeps ``DECODE_OVERSAMPLE`` times each."""
         c = self.config
         long_side = c.local_long_side if c.local else 0
-        short_side = c.cnn_short_side if c.uses_global_model else 0
+        short_side = max(c.cnn_short_side, c.cnn_second_short_side or 0) if c.uses_global_model else 0
         return long_side, short_side
 
     def decode(self, data: bytes, limits: ImageLimits | None = None) -> LoadedImage:
@@ -235,19 +235,27 @@ class Pipeline:
                 raise
             local, xy, orb_raw = lf.descriptors, lf.xy, lf.raw
         if self.global_model is not None:
-            dense, t["cnn"] = cnn.result() if cnn is not None else self._dense(rgb)
+            dense, second_gem, t["cnn"] = cnn.result() if cnn is not None else self._dense(rgb)
             if c.cnn_global_weight > 0 or local is None:
                 gem = gem_pool(dense, c.gem_p)
+                if second_gem is not None:
+                    gem = _unit(gem + second_gem)
             if c.cnn_local_weight > 0 and local is not None:
                 with _Timer(t, "hybrid"):
                     local = join_sampled(local, dense, xy, c.cnn_local_weight)
         return Features(local=local, xy=xy, global_=gem, timings_ms=t, orb_raw=orb_raw, config=c.name)
 
-    def _dense(self, rgb: np.ndarray) -> tuple[np.ndarray, float]:
-        """The global model's map and its own time in ms (it may overlap the local features')."""
+    def _dense(self, rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray | None, float]:
+        """The global model's map, the GeM of its map at the second size (``cnn_second_short_side``; None
+        without one or where no GeM is pooled), and their own time in ms (it may overlap the local
+        features')."""
+        c = self.config
         t0 = time.perf_counter()
-        dense = self.global_model.dense(rgb, self.config.cnn_short_side)
-        return dense, (time.perf_counter() - t0) * 1000
+        dense = self.global_model.dense(rgb, c.cnn_short_side)
+        second = None
+        if c.cnn_second_short_side is not None and (c.cnn_global_weight > 0 or c.local is None):
+            second = gem_pool(self.global_model.dense(rgb, c.cnn_second_short_side), c.gem_p)
+        return dense, second, (time.perf_counter() - t0) * 1000
 
     # -- stage 1b: feature selection (SVM bank) -------------------------------------------------------
     def select(self, f: Features) -> np.ndarray | None:

@@ -203,3 +203,24 @@ def test_the_lite2_feature_level_hybrid_finds_a_reencoded_photo(name, lite2, mod
     query = pipe.extract(pipe.decode(buf.getvalue()).rgb)
     res = locate_features(pipe, index, RowReferences(rows, list(range(len(rows)))), query, LocateOptions(top_k=5))
     assert res.candidates[0].reference_id == photo and res.candidates[0].score > 0.8
+
+
+def test_two_input_sizes_pool_one_gem(lite2, models_dir):
+    """``lite2-hybrid-384-2s``: the GeM part is the normalised sum of the map's GeM at 336 and at 448 px (the
+    keypoints still sample the 336 px map), and the decode keeps twice the larger size."""
+    from app.engine.dense import gem_pool
+    from app.engine.pipeline import DECODE_OVERSAMPLE, Pipeline
+    from tests.conftest import penn_photo
+
+    config = get_config("lite2-hybrid-384-2s")
+    pipe = Pipeline(config, models_dir=models_dir)
+    assert pipe.decode_sides == (384, 448)
+    rgb = pipe.decode(penn_photo("img_00001.jpg").read_bytes()).rgb
+    assert min(rgb.shape[:2]) >= min(448 * DECODE_OVERSAMPLE, 1200)
+    got = pipe.extract(rgb).global_
+    one, two = (gem_pool(pipe.global_model.dense(rgb, side)) for side in (336, 448))
+    expected = (one + two) / np.linalg.norm(one + two)
+    np.testing.assert_allclose(got, expected, atol=1e-6)
+    assert np.abs(one - two).max() > 1e-3  # another picture of the place (cosine 0.995 on this photo)
+    single = Pipeline(get_config("lite2-hybrid-384"), pipe.global_model).extract(rgb).global_
+    np.testing.assert_allclose(single, one, atol=1e-6)
