@@ -669,14 +669,15 @@ def features_backfill(
 def backup(
     dest: Annotated[Path, typer.Argument(help="an empty or new folder")], data_dir: DataDir = _S.data_dir
 ) -> None:
-    """Copy the data dir while it is in use: SQLite through its online backup API, then the images and the
-    newest index snapshot."""
+    """Copy the data dir while it is in use: SQLite through its online backup API, then the images, their
+    stored local features and the newest index snapshot."""
     from app.usecases.operations import backup_data_dir
 
     summary = backup_data_dir(data_dir, dest)
     typer.echo(
-        f"backed up {summary['references']} references ({summary['images']} images, snapshot "
-        f"{summary['snapshot_version']}) to {dest}"
+        f"backed up {summary['references']} references ({summary['images']} images, "
+        + "".join(f"{n} stored features ({p}), " for p, n in summary["stored_features"].items())
+        + f"snapshot {summary['snapshot_version']}) to {dest}"
         + (f"; {summary['missing_images']} images were missing" if summary["missing_images"] else "")
     )
     if summary.get("note"):

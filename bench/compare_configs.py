@@ -1,6 +1,11 @@
 """/locate p50 of two configurations on real servers, interleaved query by query (issue 11's speed goal).
 
     .venv/bin/python -m bench.compare_configs [--configs hybrid,hybrid-xfeat] [--reps 3]
+    .venv/bin/python -m bench.compare_configs --configs lite2-hybrid-384-sv:rerank=false,lite2-hybrid-384-sv
+
+A side is a configuration, optionally with ``:rerank=true`` or ``:rerank=false`` (the form field each of its
+requests sends; none: the configuration's default), so one configuration with and without verification
+runs on two servers holding copies of one seeded data dir.
 
 Both servers hold the same collection (the penn db photos minus the query captures, encoded in this
 process through the core: ``GeolocService.accept`` then the local engine) and get the same 1600 px query
@@ -13,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import shutil
 import sys
 import tempfile
 import time
@@ -39,6 +45,17 @@ def seed(data_dir: Path, models_dir: Path, config: str, rows) -> int:
     return done
 
 
+def side(spec: str) -> tuple[str, dict[str, str]]:
+    """``config[:rerank=true|false]`` -> (config, the form fields each /locate request of that side sends)."""
+    config, _, option = spec.partition(":")
+    if not option:
+        return config, {}
+    key, _, value = option.partition("=")
+    if key != "rerank" or value not in ("true", "false"):
+        raise SystemExit(f"{spec}: a side is CONFIG or CONFIG:rerank=true|false")
+    return config, {"rerank": value}
+
+
 def run(models_dir: Path, configs: list[str], reps: int, manifest: Path | None = None, limit: int = 0) -> dict:
     rows = penn_rows(manifest) if manifest is not None else penn_rows()
     queries = [r for r in rows if r.split == "query" and is_photo(r)][: limit or None]
@@ -46,21 +63,31 @@ def run(models_dir: Path, configs: list[str], reps: int, manifest: Path | None =
     collection = [r for r in rows if r.split == "db" and is_photo(r) and r.group not in groups]
     payloads = [(r, r.image.read_bytes()) for r in queries]
     out = {"configs": configs, "collection": len(collection), "queries": len(queries), "reps": reps}
+    sides = [side(spec) for spec in configs]
     with tempfile.TemporaryDirectory(prefix="geoloc-compare-") as tmp:
         servers: list[ServerProcess] = []  # by position: the same configuration may be compared with itself
+        seeded: dict[str, Path] = {}  # a configuration's seeded data dir: a second side of it gets a copy
         try:
-            for n, c in enumerate(configs):
-                print(f"seeding {c}: {len(collection)} references ...", flush=True)
+            for n, (c, _) in enumerate(sides):
                 data = Path(tmp) / f"{n}-{c}"
-                seed(data, models_dir, c, collection)
-                servers.append(ServerProcess(data, models_dir, c, api_key="bench"))
+                if c in seeded:
+                    shutil.copytree(seeded[c], data)
+                else:
+                    print(f"seeding {c}: {len(collection)} references ...", flush=True)
+                    seed(data, models_dir, c, collection)
+                    seeded[c] = data
+            for n, (c, _) in enumerate(sides):
+                servers.append(ServerProcess(Path(tmp) / f"{n}-{c}", models_dir, c, api_key="bench"))
             for s in servers:
                 s.wait_ready(timeout=600)
+            out["load_before"] = os.getloadavg()
             wall: list[list[float]] = [[] for _ in configs]
             hits: list[list[bool]] = [[] for _ in configs]
+            verified: list[list[int]] = [[] for _ in configs]  # candidates carrying inliers, per answer
             for _, data in payloads:  # warm: onnxruntime pays once per input shape
-                for s in servers:
-                    s.client.post("/locate", files=[("image", ("q.jpg", data, "image/jpeg"))]).raise_for_status()
+                for s, (_, form) in zip(servers, sides, strict=True):
+                    image = [("image", ("q.jpg", data, "image/jpeg"))]
+                    s.client.post("/locate", files=image, data=form).raise_for_status()
             turn = 0
             for _ in range(reps):
                 for row, data in payloads:
@@ -69,12 +96,15 @@ def run(models_dir: Path, configs: list[str], reps: int, manifest: Path | None =
                         order.reverse()
                     turn += 1
                     for k in order:
+                        image = [("image", ("q.jpg", data, "image/jpeg"))]
                         t0 = time.perf_counter()
-                        r = servers[k].client.post("/locate", files=[("image", ("q.jpg", data, "image/jpeg"))])
+                        r = servers[k].client.post("/locate", files=image, data=sides[k][1])
                         wall[k].append((time.perf_counter() - t0) * 1000)
                         r.raise_for_status()
                         top = r.json()["candidates"][:1]
                         hits[k].append(bool(top) and haversine_m(row.lat, row.lon, top[0]["lat"], top[0]["lon"]) <= 25)
+                        verified[k].append(sum(c["inliers"] is not None for c in r.json()["candidates"]))
+            out["load_after"] = os.getloadavg()
         finally:
             for s in servers:
                 s.stop()
@@ -85,6 +115,7 @@ def run(models_dir: Path, configs: list[str], reps: int, manifest: Path | None =
             "ratio_p50": median_ms(wall[n]) / median_ms(wall[0]),
             "top1_within_25m": sum(hits[n]) / len(hits[n]),
             "requests": len(wall[n]),
+            "verified_mean": sum(verified[n]) / len(verified[n]),
         }
         for n, c in enumerate(configs)
     ]
@@ -98,15 +129,16 @@ def render(fig: dict, command: str) -> str:
         "",
         f"`{command}` ({time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, {machine()}): both servers hold the "
         f"same {fig['collection']} penn db photos; {fig['queries']} query photos at 1600 px x {fig['reps']}, "
-        "alternating which server goes first; client wall time per POST /locate.",
+        "alternating which server goes first; client wall time per POST /locate. Load average (1 min) "
+        f"{fig['load_before'][0]:.1f} before the timed requests, {fig['load_after'][0]:.1f} after.",
         "",
-        f"| configuration | p50 ms | p95 ms | p50 vs {base} | top-1 within 25 m |",
-        "|---|---|---|---|---|",
+        f"| configuration | p50 ms | p95 ms | p50 vs {base} | top-1 within 25 m | candidates verified (mean) |",
+        "|---|---|---|---|---|---|",
     ]
     for r in fig["results"]:
         L.append(
             f"| {r['config']} | {r['p50_ms']:.0f} | {r['p95_ms']:.0f} | {r['ratio_p50']:.2f} | "
-            f"{r['top1_within_25m']:.0%} |"
+            f"{r['top1_within_25m']:.0%} | {r['verified_mean']:.1f} |"
         )
     return "\n".join(L)
 

@@ -74,6 +74,8 @@ PROFILES = [
     Profile("rootsift-1024-n480", 1024, 480, "full"),
     Profile("rootsift-1024-n2000", 1024, 2000, "full"),
     Profile("xfeat-640-n900", 640, 900, "pipeline", "xfeat"),
+    Profile("xfeat-512-n900", 512, 900, "pipeline", "xfeat"),  # smaller inputs: the ingestion-rate knob
+    Profile("xfeat-448-n900", 448, 900, "pipeline", "xfeat"),
     Profile("rootsift-800-n1500-pca32", 800, 1500, pca_dim=32),
     Profile("rootsift-800-n1500-pca24", 800, 1500, pca_dim=24),
 ]

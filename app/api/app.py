@@ -4,6 +4,7 @@ the lifespan, so /health answers at once and /ready says 503 until everything is
 from __future__ import annotations
 
 import logging
+import os
 import threading
 from contextlib import asynccontextmanager
 from pathlib import Path
@@ -29,6 +30,8 @@ log = logging.getLogger("geoloc.api")
 #: The page (issue: drop a photo, see where it was taken). Leaflet and Swagger UI are copied into vendor/ by
 #: `make setup` from the npm registry, never loaded from a CDN.
 WEB_DIR = Path(__file__).resolve().parents[1] / "web" / "static"
+#: The back-fill thread's niceness (0-19; higher yields more): requests first, the back-fill with what is left.
+BACKFILL_NICE = 10
 
 
 def _run_writer(app: FastAPI, service: GeolocService) -> None:
@@ -73,6 +76,45 @@ def _first_start(app: FastAPI) -> None:
     run_first_start(s.data_dir, s.models_dir, s.config, s.initial_photos, say, s.image_limits(), workers=workers)
 
 
+def _backfill(app: FastAPI, stop: threading.Event) -> None:
+    """A data dir whose configuration stores local features but whose references lack some (made before it
+    stored them, restored from a backup without them) gets them in the background
+    (``app.jobs.backfill_features``, what `geoloc features backfill` runs), while answers verify the
+    candidates that have a file and leave the rest unverified. /ready shows the walk's latest line."""
+    from app.jobs.backfill_features import PAGE, backfill_stored_features, needed
+
+    state = app.state
+    s: Settings = state.settings
+    backend = s.backend(s.data_dir)
+    if needed(s.data_dir, s.config, backend) is None:
+        return
+    every, lines = 10, 0  # /ready's line moves every 10 references; the log gets one every PAGE
+
+    def say(line: str) -> None:
+        nonlocal lines
+        state.backfill = line
+        lines += 1
+        last = not line.endswith(" failed")  # done, stopped, or left to another process
+        if last or lines % (PAGE // every) == 1:
+            log.info("%s", line)
+
+    def walk() -> None:
+        # Below the requests: this thread, and the onnxruntime threads its extractor's session starts, run
+        # at a lower priority (Linux nices threads one by one; new threads inherit it).
+        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), BACKFILL_NICE)
+        try:
+            backfill_stored_features(
+                s.data_dir, s.models_dir, s.config, s.image_limits(), say, every, stop, wait=False, backend=backend
+            )
+        except Exception as e:  # the service keeps answering; a restart tries again
+            log.exception("stored features backfill failed")
+            state.backfill = f"features backfill failed: {e} (the next start tries again)"
+
+    state.backfill = "features backfill: starting"
+    state.backfill_thread = threading.Thread(target=walk, name="geoloc-backfill", daemon=True)
+    state.backfill_thread.start()
+
+
 def _load(app: FastAPI, stop: threading.Event) -> None:
     """Load until it works: a missing model or an unreadable data dir may be fixed while we wait, so
     loading retries with backoff and /ready says why meanwhile (never a permanent 503)."""
@@ -108,6 +150,7 @@ def _load(app: FastAPI, stop: threading.Event) -> None:
             state.service = service
             state.load_error = None
             log.info("ready: config %s, %d references", service.pipeline.config.name, service.collection.size)
+            _backfill(app, stop)
             return
         except Exception as e:  # keep /health up and say what is wrong on /ready
             log.exception("loading failed; retrying in %.0f s", delay)
@@ -129,6 +172,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         yield
         stop.set()
         loader.join(timeout=60)
+        if app.state.backfill_thread is not None:  # stops between two references
+            app.state.backfill_thread.join(timeout=60)
         if getattr(app.state, "library", None) is not None:  # issue 36: its scans stop between two photos
             app.state.library.close()
         if app.state.listener is not None:
@@ -157,6 +202,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.writer = None  # the writer role (worker=inprocess), held or waiting for the worker lock
     app.state.worker = None  # its ingestion worker, once this process holds the role
     app.state.load_error = None
+    app.state.backfill = None  # the stored features' back-fill: its latest progress line (/ready)
+    app.state.backfill_thread = None
     # Each add wraps the ones before (the last is outermost): a bug still answers JSON and keeps the
     # connection; body limits and keys come before any body is read; metrics see every answer.
     app.add_middleware(errors.LastResort)

@@ -242,3 +242,8 @@ class ReadyOut(BaseModel):
     #: Which rule judges this collection's answers (its own calibration, or the conservative rule and why),
     #: and what a collection that cannot give a confident answer yet needs.
     calibration: str | None = None
+    #: With a configuration that stores local features, when this start found references without their file:
+    #: the background back-fill's latest line (``features backfill (xfeat-640-n900): 120/500 indexed
+    #: references, 118 written, 2 already there, 0 failed``, ending ``(done)``); answers meanwhile verify
+    #: the candidates whose file exists. None when there was nothing to back-fill.
+    features_backfill: str | None = None

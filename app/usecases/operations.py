@@ -22,7 +22,7 @@ from app.engine.configs import DEFAULT_CONFIG
 from app.errors import OperationRefused
 from app.permissions import private_dir, private_tree
 from app.storage.backend import StorageBackend
-from app.storage.feature_files import FeatureFiles, profile_root
+from app.storage.feature_files import FEATURES, FeatureFiles, profile_root
 from app.storage.files import IMAGES
 from app.storage.orphans import MIN_AGE_S, retry_removals, sweep
 from app.storage.settings import storage_backend
@@ -181,8 +181,8 @@ def repair_data_dir(data_dir: Path, min_age_s: float = MIN_AGE_S) -> list[str]:
 
 def backup_data_dir(data_dir: Path, dest: Path) -> dict:
     """The storage backend's dump (SQLite's backup API, PostgreSQL's ``pg_dump``: one state while others
-    keep writing). Then the images the copied rows name (from the shared images folder on PostgreSQL), the data dir's
-    re-fitted pipelines, its newest snapshot and its API key file."""
+    keep writing). Then the images the copied rows name (from the shared images folder on PostgreSQL), their
+    stored local features, the data dir's re-fitted pipelines, its newest snapshot and its API key file."""
     if dest.exists() and any(dest.iterdir()):
         raise OperationRefused(f"{dest} is not empty: back up into a new or empty folder")
     private_dir(dest, parents=True)
@@ -198,6 +198,7 @@ def backup_data_dir(data_dir: Path, dest: Path) -> dict:
             copied += 1
         except FileNotFoundError:  # deleted since the database copy was taken
             missing += 1
+    stored_features = _copy_stored_features(data_dir, dest, names)
     if (data_dir / PIPELINES).is_dir():  # re-fitted pipelines (`geoloc refit`): the codes need theirs
         shutil.copytree(data_dir / PIPELINES, dest / PIPELINES, ignore=shutil.ignore_patterns(".*"))
     version = None
@@ -212,6 +213,7 @@ def backup_data_dir(data_dir: Path, dest: Path) -> dict:
         "references": len(names),
         "images": copied,
         "missing_images": missing,
+        "stored_features": stored_features,
         "snapshot_version": version,
         "api_key": holds_key,
         **({"note": KEY_NOTE} if holds_key else {}),
@@ -241,6 +243,8 @@ def restore_data_dir(source: Path, data_dir: Path) -> dict:
     backend.restore(source)
     images, snapshots = _store_dirs(data_dir, backend)  # makes the folders; the restored tables open
     shutil.copytree(source / IMAGES, images, dirs_exist_ok=True)
+    if (source / FEATURES).is_dir():  # the stored local features: verified at once, no back-fill
+        shutil.copytree(source / FEATURES, data_dir / FEATURES, dirs_exist_ok=True)
     if (source / PIPELINES).is_dir():
         shutil.copytree(source / PIPELINES, data_dir / PIPELINES, dirs_exist_ok=True)
     for path in source.glob("*-v*.faiss"):
@@ -250,6 +254,29 @@ def restore_data_dir(source: Path, data_dir: Path) -> dict:
     _copy_key(source, data_dir)
     private_tree(data_dir)  # PostgreSQL's shared images folder keeps the mode its operator gave it
     return json.loads((source / BACKUP_MANIFEST).read_text())
+
+
+def _copy_stored_features(data_dir: Path, dest: Path, names: list[str]) -> dict[str, int]:
+    """The stored local features of the images the copied rows name, under each profile the data dir holds
+    (``features/<profile>/<sha[:3]>/<sha>.lf``, the same layout): a restored data dir verifies its answers at
+    once rather than back-filling every reference from its image. Files of rows deleted since the database
+    copy are left out, as their images are; one whose reference is older than the stored features has none
+    (the restored server back-fills it). Returns the files copied per profile."""
+    copied: dict[str, int] = {}
+    folder = data_dir / FEATURES
+    if not folder.is_dir():
+        return copied
+    for root in sorted(p for p in folder.iterdir() if p.is_dir() and not p.name.startswith(".")):
+        files, into = FeatureFiles(root), FeatureFiles(dest / FEATURES / root.name)
+        copied[root.name] = 0
+        for sha in {name.split(".", 1)[0] for name in names}:
+            try:
+                data = files.path(sha).read_bytes()
+            except (FileNotFoundError, ValueError):  # none stored yet, or a name that is no sha256
+                continue
+            into.write(sha, data)
+            copied[root.name] += 1
+    return copied
 
 
 def _store_dirs(data_dir: Path, backend: StorageBackend) -> tuple[Path, Path]:

@@ -17,11 +17,12 @@ def bench(*args: str) -> str:
 
 def test_compare_configs_interleaves_two_servers(fitted_models, mini_manifest):
     out = bench(
-        "bench.compare_configs", "--configs", f"{CONFIG},{CONFIG}", "--models-dir", str(fitted_models),
+        "bench.compare_configs", "--configs", f"{CONFIG},{CONFIG}:rerank=false", "--models-dir", str(fitted_models),
         "--manifest", str(mini_manifest), "--reps", "1", "--limit", "2", "--no-doc",
     )  # fmt: skip
-    rows = [line for line in out.splitlines() if line.startswith(f"| {CONFIG} |")]
+    rows = [line for line in out.splitlines() if line.startswith(f"| {CONFIG}")]
     assert len(rows) == 2 and rows[0].split("|")[4].strip() == "1.00"  # the first is the baseline
+    assert rows[1].startswith(f"| {CONFIG}:rerank=false |") and rows[1].split("|")[6].strip() == "0.0"  # none verified
 
 
 def test_ingest_resume_compares_with_and_without_the_journal(fitted_models):

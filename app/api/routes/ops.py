@@ -55,6 +55,7 @@ def ready(request: Request, x_api_key: Annotated[str | None, Header()] = None):
         index_loaded="rebuilt" if col.stats.full_rebuilds else "snapshot",
         index=col.index.stats(),
         calibration=col.calibration_summary(),
+        features_backfill=state.backfill,
     )
 
 
