@@ -456,7 +456,14 @@ def eval_cmd(
     workers: Annotated[int, typer.Option(help="extraction threads; 1 keeps per-stage times honest")] = 1,
     svm_bank: Annotated[str, typer.Option("--svm-bank", help="off, positive or negative (thesis ablation)")] = "off",
     svm_bank_kind: Annotated[str, typer.Option("--svm-bank-kind", help="contrastive or confusers")] = "contrastive",
-    rerank: Annotated[bool, typer.Option("--rerank", help="geometric verification, as /locate rerank=true")] = False,
+    rerank: Annotated[
+        bool | None,
+        typer.Option(
+            "--rerank/--no-rerank",
+            help="geometric verification, as /locate's rerank; default: as /locate's, verified from stored "
+            "features for a configuration that stores them",
+        ),
+    ] = None,
     region_radius_m: Annotated[
         float | None, typer.Option("--region-radius-m", help="search a circle of R m around each query's truth")
     ] = None,
@@ -497,6 +504,7 @@ def eval_cmd(
         bank_source=svm_bank_source,
         models_dir=models_dir,
         absent_radius_m=absent_radius,
+        partial=json_out.with_suffix(".partial.json") if json_out else None,
     )
     typer.echo(format_summary(result))
     if json_out:

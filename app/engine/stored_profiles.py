@@ -104,3 +104,10 @@ class StoredExtractor:
         """The query's features, unquantised (only the stored side is compacted)."""
         xy, desc, _, _ = self._extract(rgb)
         return PixelFeatures(np.asarray(xy, np.float32), np.asarray(desc, np.float32))
+
+    def record_and_query(self, rgb: np.ndarray) -> tuple[StoredFeatures, PixelFeatures]:
+        """``record`` and ``query`` of one photo from one extraction: a photo that is both a reference and
+        located (the calibration's held-out references, the evaluation's rows) costs one extraction."""
+        xy, desc, w, h = self._extract(rgb)
+        query = PixelFeatures(np.asarray(xy, np.float32), np.asarray(desc, np.float32))
+        return from_pixels(xy, desc, w, h, self.profile.kind), query

@@ -10,6 +10,7 @@ crops move together), because on a set this small one query moves Recall@1 by po
 from __future__ import annotations
 
 import hashlib
+import io
 import json
 import pickle
 import statistics
@@ -23,13 +24,20 @@ from app.engine.artifacts import atomic_write_bytes
 from app.engine.calibration import reliability
 from app.engine.configs import PipelineConfig
 from app.engine.geo import haversine_m
+from app.engine.imageio import ImageLimits
+from app.engine.matchers.sift_mnn import PixelFeatures
 from app.engine.pipeline import DECODE_OVERSAMPLE, Pipeline
 from app.engine.progress import Progress
+from app.engine.stored_features import StoredFeatures
+from app.engine.stored_features import decode as decode_stored
+from app.engine.stored_features import encode as encode_stored
 from app.errors import ManifestCannotBeEvaluated
+from app.evaluation.confidence_ranking import query_record, rank_confidence, ranking_lines
 from app.evaluation.datasets import Row, read_manifest
 from app.usecases.extraction import Extracted, extract_batch
 from app.usecases.fitting import EVAL_BANK_SOURCES, FitOptions, FitPhoto, fit_pipeline, near_ids
 from app.usecases.locate import ESTIMATE_CANDIDATES, MIN_LOCAL_FEATURES, Excluding, locate_features
+from app.usecases.stored_photos import PhotoStoredFeatures
 
 RECALL_AT = (1, 5, 10, 20)
 
@@ -81,6 +89,15 @@ class AnswerQuality(BaseModel):
     absent_reason_codes: dict[str, int] | None = None
 
 
+class ConfidenceRankings(BaseModel):
+    """How each confidence score ranks the present queries (``app.evaluation.confidence_ranking``): for the
+    answers as served (``answers``: verified when the run verifies) and, in a verified run, the same queries'
+    answers without verification (``without_verification``)."""
+
+    answers: dict
+    without_verification: dict | None = None
+
+
 class EvalResult(BaseModel):
     """One evaluation run. Its JSON form (``model_dump``) is the report ``geoloc eval --out`` writes and
     docs/RESULTS.md is made from."""
@@ -106,6 +123,7 @@ class EvalResult(BaseModel):
     answers: AnswerQuality | None = None
     answers_per_fold: list[AnswerQuality] = []
     calibration_per_fold: list[dict] = []
+    confidence_ranking: ConfidenceRankings | None = None
     config_definition: dict
     queries: list[dict]  # per query: image, group, fold, position, candidates, estimate (the report's rows)
 
@@ -139,6 +157,45 @@ def extract_cached(pipeline: Pipeline, rows: list[Row], cache_dir: Path | None, 
     cache_dir.mkdir(parents=True, exist_ok=True)
     atomic_write_bytes(path, pickle.dumps(extracted, protocol=pickle.HIGHEST_PROTOCOL))
     return extracted
+
+
+def stored_cached(
+    pipeline: Pipeline, rows: list[Row], cache_dir: Path | None
+) -> list[tuple[StoredFeatures, PixelFeatures]]:
+    """Every row's stored record and query features by the configuration's stored profile
+    (``StoredExtractor.record_and_query`` on the pipeline's decode of the photo under the stored references'
+    limits: the encode path's record), made once per photo and cached in ``cache_dir`` (one file per photo,
+    keyed by the profile, the decode scale and the photo's path, size and time), so every fold, the
+    calibration's held-out references and later runs read them instead of extracting again."""
+    extractor = pipeline.stored_extractor
+    limits = ImageLimits().stored()
+    folder = None
+    if cache_dir is not None:
+        folder = cache_dir / f"stored-{extractor.profile.name}"
+        folder.mkdir(parents=True, exist_ok=True)
+    progress = Progress(len(rows), desc="stored features", every=max(1, len(rows) // 10))
+    out = []
+    for r in rows:
+        path = None
+        if folder is not None:
+            st = r.image.stat()
+            key = f"{extractor.profile.name}:decode={pipeline.decode_sides}x{DECODE_OVERSAMPLE}:"
+            key += f"{r.image.resolve()}:{st.st_size}:{st.st_mtime_ns}"
+            path = folder / f"{hashlib.sha256(key.encode()).hexdigest()[:24]}.npz"
+        if path is not None and path.exists():
+            with np.load(path) as z:
+                made = (decode_stored(z["record"].tobytes()), PixelFeatures(z["xy"], z["desc"]))
+        else:
+            made = extractor.record_and_query(pipeline.decode(r.image.read_bytes(), limits).rgb)
+            if path is not None:
+                record = np.frombuffer(encode_stored(made[0]), np.uint8)
+                buf = io.BytesIO()
+                np.savez(buf, record=record, xy=made[1].xy, desc=made[1].descriptors)
+                atomic_write_bytes(path, buf.getvalue())
+        out.append(made)
+        progress.update(1)
+    progress.close()
+    return out
 
 
 def _hits(rows: list[Row], i: int, lat, lon, candidates, top_n: int, radius_m: float) -> list[bool]:
@@ -210,11 +267,12 @@ def evaluate(
     cache_dir: Path | None = None,
     svm_bank: str = "off",
     bank_kind: str = "contrastive",
-    rerank: bool = False,
+    rerank: bool | None = None,
     region_radius_m: float | None = None,
     bank_source: str = "train",
     models_dir: Path | None = None,
     absent_radius_m: float | None = None,
+    partial: Path | None = None,
 ) -> EvalResult:
     """``models_dir``: where the built models are (the global model through the registry, XFeat).
     ``svm_bank``: off (all features), positive (features the bank predicts useful) or negative (only
@@ -222,10 +280,14 @@ def evaluate(
     fold's queries: ``bank_source`` train (the train rows only) or collection (the fold's db rows as
     training photos, plus the train rows: the rule ``geoloc fit`` serves). ``rerank`` and
     ``region_radius_m`` (a circle of that radius around each query's true position) ask the same of the
-    core as /locate's ``rerank`` and region do: queries go through ``app.usecases.locate.locate_features``. With
-    ``rerank``
-    each query is also located without it (the same search), so one run reports recall with and without
-    verification and the time it adds per query."""
+    core as /locate's ``rerank`` and region do: queries go through ``app.usecases.locate.locate_features``.
+    ``rerank`` None: as /locate's default, verified when the configuration stores local features, from each
+    photo's stored record (``stored_cached``: made once, cached in ``cache_dir``) over the fold's db rows.
+    Verified, each query is also located without verification (the same search), so one run reports recall
+    with and without it and the time it adds per query; and how each confidence score ranks the answers
+    (``app.evaluation.confidence_ranking``) with and without it. ``partial``: a JSON file rewritten after each
+    fold with the folds finished so far (their per-fold figures and per-query rows), so a run stopped before
+    its end still reports them."""
     if svm_bank not in ("off", "positive", "negative"):
         raise ValueError(f"svm_bank must be off, positive or negative, not {svm_bank!r}")
     if bank_source not in EVAL_BANK_SOURCES:
@@ -235,6 +297,10 @@ def evaluate(
     check_folds(manifest, rows, query_sets)  # before the expensive extraction
     base = Pipeline(config, models_dir=models_dir)
     extracted = extract_cached(base, rows, cache_dir, workers)
+    verify = rerank if rerank is not None else config.stored_features is not None
+    # A configuration that stores local features: every photo's record and query features, made once (the
+    # folds' calibration verifies its held-out db rows from them whether or not the queries are verified).
+    made = stored_cached(base, rows, cache_dir) if config.stored_features is not None else None
 
     lat = np.array([r.lat for r in rows])
     lon = np.array([r.lon for r in rows])
@@ -242,6 +308,7 @@ def evaluate(
     per_fold_plain, rerank_ms = [], []  # with rerank: recall without it, and the time it adds
     bank_reports, kept_fractions, per_query = [], [], []
     quality, all_present, all_absent, calibration_reports = [], [], [], []
+    ranked_served, ranked_plain = [], []  # per present query: confidence_ranking.query_record
     n_db = n_query = 0
     bytes_per_ref = 0.0
     for f, qgroups in enumerate(query_sets):
@@ -268,12 +335,20 @@ def evaluate(
             bank_select="positive" if svm_bank == "off" else svm_bank,
             pos_radius_m=radius_m,
             seed=seed + f,
-            calibrate_verified=rerank and mode in (None, config.modes[0]),
+            calibrate_verified=verify and mode in (None, config.modes[0]),
             keep_index=True,
             fixed_threads=False,  # the machine's threads, as the recorded figures were measured
         )
         pipe = Pipeline(config, base.global_model, models_dir=models_dir)  # one session for every fold
-        fitted = fit_pipeline(pipe, photos, fit_options)
+        stored = None
+        if made is not None:
+            pipe._stored_extractor = base.stored_extractor
+            # The fold's db rows' records (what its references store) and their query features (the
+            # calibration locates them): the only records its queries are verified against.
+            stored = PhotoStoredFeatures(
+                base.stored_extractor, records={i: made[i][0] for i in db_idx}, queries={i: made[i][1] for i in db_idx}
+            )
+        fitted = fit_pipeline(pipe, photos, fit_options, stored=stored)
         index, geotagged = fitted.index, fitted.refs
         if pipe.bank is not None:
             bank_reports.append(
@@ -282,26 +357,34 @@ def evaluate(
                     for k in ("training", "chosen_keep_fraction", "threshold_trials", "train_seconds", "source")
                 }
             )
-        calibration_reports.append({"source": pipe.calibration.source, **pipe.calibration.report})
+        calibration_reports.append(
+            {"source": pipe.calibration.source, **pipe.calibration.report, "fit_seconds": fitted.seconds}
+        )
         refs = RowReferences(rows, db_idx)
         hits, hits_plain = [], []
         fold_present, fold_absent = [], []
         for i in q_idx:
             region = Region(rows[i].lat, rows[i].lon, region_radius_m) if region_radius_m else None
-            options = LocateOptions(top_k=top_n, mode=mode, rerank=rerank, region=region)
-            rgb = pipe.decode(rows[i].image.read_bytes()).rgb if rerank else None
+            options = LocateOptions(top_k=top_n, mode=mode, rerank=verify, region=region)
+            rgb = pipe.decode(rows[i].image.read_bytes()).rgb if verify and stored is None else None
+            q_stored = made[i][1] if stored is not None else None  # the query's, extracted once (cached)
             f_i = extracted[i].features
             codes = (
                 pipe.encode_features(f_i, pipe.select(f_i))
                 if pipe.config.local is None or f_i.n_local >= MIN_LOCAL_FEATURES
                 else None
             )  # once for every search of this query (with and without rerank, its place present and absent)
-            res = locate_features(pipe, index, refs, f_i, options, rgb, cluster_radius_m=radius_m, codes=codes)
+            res = locate_features(
+                pipe, index, refs, f_i, options, rgb, cluster_radius_m=radius_m, codes=codes, stored=stored,
+                stored_query=q_stored,
+            )  # fmt: skip
+            ranked_served.append(query_record(res, rows[i].lat, rows[i].lon, radius_m))
             hits.append(_hits(rows, i, lat, lon, res.candidates, top_n, radius_m))
             verified = None
-            if rerank:
+            if verify:
                 plain = LocateOptions(top_k=top_n, mode=mode, rerank=False, region=region)
                 res0 = locate_features(pipe, index, refs, f_i, plain, cluster_radius_m=radius_m, codes=codes)
+                ranked_plain.append(query_record(res0, rows[i].lat, rows[i].lon, radius_m))
                 hits_plain.append(_hits(rows, i, lat, lon, res0.candidates, top_n, radius_m))
                 rerank_ms.append(res.timings_ms.get("rerank", 0.0))
                 # What bench/verification.py analyses: the retrieval order, and each verified pair's outcome.
@@ -323,8 +406,9 @@ def evaluate(
             if absent_radius_m:
                 gone = near_ids(geotagged, rows[i].lat, rows[i].lon, absent_radius_m)
                 res_absent = locate_features(
-                    pipe, Excluding(index, gone), refs, f_i, options, rgb, cluster_radius_m=radius_m, codes=codes
-                )  # as the present answer is located: verified with rerank
+                    pipe, Excluding(index, gone), refs, f_i, options, rgb, cluster_radius_m=radius_m, codes=codes,
+                    stored=stored, stored_query=q_stored,
+                )  # as the present answer is located: verified with rerank  # fmt: skip
                 fold_absent.append(_answer_record(res_absent, rows[i], radius_m))
             e = res.estimate
             if e.lat is not None:
@@ -350,8 +434,10 @@ def evaluate(
                     },
                 }
             )
+            per_query[-1]["confidence"] = ranked_served[-1]
             if verified is not None:
                 per_query[-1]["verification"] = verified
+                per_query[-1]["confidence_without_verification"] = ranked_plain[-1]
             if res.features_extracted:
                 kept_fractions.append(res.features_kept / res.features_extracted)
         quality.append(answer_quality(fold_present, fold_absent, absent_radius_m))
@@ -360,12 +446,26 @@ def evaluate(
         hits_arr = np.array(hits, bool)
         all_hits.append(hits_arr)
         per_fold.append({str(n): float(hits_arr[:, n - 1].mean()) for n in RECALL_AT})
-        if rerank:
+        if verify:
             plain_arr = np.array(hits_plain, bool)
             per_fold_plain.append({str(n): float(plain_arr[:, n - 1].mean()) for n in RECALL_AT})
         n_db += len(db_idx)
         n_query += len(q_idx)
         bytes_per_ref = index.bytes_per_reference()
+        if partial is not None:
+            done = {
+                "folds_done": f + 1,
+                "folds": len(query_sets),
+                "recall_at_per_fold": per_fold,
+                "without_rerank_recall_at_per_fold": per_fold_plain,
+                "answers_per_fold": quality,
+                "calibration_per_fold": calibration_reports,
+                "estimates": [{"confident": c, "within_radius": ok} for c, ok in est_conf],
+                "present": all_present,
+                "queries": per_query,
+            }
+            partial.parent.mkdir(parents=True, exist_ok=True)
+            atomic_write_bytes(partial, json.dumps(done, default=float).encode())
 
     hits_all = np.vstack(all_hits)
     recall_curve = hits_all.mean(axis=0)
@@ -382,12 +482,12 @@ def evaluate(
             "n_query": n_query,
             "radius_m": radius_m,
             "mode": mode or config.modes[0],
-            "rerank": rerank,
+            "rerank": verify,
             "region_radius_m": region_radius_m,
             "recall_at": {str(n): float(np.mean([p[str(n)] for p in per_fold])) for n in RECALL_AT},
             "recall_at_per_fold": per_fold,
             "without_rerank": None
-            if not rerank
+            if not verify
             else {
                 "recall_at": {str(n): float(np.mean([p[str(n)] for p in per_fold_plain])) for n in RECALL_AT},
                 "recall_at_per_fold": per_fold_plain,
@@ -397,7 +497,13 @@ def evaluate(
             "recall_curve": [float(x) for x in recall_curve],
             "ms_per_query": ms,
             "ms_per_query_note": "median over queries; extraction ran on a 2-thread pool, so per-stage times "
-            "include contention",
+            "include contention"
+            + (
+                "; verified from stored features: rerank excludes the query's extraction by the stored profile "
+                "(made once per photo, cached)"
+                if made is not None and verify
+                else ""
+            ),
             "bytes_per_reference": bytes_per_ref,
             "estimate_error_m": {
                 "median": float(np.median(est_err)) if est_err else None,
@@ -416,6 +522,10 @@ def evaluate(
             "answers": answer_quality(all_present, all_absent, absent_radius_m),
             "answers_per_fold": quality,
             "calibration_per_fold": calibration_reports,
+            "confidence_ranking": {
+                "answers": rank_confidence(ranked_served),
+                "without_verification": rank_confidence(ranked_plain) if verify else None,
+            },
             "config_definition": config.model_dump(),
             "queries": per_query,
         }
@@ -536,8 +646,20 @@ def format_summary(result: EvalResult | dict) -> str:
         f"{e['confident_fraction']:.0%} of the time, and then within the radius "
         + (f"{e['confident_within_radius']:.0%}" if e["confident_within_radius"] is not None else "n/a"),
         *_quality_lines(result),
+        *_ranking_lines(result),
     ]
     return "\n".join(lines)
+
+
+def _ranking_lines(result: dict) -> list[str]:
+    """How each confidence score ranks the answers (``confidence_ranking``), served and without verification."""
+    c = result.get("confidence_ranking")
+    if not c:
+        return []
+    served = "verified answers" if result.get("rerank") else "answers"
+    return ranking_lines(c["answers"], f"confidence ranking, {served}") + ranking_lines(
+        c.get("without_verification"), "confidence ranking, the same queries without verification"
+    )
 
 
 def _pct(x) -> str:

@@ -34,6 +34,7 @@ from app.engine.training.svm_training import BANK_SOURCES, Geotagged, NothingToT
 from app.errors import FitRefused
 from app.runtime import fit_threads
 from app.usecases.extraction import Counter, Extracted, extract_batch
+from app.usecases.stored_photos import PhotoStoredFeatures
 
 log = logging.getLogger("geoloc.fit")
 
@@ -189,7 +190,11 @@ class FitProgress:
 
 
 def fit_pipeline(
-    pipe: Pipeline, photos: Sequence[FitPhoto], options: FitOptions, progress: FitProgress | None = None
+    pipe: Pipeline,
+    photos: Sequence[FitPhoto],
+    options: FitOptions,
+    progress: FitProgress | None = None,
+    stored: PhotoStoredFeatures | None = None,
 ) -> FittedPipeline:
     """Fit ``pipe`` on ``photos``, every step in order: extract the features of those not extracted yet,
     fit the codebook, PCA-whitening and binariser on the photos ``in_fit`` (in the order given), then, unless
@@ -197,6 +202,9 @@ def fit_pipeline(
     confidence rule and ``p_within_25m`` on the references themselves (``calibrate_collection``, with the
     training photos in its auxiliary fits). What `geoloc fit`, the first start, `geoloc refit` and each of
     the evaluation's folds run: one fit, so what the evaluation measures is what the others build.
+
+    ``stored``: the references' stored-profile features made already (the evaluation's cache), for a
+    configuration with ``stored_features``; else the calibration makes them from the photos.
 
     Raises ``FitRefused`` when fewer than 2 photos are left to fit on, or the bank cannot be trained (unless
     ``bank_optional``). The numerical steps run on ``fit_threads`` (unless ``options.fixed_threads`` is
@@ -256,8 +264,9 @@ def fit_pipeline(
             [t.features for t in train],
             options.calibration_sample,
             seed=options.seed,
-            images=images if options.calibrate_verified else None,
+            images=images if options.calibrate_verified or pipe.config.stored_features else None,
             hashes=hashes,
+            stored=stored,
         )
         seconds["calibration"] = time.perf_counter() - t0
     return FittedPipeline(pipe, refs, source, seconds, index)
@@ -423,6 +432,7 @@ def calibrate_collection(
     images: Mapping[int, Path] | None = None,
     verify_sample: int = VERIFY_CALIBRATION_SAMPLE,
     hashes: Mapping[int, str] | None = None,
+    stored: PhotoStoredFeatures | None = None,
 ) -> Calibration:
     """The confidence rule and ``p_within_25m`` for ``pipe`` (fitted, with its bank), fitted on the collection
     ``refs`` itself.
@@ -444,6 +454,12 @@ def calibrate_collection(
     second rule is fitted on those verified answers (``Calibration.verified``), which /locate applies to
     answers with ``rerank``: verification's evidence then counts in ``p_within_25m`` and the confidence.
 
+    A configuration with ``stored_features`` verifies as /locate does by default, from stored records: every
+    held-out reference (not only ``verify_sample``) is located verified, from records made once per
+    reference from its photo (``stored``, else made here from ``images`` by the profile's extractor:
+    ``PhotoStoredFeatures``), so the verified rule is fitted on as many answers as the unverified one, at the
+    cost of one extraction per reference located or retrieved and the matching (``report["verified_seconds"]``).
+
     ``hashes`` (reference id -> the sha256 of its photo): recorded as ``Calibration.references`` (those of the
     located sample), so that a data dir judged by this pipeline can tell whether the figures are its own."""
     from app.usecases.locate import ESTIMATE_CANDIDATES, MIN_LOCAL_FEATURES, Excluding, locate_features
@@ -462,7 +478,15 @@ def calibrate_collection(
     source = GeotaggedReferences(refs, dict(images) if images else None)
     options = LocateOptions(top_k=ESTIMATE_CANDIDATES, rerank=False)  # the unverified rule, whatever the default
     verified_options = LocateOptions(top_k=ESTIMATE_CANDIDATES, rerank=True)
-    to_verify = set([i for i in held if i in images][: max(0, verify_sample)] if images else [])
+    if pipe.config.stored_features is not None:
+        stored_limits = ImageLimits().stored()  # the references' decode, as the encode path's
+        if stored is None and images:
+            stored = PhotoStoredFeatures(pipe.stored_extractor, lambda i: _photo(pipe, images.get(i), stored_limits))
+        to_verify = {i for i in held if i in stored.queries or (images and i in images)} if stored else set()
+    else:
+        stored = None
+        to_verify = set([i for i in held if i in images][: max(0, verify_sample)] if images else [])
+    verified_seconds = 0.0
     features_cache = BoundedCache(FEATURES_KEPT)
     samples, verified_samples, verified_refs = [], [], 0
     for k, part in enumerate(parts):
@@ -475,7 +499,9 @@ def calibrate_collection(
         aux = Pipeline(pipe.config, pipe.global_model, models_dir=pipe.models_dir)
         aux.fit(fit_on, seed=seed + 1 + k, codebook=pipe.codebook, places=places)
         aux.bank, aux.bank_select = pipe.bank, pipe.bank_select
-        if to_verify:
+        if to_verify and stored is not None:
+            aux._stored_extractor = pipe.stored_extractor  # one extractor (its network loads once)
+        elif to_verify:
             aux._matcher = pipe.matcher  # one matcher (a learned one loads its networks once) for every part
         # Only the references it was fitted on are searched, as every reference is for a real query.
         rest = [i for i in ids if refs[i].group not in out]
@@ -486,19 +512,37 @@ def calibrate_collection(
                 continue
             codes = aux.encode_features(r.features, aux.select(r.features))  # once for both searches
             own = by_group[r.group]
-            rgb = _photo(aux, images[i]) if i in to_verify else None
-            verified_refs += rgb is not None
+            t0 = time.perf_counter()
+            rgb = query = None
+            if i in to_verify and stored is not None:
+                query = stored.query(i)
+            elif i in to_verify:
+                rgb = _photo(aux, images[i])
+            verify = rgb is not None or query is not None
+            verified_refs += verify
+            verified_seconds += time.perf_counter() - t0
             for absent, excluded in ((False, own), (True, own + near_ids(refs, r.lat, r.lon, absent_radius_m))):
                 searched = Excluding(index, excluded)
                 answer = locate_features(aux, searched, source, r.features, options, codes=codes)
                 s = calibration_sample(answer, r.lat, r.lon, absent)
                 if s is not None:
                     samples.append(s)
-                if rgb is None:
+                if not verify:
                     continue
+                t0 = time.perf_counter()
                 answer = locate_features(
-                    aux, searched, source, r.features, verified_options, rgb, codes=codes, features_cache=features_cache
+                    aux,
+                    searched,
+                    source,
+                    r.features,
+                    verified_options,
+                    rgb,
+                    codes=codes,
+                    features_cache=features_cache,
+                    stored=stored,
+                    stored_query=query,
                 )
+                verified_seconds += time.perf_counter() - t0
                 s = calibration_sample(answer, r.lat, r.lon, absent)
                 if s is not None:
                     verified_samples.append(s)
@@ -510,10 +554,16 @@ def calibrate_collection(
     if to_verify:
         verified = fit_calibration(verified_samples, seed)
         cal.report["verified_sampled"] = verified_refs  # those whose photo could be read
+        # What locating them verified added to the calibration's time (the stored records made, included).
+        cal.report["verified_seconds"] = round(verified_seconds, 1)
+        how = "from stored features" if stored is not None else "with verification"
+        if stored is not None:
+            cal.report["verified_from"] = f"stored features ({stored.profile})"
         if verified.calibrated:
-            verified.note = f"fitted on {verified_refs} references of this collection, located with verification"
+            verified.note = f"fitted on {verified_refs} references of this collection, located {how}"
             cal.verified = asdict(verified)
-            cal.note += f"; verified answers (rerank) by their own rule, {verified_refs} located with verification"
+            which = "verified answers" if stored is not None else "verified answers (rerank)"
+            cal.note += f"; {which} by their own rule, {verified_refs} located {how}"
             cal.report["verified_confident_p"] = verified.report.get("confident_p")
             cal.report["verified_brier"] = verified.report.get("brier")
         else:
@@ -521,12 +571,14 @@ def calibrate_collection(
     return cal
 
 
-def _photo(pipe: Pipeline, path: Path) -> np.ndarray | None:
-    """A reference's photo for verification, decoded as /locate decodes an upload (None when unreadable:
-    that reference is then located without verification only)."""
+def _photo(pipe: Pipeline, path: Path | None, limits: ImageLimits | None = None) -> np.ndarray | None:
+    """A reference's photo for verification, decoded as /locate decodes an upload (None when unreadable or
+    unknown: that reference is then located without verification only)."""
     from app.engine.errors import GeolocError
 
+    if path is None:
+        return None
     try:
-        return pipe.decode(Path(path).read_bytes()).rgb
+        return pipe.decode(Path(path).read_bytes(), limits).rgb
     except (OSError, GeolocError):
         return None

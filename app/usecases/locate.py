@@ -31,6 +31,7 @@ from app.engine.geo import haversine_m
 from app.engine.imageio import ImageLimits, load_image
 from app.engine.matchers.base import Matcher, Verification
 from app.engine.matchers.fusion import FUSION_FLOOR, fused_score
+from app.engine.matchers.sift_mnn import PixelFeatures
 from app.engine.pipeline import Codes, Features, Pipeline
 from app.engine.stored_features import StoredFeatures, StoredFeaturesError, decode
 from app.engine.stored_verification import verify_stored
@@ -202,15 +203,17 @@ def verify_candidate_pairs(
 
 
 def verify_from_stored(
-    query_rgb: np.ndarray,
+    query_rgb: np.ndarray | None,
     head: Sequence[tuple[int, float]],
     pipeline: Pipeline,
     stored: StoredFeaturesSource,
+    query: PixelFeatures | None = None,
 ) -> dict[int, Verification | None]:
     """Verify the ``head`` candidates ((id, global score), retrieval order) against their stored features:
-    the query's extracted once by the configuration's profile, the candidates' read from their files, all
-    matched in one batch (``verify_stored``, with the profile's adaptive stop). None where a candidate was
-    not verified: no stored file, another extractor's record, left out by the stop, or OpenCV refused it."""
+    the query's extracted once by the configuration's profile (or ``query``, extracted so already: the
+    calibration and the evaluation locate one photo several times), the candidates' read from their files,
+    all matched in one batch (``verify_stored``, with the profile's adaptive stop). None where a candidate
+    was not verified: no stored file, another extractor's record, left out by the stop, or OpenCV refused it."""
     extractor = pipeline.stored_extractor
     if extractor is None:
         raise ValueError(f"configuration {pipeline.config.name} stores no local features")
@@ -222,9 +225,8 @@ def verify_from_stored(
     if not any(r is not None for r in given):
         return out
     try:
-        outcome = verify_stored(
-            extractor.query(query_rgb), given, [s for _, s in head], profile.settings, profile.stop_margin
-        )
+        q = query if query is not None else extractor.query(query_rgb)
+        outcome = verify_stored(q, given, [s for _, s in head], profile.settings, profile.stop_margin)
     except (cv2.error, GeolocError) as e:
         log.debug("verification of references %s skipped: %s", ids, e)
         return out
@@ -260,6 +262,7 @@ def locate_features(
     features_cache: dict[int, object] | None = None,
     calibration: Calibration | None = None,
     stored: StoredFeaturesSource | None = None,
+    stored_query: PixelFeatures | None = None,
 ) -> LocateAnswer:
     """Search, verify, fuse, shape. ``query_rgb`` is needed only for verification (``options.rerank``, the public
     option's name; None: verified when the configuration stores local features).
@@ -268,7 +271,8 @@ def locate_features(
     ``calibration``: the rule that judges this collection (``Collection.calibration``), else the pipeline's.
     ``codes``: the features already encoded by ``pipeline`` (calibration and the evaluation locate one photo
     twice, its place present and absent: the second search reuses the first's codes). ``features_cache``:
-    the references' matcher features kept across calls (``verify_candidate_pairs``)."""
+    the references' matcher features kept across calls (``verify_candidate_pairs``). ``stored_query``: the
+    query's features by the configuration's stored profile, extracted already (``verify_from_stored``)."""
     mode = index.check_mode(options.mode)
     profile = pipeline.config.stored_features
     verify = options.rerank if options.rerank is not None else profile is not None
@@ -297,12 +301,13 @@ def locate_features(
     inliers: dict[int, int | None] = {}
     verification: dict[int, Verification | None] = {}
     if verify and ranked:
-        if query_rgb is None:
+        from_stored = profile is not None and stored is not None
+        if query_rgb is None and not (from_stored and stored_query is not None):
             raise ValueError("verification needs the query image")
         t0 = time.perf_counter()
         floor = FUSION_FLOOR
-        if profile is not None and stored is not None:
-            verification = verify_from_stored(query_rgb, ranked[:VERIFIED_CANDIDATES], pipeline, stored)
+        if from_stored:
+            verification = verify_from_stored(query_rgb, ranked[:VERIFIED_CANDIDATES], pipeline, stored, stored_query)
             floor = pipeline.stored_extractor.profile.fusion_floor
         else:
             head = [i for i, _ in ranked[:VERIFIED_CANDIDATES]]

@@ -46,6 +46,14 @@ def test_stored_features_written_verified_and_removed(sv_models, mini_manifest, 
     from app.usecases.service import GeolocService
 
     fit(manifest=mini_manifest, config=CONFIG, models_dir=sv_models, seed=0, svm_bank=None, svm_bank_kind="contrastive")
+    # The fit's calibration located every sampled reference verified from stored records too (without
+    # --calibrate-rerank): the rule /locate's verified answers are judged by.
+    from app.engine.calibration import Calibration
+    from app.engine.pipeline import pipeline_dir
+
+    report = Calibration.load(pipeline_dir(sv_models, CONFIG)).report
+    assert report["verified_from"] == "stored features (xfeat-640-n900)"
+    assert report["verified_sampled"] == report["sampled"] > 0
     data = tmp_path / "data"
     service = GeolocService.open(data, sv_models, CONFIG)
     photos = [r for r in read_manifest(mini_manifest) if r.split == "db" and r.image.parent.name == "photos"]
