@@ -268,7 +268,7 @@ class Calibration:
         if self.radius:
             radii = ", ".join(f"{x:.0f}" for x in self.radius["radius_m"])
             return (
-                f"stated radii {radii} m by evidence strength, each holding for {self.radius['rate']:.0%} of "
+                f"stated radii {radii} m by evidence strength, each holding for {self.radius['rate'] * 100:.0f} % of "
                 f"{self.radius['population']} sampled answers"
             )
         return "radii by the constant rule (farthest fused candidate + 40 m), their rate not calibrated"
@@ -353,9 +353,8 @@ def fit_calibration(samples: list[Sample], seed: int = 0) -> Calibration:
             "mean_best_p_absent": round(float(np.mean(absent_best or [0.0])), 4),
         }
     )
-    cal.note = f"fitted on {len(present)} references of this collection"
     cal.radius = fit_radius(cal, samples)
-    cal.report["radius"] = cal.radius_note
+    cal.note = f"fitted on {len(present)} references of this collection; {cal.radius_note}"
     return cal
 
 

@@ -353,6 +353,9 @@ def evaluate(
                         "lon": e.lon,
                         "confidence": round(e.confidence, 4),
                         "confident": res.reason is None,
+                        "answer_p": None if res.answer_p is None else round(res.answer_p, 4),
+                        "radius_m": round(e.radius_m, 1),
+                        "radius_rate": e.radius_rate,
                     },
                 }
             )

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from app.api.schemas import LocateOut
+from app.cli import radius_in_words, rate_in_words
 from app.domain import LocateOptions
 from app.engine import calibration as calibration_module
 from app.engine.calibration import (
@@ -92,8 +93,8 @@ def test_the_radii_are_the_conformal_quantiles_of_the_recorded_errors(fitted):
         assert np.mean(errors <= radius + 0.05) >= RADIUS_RATE  # it holds on the sample itself
     # The weakest bin's errors are the larger: its radius is not the strongest's.
     assert r["radius_m"][0] >= r["radius_m"][-1]
-    # And the refit summary's words say how radii are chosen.
-    assert cal.report["radius"].startswith("stated radii ")
+    # And the note (the fit's and refit's summary, /ready) says how radii are chosen.
+    assert "; stated radii " in cal.note and "each holding for 90 % of" in cal.note, cal.note
 
 
 def _query(fit, penn_index):
@@ -130,6 +131,9 @@ def test_a_confident_answer_states_its_bins_radius_and_the_rate(fitted, penn_ind
     assert (answer.estimate.radius_m, answer.estimate.radius_rate) == anyone.stated_radius(answer.answer_p)
     shown = LocateOut.of(answer).model_dump()["estimate"]
     assert shown["radius_rate"] == 0.9 and shown["radius_m"] == round(answer.estimate.radius_m, 1)
+    # `geoloc locate --brief` says it in the page's words.
+    assert radius_in_words(shown) == f"within {shown['radius_m']:.0f} m: 9 in 10 such answers are"
+    assert rate_in_words(0.95) == "19 in 20"
 
     # A conservative collection keeps the constant rule, and its rate is not calibrated.
     plain = locate_features(pipe, index, source, features, options, calibration=Calibration.conservative("small"))
@@ -148,6 +152,7 @@ def test_a_calibration_from_before_stated_radii_still_loads_and_keeps_the_consta
     assert "fitted before stated radii" in old.note and "geoloc refit" in old.note
     assert old.stated_radius(0.99) == (None, None)
     assert "not calibrated" in old.radius_note
+    assert radius_in_words({"radius_m": 48.0, "radius_rate": None}).endswith("is not calibrated on this collection")
     s = max(samples, key=lambda s: answer_probability(cal, s))
     e = Estimate(0.0, 0.0, 99.0, 1.0, None, int(s.members.sum()), tuple(bool(m) for m in s.members))
     d = replace(old, confident_p=0.0).decide(s.evidence, e)

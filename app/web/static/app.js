@@ -269,9 +269,9 @@ function extentInWords(res) {
 
 // A rate as a count a reader pictures: 0.9 -> "9 in 10" (the answer's radius_rate; app/cli.py says it alike).
 function rateInWords(rate) {
-  for (const of of [10, 20, 100]) {
-    const n = Math.round(rate * of);
-    if (Math.abs(rate * of - n) < 1e-6) return `${n} in ${of}`;
+  for (const whole of [10, 20, 100]) {
+    const n = Math.round(rate * whole);
+    if (Math.abs(rate * whole - n) < 1e-6) return `${n} in ${whole}`;
   }
   return `${Math.round(rate * 100)} %`;
 }
