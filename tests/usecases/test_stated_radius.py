@@ -115,10 +115,14 @@ def test_a_confident_answer_states_its_bins_radius_and_the_rate(fitted, penn_ind
     anyone = replace(cal, confident_p=lowest)
     r = cal.radius
     for s in samples:
-        e = Estimate(0.0, 0.0, 99.0, 1.0, None, int(s.members.sum()), tuple(bool(m) for m in s.members))
+        members = tuple(bool(m) for m in s.members)
+        e = Estimate(0.0, 0.0, RADIUS_FLOOR_M, 1.0, None, int(s.members.sum()), members)
         d = anyone.decide(s.evidence, e)
         k = int(np.searchsorted(r["edges"], d.answer_p, side="right"))
         assert d.confident and d.radius_m == max(r["radius_m"][k], RADIUS_FLOOR_M) and d.radius_rate == 0.9
+        # Never below the constant rule's radius for the same answer (the sample is easier than real queries).
+        wide = replace(e, radius_m=max(r["radius_m"]) + 50.0)
+        assert anyone.decide(s.evidence, wide).radius_m == wide.radius_m
 
     # Through the locate path: the estimate carries the radius and the rate, and /locate's JSON states it.
     ids = sorted(fit.refs)
@@ -128,7 +132,10 @@ def test_a_confident_answer_states_its_bins_radius_and_the_rate(fitted, penn_ind
     options = LocateOptions(top_k=10, rerank=False)
     answer = locate_features(pipe, index, source, features, options, calibration=anyone)
     assert answer.reason is None and answer.answer_p is not None
-    assert (answer.estimate.radius_m, answer.estimate.radius_rate) == anyone.stated_radius(answer.answer_p)
+    plain = locate_features(pipe, index, source, features, options, calibration=Calibration.conservative("small"))
+    constant = plain.estimate.radius_m  # the same fused estimate, its radius by the constant rule
+    stated = anyone.stated_radius(answer.answer_p, constant)
+    assert (answer.estimate.radius_m, answer.estimate.radius_rate) == stated and stated[0] >= constant
     shown = LocateOut.of(answer).model_dump()["estimate"]
     assert shown["radius_rate"] == 0.9 and shown["radius_m"] == round(answer.estimate.radius_m, 1)
     # `geoloc locate --brief` says it in the page's words.
@@ -136,7 +143,6 @@ def test_a_confident_answer_states_its_bins_radius_and_the_rate(fitted, penn_ind
     assert rate_in_words(0.95) == "19 in 20"
 
     # A conservative collection keeps the constant rule, and its rate is not calibrated.
-    plain = locate_features(pipe, index, source, features, options, calibration=Calibration.conservative("small"))
     assert plain.estimate.radius_rate is None and plain.estimate.radius_m >= MARGIN_M
 
 
