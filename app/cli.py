@@ -368,6 +368,21 @@ def locate(
         typer.echo(out["exif_check"]["sentence"], err=not brief)
 
 
+def rate_in_words(rate: float) -> str:
+    """A rate as a count a reader pictures: 0.9 -> "9 in 10" (the page's ``rateInWords``)."""
+    for of in (10, 20, 100):
+        if abs(rate * of - round(rate * of)) < 1e-6:
+            return f"{round(rate * of)} in {of}"
+    return f"{rate:.0%}"
+
+
+def radius_in_words(e: dict) -> str:
+    """How far an estimate's stated radius holds (its JSON, ``e``), as the page says it."""
+    if e.get("radius_rate") is None:
+        return "how often the truth lies within that radius is not calibrated on this collection"
+    return f"within {e['radius_m']:.0f} m: {rate_in_words(e['radius_rate'])} such answers are"
+
+
 def _in_words(out: dict) -> str:
     """What a /locate answer (its JSON, ``out``) means, as the page says it: likely, possible, not found in this
     collection or no match."""
@@ -377,7 +392,8 @@ def _in_words(out: dict) -> str:
     if not cands and e is not None:  # every candidate filtered out by --min-score, the estimate stands
         return (
             f"Likely: taken within {e['radius_m']:.0f} m of {e['lat']:.5f},{e['lon']:.5f} (confidence "
-            f"{e['confidence']:.2f}); no candidate scores at least the --min-score asked, so none is shown."
+            f"{e['confidence']:.2f}; {radius_in_words(e)}); no candidate scores at least the --min-score asked, so "
+            "none is shown."
         )
     if not cands and out["reason_code"] in ("no_references", "no_features"):
         return f"No match: no reference could be compared with this photo ({out['reason']})."
@@ -389,8 +405,8 @@ def _in_words(out: dict) -> str:
         inside = sum(c["distance_m"] is not None and c["distance_m"] <= e["radius_m"] for c in cands)
         return (
             f"Likely: taken within {e['radius_m']:.0f} m of {e['lat']:.5f},{e['lon']:.5f} (confidence "
-            f"{e['confidence']:.2f}; {inside} of the {len(cands)} candidates lie within that radius). The best "
-            f"match is {name}, score {best['score']:.3f}."
+            f"{e['confidence']:.2f}; {inside} of the {len(cands)} candidates lie within that radius; "
+            f"{radius_in_words(e)}). The best match is {name}, score {best['score']:.3f}."
         )
     spread = max(haversine_m(a["lat"], a["lon"], b["lat"], b["lon"]) for a in cands for b in cands)
     if out.get("reason_code") == "no_match":  # as the page says it

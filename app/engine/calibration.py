@@ -16,6 +16,9 @@ candidates gives ``p_within_25m``; the rule then says, from the same sample:
 - **no_match** ("not in this collection") when no candidate reaches ``NO_MATCH_P``;
 - **ambiguous** otherwise.
 
+Each confident answer's radius (``stated_radius``) is fitted on the same sample: split-conformal, per bin of
+evidence strength, so that the truth lies within it for ``RADIUS_RATE`` of such answers (``fit_radius``).
+
 A collection too small to calibrate (fewer than ``MIN_QUERIES`` sampled references, or fewer than
 ``MIN_POSITIVES`` right candidates among their answers) gets ``conservative()``: no probabilities at all,
 and confident only when at least ``CONSERVATIVE_SUPPORT`` candidates agree on one spot holding
@@ -31,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from app.engine.artifacts import atomic_write_bytes
-from app.engine.estimate import Estimate
+from app.engine.estimate import RADIUS_FLOOR_M, Estimate
 from app.engine.evidence import Evidence
 
 CALIBRATION_FILE = "calibration.json"
@@ -57,6 +60,14 @@ SAME_COLLECTION_SHARE = 0.5
 #: subsets of whole captures (``python -m bench.calibration_size``, docs/RESULTS.md): none of 7 refits of
 #: 22-123 references found one, 1 of 4 of 160-243, both of 320 and 389.
 CONFIDENT_FROM_REFERENCES = 300
+#: The share of confident answers whose truth lies within the stated radius (issue 32): what the answer states.
+RADIUS_RATE = 0.9
+#: The fewest sampled answers a bin of evidence strength holds (fewer merge into a neighbour): with 30, the
+#: conformal quantile at 90 % is the 28th smallest error, and the bin's coverage lies between 90 % and 93 %
+#: in expectation (split-conformal's 1/(n+1)); fewer and one unlucky error moves the radius a lot.
+MIN_BIN_SAMPLES = 30
+#: At most this many bins (quartiles of the evidence strength): the evaluation reports the weakest quartile.
+RADIUS_BINS = 4
 
 # The reason codes a client can branch on (documented in the README and in /locate's schema).
 NO_FEATURES = "no_features"
@@ -75,18 +86,24 @@ class Decision:
     reason: str | None
     p_within: np.ndarray | None
     answer_p: float | None  # the best p among the estimate's group: what the confident threshold reads
+    #: A confident answer's radius and the rate at which it holds, fitted on the collection (``stated_radius``);
+    #: None: the estimate's own (the constant rule, ``fuse_position``), not calibrated.
+    radius_m: float | None = None
+    radius_rate: float | None = None
 
 
 @dataclass
 class Sample:
     """One sampled answer: its candidates' evidence, whether each lies within 25 m of the truth, which ones
-    the estimate fused into its group, and whether the estimate lies within 25 m."""
+    the estimate fused into its group, whether the estimate lies within 25 m, and how far it lies from the truth
+    (what the stated radius is fitted on)."""
 
     evidence: Evidence
     within: np.ndarray
     members: np.ndarray
     estimate_within: bool
     absent: bool
+    error_m: float | None = None
 
 
 @dataclass
@@ -112,6 +129,11 @@ class Calibration:
     #: The sha256 of each reference photo the calibration located: what tells a data dir whether these
     #: figures are its own (``for_collection``).
     references: list[str] = field(default_factory=list)
+    #: The stated radius (``fit_radius``): ``rate``, ``basis`` (the evidence strength the bins read:
+    #: ``answer_p``), ``edges`` (the bins' inner edges, ascending), ``radius_m`` and ``n`` per bin, and
+    #: ``population`` (the sampled answers it was fitted on). None: the constant rule (a conservative
+    #: collection, too few sampled answers, or a calibration fitted before stated radii).
+    radius: dict | None = None
 
     @classmethod
     def conservative(cls, note: str, report: dict | None = None) -> Calibration:
@@ -194,7 +216,7 @@ class Calibration:
             )
         answer_p = float(p[members].max()) if members.any() else float(p.max())
         if answer_p >= self.confident_p:
-            return Decision(True, None, None, p, answer_p)
+            return Decision(True, None, None, p, answer_p, *self.stated_radius(answer_p, estimate.radius_m))
         best = float(p.max())
         top, seen = self._beyond_range(evidence)
         if top is not None:
@@ -231,6 +253,33 @@ class Calibration:
             answer_p,
         )
 
+    def stated_radius(self, answer_p: float, constant_m: float | None = None) -> tuple[float | None, float | None]:
+        """A confident answer's radius and its rate: the conformal radius of its evidence bin (``fit_radius``),
+        never below ``RADIUS_FLOOR_M`` nor below ``constant_m`` (the constant rule's radius for this answer,
+        ``fuse_position``'s); (None, None) without a fitted radius (the constant rule alone then).
+
+        Why never below the constant rule: the calibration's sample is easier than real queries (on
+        penn-campus-gps 5 folds its Brier is 0.05 against 0.115 on the held-out queries; it locates the
+        collection's own references under an SVM bank trained on them), so its conformal radii alone held
+        for 72 % of confident answers, not 90 % (docs/RESULTS.md, issue 32 item 4). The larger of the two
+        held for 98 %; the conformal radius widens an answer whose bin's errors are larger than the rule's."""
+        r = self.radius
+        if not r:
+            return None, None
+        k = int(np.searchsorted(np.asarray(r["edges"], float), answer_p, side="right"))
+        return max(float(r["radius_m"][k]), RADIUS_FLOOR_M, constant_m or 0.0), float(r["rate"])
+
+    @property
+    def radius_note(self) -> str:
+        """How confident answers' radii are chosen, in words (the refit summary says it)."""
+        if self.radius:
+            radii = ", ".join(f"{x:.0f}" for x in self.radius["radius_m"])
+            return (
+                f"stated radii {radii} m by evidence strength, each holding for {self.radius['rate'] * 100:.0f} % of "
+                f"{self.radius['population']} sampled answers"
+            )
+        return "radii by the constant rule (farthest fused candidate + 40 m), their rate not calibrated"
+
     def _beyond_range(self, evidence: Evidence) -> tuple[float | None, float]:
         """The best score when it lies above the calibration sample's highest (a photo that is a reference,
         or a near copy: the sample never holds one), else None."""
@@ -254,6 +303,11 @@ class Calibration:
         if data.pop("format", None) != FORMAT:
             return cls.conservative(f"{path} has another format: run `geoloc refit`")
         data["names"] = tuple(data["names"])
+        if data.get("source") == "collection" and "radius" not in data:
+            data["note"] = (
+                data.get("note", "") + "; fitted before stated radii: confident answers keep the constant rule's "
+                "radius, its rate not calibrated (`geoloc refit` fits them)"
+            )
         if data.get("verified"):
             data["verified"]["names"] = tuple(data["verified"]["names"])
         return cls(**data)
@@ -306,8 +360,70 @@ def fit_calibration(samples: list[Sample], seed: int = 0) -> Calibration:
             "mean_best_p_absent": round(float(np.mean(absent_best or [0.0])), 4),
         }
     )
-    cal.note = f"fitted on {len(present)} references of this collection"
+    cal.radius = fit_radius(cal, samples)
+    cal.note = f"fitted on {len(present)} references of this collection; {cal.radius_note}"
     return cal
+
+
+def conformal_radius(errors: np.ndarray, rate: float = RADIUS_RATE) -> float | None:
+    """Split-conformal: the ceil((n + 1) * rate)-th smallest of ``n`` errors, within which a new answer drawn
+    like them lies at least ``rate`` of the time; None when n is too small for one (n + 1 < 1 / (1 - rate))."""
+    errors = np.sort(np.asarray(errors, float))
+    k = int(np.ceil((len(errors) + 1) * rate - 1e-9))
+    return float(errors[k - 1]) if 0 < k <= len(errors) else None
+
+
+def strength_bins(strength: np.ndarray, bins: int = RADIUS_BINS, min_n: int = MIN_BIN_SAMPLES) -> list[float]:
+    """The inner edges of up to ``bins`` bins of ``strength``, at its quantiles, each holding at least
+    ``min_n`` values: a bin with fewer (ties at an edge) merges into its smaller neighbour."""
+    strength = np.asarray(strength, float)
+    k = max(1, min(bins, len(strength) // max(min_n, 1)))
+    edges = sorted(set(np.quantile(strength, np.arange(1, k) / k).tolist()))
+    while edges:
+        counts = np.bincount(np.searchsorted(edges, strength, side="right"), minlength=len(edges) + 1)
+        j = int(np.argmin(counts))
+        if counts[j] >= min_n:
+            break
+        # Drop the edge between bin j and its smaller neighbour.
+        if j == 0 or (j < len(edges) and counts[j + 1] < counts[j - 1]):
+            del edges[j]
+        else:
+            del edges[j - 1]
+    return edges
+
+
+def fit_radius(cal: Calibration, samples: list[Sample], rate: float = RADIUS_RATE) -> dict | None:
+    """The stated radius, per bin of evidence strength, from the sample's answers whose place is present.
+
+    Why per bin: one radius for all confident answers holds on average but not for the weak ones (their
+    errors are larger), and "9 in 10" must hold for the answer at hand. The strength is ``answer_p``, the
+    calibrated chance that the estimate's group lies within 25 m: what the confident threshold reads (so the
+    bins nest with the decision), continuous (unlike the group's support, 1-10), and it weighs every column
+    of the evidence the collection learnt. The radius is fitted on the answers that were confident when at
+    least ``MIN_BIN_SAMPLES`` were (the population a radius is stated for), else on every present answer
+    (their errors are larger: a wider radius, never a narrower one). None when even those are too few."""
+    present = [s for s in samples if not s.absent and s.error_m is not None]
+    p = np.array([answer_probability(cal, s) for s in present])
+    err = np.array([s.error_m for s in present])
+    confident = p >= cal.confident_p
+    population = "confident" if confident.sum() >= MIN_BIN_SAMPLES else "present"
+    if population == "confident":
+        p, err = p[confident], err[confident]
+    if conformal_radius(err, rate) is None:
+        return None
+    edges = strength_bins(p)
+    bin_of = np.searchsorted(edges, p, side="right")
+    radii = [conformal_radius(err[bin_of == k], rate) for k in range(len(edges) + 1)]
+    if any(r is None for r in radii):  # never with MIN_BIN_SAMPLES >= 9; the whole sample's then
+        edges, radii = [], [conformal_radius(err, rate)]
+    return {
+        "rate": rate,
+        "basis": "answer_p",
+        "edges": [round(x, 6) for x in edges],
+        "radius_m": [round(float(r), 1) for r in radii],
+        "n": np.bincount(bin_of, minlength=len(edges) + 1).tolist() if edges else [len(err)],
+        "population": population,
+    }
 
 
 def answer_probability(cal: Calibration, s: Sample) -> float:

@@ -33,6 +33,9 @@ class Estimate:
     reason: str | None = None  # why the estimate should not be trusted, or None when it is confident
     support: int = 0  # candidates in the winning cluster
     members: tuple[bool, ...] = ()  # per fused candidate: in the winning cluster
+    #: The share of such answers whose truth lies within ``radius_m``, when the collection's calibration chose
+    #: the radius (``app.engine.calibration.fit_radius``); None: the constant rule below, its rate not calibrated.
+    radius_rate: float | None = None
 
     @property
     def confident(self) -> bool:

@@ -79,6 +79,12 @@ class AnswerQuality(BaseModel):
     #: The confident estimates within twice the radius: how far off the "wrong" ones are (on penn they are
     #: mostly the same facade photographed from across a street or quad, 29-47 m away).
     precision_at_2x_radius: float | None = None
+    #: Of the confident answers: the truth within the stated radius, overall and in the quartile with the
+    #: weakest evidence; the median radius stated; the rate stated (issue 32; None: the constant rule's radii).
+    radius_coverage: float | None = None
+    radius_coverage_weakest_quartile: float | None = None
+    median_radius_m: float | None = None
+    radius_rate: float | None = None
     brier: float | None
     reliability: list[dict]
     reason_codes: dict[str, int]
@@ -431,6 +437,9 @@ def evaluate(
                         "lon": e.lon,
                         "confidence": round(e.confidence, 4),
                         "confident": res.reason is None,
+                        "answer_p": None if res.answer_p is None else round(res.answer_p, 4),
+                        "radius_m": round(e.radius_m, 1),
+                        "radius_rate": e.radius_rate,
                     },
                 }
             )
@@ -545,6 +554,11 @@ def _answer_record(res, row: Row, radius_m: float) -> dict:
         "right": error <= radius_m,
         "right_2x": error <= 2 * radius_m,
         "code": res.reason_code or "confident",
+        "error_m": error,
+        "radius_m": e.radius_m,
+        "radius_rate": e.radius_rate,
+        # The evidence strength the stated radius is binned by (the calibrated answer_p; else the group's share).
+        "strength": res.answer_p if res.answer_p is not None else e.confidence,
         "p": [c.p_within_25m for c in cands],
         "within": [bool(x) for x in np.atleast_1d(d <= radius_m)] if cands else [],
     }
@@ -569,6 +583,7 @@ def answer_quality(present: list[dict], absent: list[dict], absent_radius_m: flo
         "coverage": len(conf) / max(len(present), 1),
         "precision": float(np.mean(conf)) if conf else None,
         "precision_at_2x_radius": float(np.mean(near)) if near else None,
+        **stated_radius_quality([r for r in present if r["confident"]]),
         "brier": b,
         "reliability": reliability(p, y),
         "reason_codes": codes(present),
@@ -585,6 +600,24 @@ def answer_quality(present: list[dict], absent: list[dict], absent_radius_m: flo
             }
         )
     return out
+
+
+def stated_radius_quality(confident: list[dict]) -> dict:
+    """Whether the confident answers' stated radii hold: the share whose truth lies within the radius stated,
+    overall and in the quartile with the weakest evidence (lowest ``strength``, ties broken by order), the
+    median radius stated, and the rate stated (None when the radii were the constant rule's)."""
+    rows = [r for r in confident if r.get("radius_m") is not None]
+    if not rows:
+        return {}
+    held = np.array([r["error_m"] <= r["radius_m"] for r in rows])
+    weakest = np.argsort([r["strength"] for r in rows], kind="stable")[: max(1, len(rows) // 4)]
+    rates = {r["radius_rate"] for r in rows}
+    return {
+        "radius_coverage": float(held.mean()),
+        "radius_coverage_weakest_quartile": float(held[weakest].mean()),
+        "median_radius_m": float(np.median([r["radius_m"] for r in rows])),
+        "radius_rate": rates.pop() if len(rates) == 1 else None,
+    }
 
 
 def write_report(result: EvalResult, out: Path) -> Path:
@@ -685,6 +718,12 @@ def _quality_lines(result: dict) -> list[str]:
             f"{name}: {_pct(q['precision'])} / {_pct(q['coverage'])} (within twice the radius "
             f"{_pct(q.get('precision_at_2x_radius'))}), Brier {_num(q['brier'])}"
         )
+        if q.get("radius_coverage") is not None:
+            line += (
+                f"; truth within the stated radius {_pct(q['radius_coverage'])} (weakest quartile "
+                f"{_pct(q['radius_coverage_weakest_quartile'])}, median radius {q['median_radius_m']:.0f} m, "
+                f"rate stated {_pct(q.get('radius_rate'))})"
+            )
         if q.get("absent_radius_m"):
             line += (
                 f"; absent {_pct(q['absent_confident'])} confident, mean best p {_num(q['absent_mean_best_p'])}, "

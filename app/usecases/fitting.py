@@ -389,7 +389,8 @@ def calibration_sample(answer: LocateAnswer, lat: float, lon: float, absent: boo
     members = np.zeros(len(ev.values), bool)
     m = np.asarray(e.members, bool)[: len(members)]
     members[: len(m)] = m
-    return Sample(ev, within, members, bool(haversine_m(lat, lon, e.lat, e.lon) <= radius_m), absent)
+    error_m = float(haversine_m(lat, lon, e.lat, e.lon))
+    return Sample(ev, within, members, error_m <= radius_m, absent, error_m)
 
 
 def near_ids(refs: dict[int, Geotagged], lat: float, lon: float, radius_m: float) -> list[int]:

@@ -347,6 +347,8 @@ def locate_features(
     region_empty = allowed is not None and len(allowed) == 0
     if region_empty:
         decision = Decision(False, NO_REFERENCES, "no references in the requested region", None, None)
+    if decision.confident and decision.radius_m is not None:  # the collection's stated radius, and its rate
+        estimate = replace(estimate, radius_m=decision.radius_m, radius_rate=decision.radius_rate)
     reason = decision.reason if not decision.confident else None
     confident = estimate if decision.confident else None
     shown = [(i, s) for i, s in ranked if s >= options.min_score][: options.top_k]

@@ -199,7 +199,10 @@ def test_a_confident_answer_with_the_keyboard(browser, server, tile_png, viewpor
     assert page.inner_text("#level") == "Likely"
     headline = page.inner_text("#headline")
     assert re.search(r"within \d+ m of -?\d+\.\d{5}, -?\d+\.\d{5}", headline), headline
-    assert re.search(r"\d+ of the \d+ candidates lie within that radius", page.inner_text("#explain"))
+    explain = page.inner_text("#explain")
+    assert re.search(r"\d+ of the \d+ candidates lie within that radius", explain)
+    # The mini collection is too small to calibrate: the constant rule's radius, its rate said not calibrated.
+    assert "How often the truth lies within that radius is not calibrated on this collection." in explain
     assert re.fullmatch(
         r"Features used: [\d,]+ of the [\d,]+ distinctive points found in your photo\.",
         page.inner_text("#features-used"),
@@ -408,6 +411,53 @@ def test_calibrated_probabilities_in_words(browser, server, tile_png):
     assert "34 % chance of lying within 25 m" in page.inner_text("#explain")
     assert "12 % chance it is within 25 m" in page.locator("#candidates li").nth(1).inner_text()
     assert page.inner_text("#features-used").startswith("Features used: 900 of the 1,200")
+    assert not page.errors, page.errors
+
+
+def test_a_stated_radius_and_its_rate_in_words(browser, server, tile_png):
+    """A confident answer whose radius the collection calibrated (``radius_rate``) says it in words: "Within
+    35 m: 9 in 10 such answers are"; served by the test, in the service's shape (the page's collection is
+    too small to calibrate), with a label that is HTML, rendered as text."""
+    refs = server.client.get("/references?limit=2").json()["items"]
+    label = "<b>bold</b><img src=x onerror=alert(1)>"
+    answer = {
+        "candidates": [
+            {
+                "reference_id": r["id"],
+                "lat": r["lat"],
+                "lon": r["lon"],
+                "score": s,
+                "distance_m": d,
+                "label": label,
+                "captured_at": None,
+                "heading": None,
+                "inliers": None,
+                "p_within_25m": p,
+            }
+            for r, s, p, d in zip(refs, (0.71, 0.69), (0.91, 0.88), (0.0, 12.0), strict=True)
+        ],
+        "estimate": {"lat": refs[0]["lat"], "lon": refs[0]["lon"], "radius_m": 35.0, "radius_rate": 0.9,
+                     "confidence": 0.8},
+        "reason": None,
+        "reason_code": None,
+        "mode": "float",
+        "config": "hybrid-bin",
+        "features": {"extracted": 1200, "kept": 900},
+        "timings_ms": {"total": 12.0},
+        "index": {"size": len(server.rows), "version": 1},
+    }  # fmt: skip
+    page = open_page(browser, server, "desktop", tile_png)
+    page.route("**/locate", lambda route: route.fulfill(status=200, json=answer))
+    page.set_input_files("#locate-file", str(server.query))
+    page.click("#locate-btn")
+    page.wait_for_selector("#answer:not([hidden])")
+    assert page.inner_text("#level") == "Likely"
+    assert page.inner_text("#headline").startswith("Taken within 35 m of ")
+    explain = page.inner_text("#explain")
+    assert "Within 35 m: 9 in 10 such answers are, on this collection's own references." in explain, explain
+    assert "not calibrated" not in explain
+    assert label in page.locator("#candidates li").first.inner_text()  # the label as text
+    assert page.locator("#candidates b, #candidates img[src='x']").count() == 0
     assert not page.errors, page.errors
 
 

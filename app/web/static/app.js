@@ -267,6 +267,24 @@ function extentInWords(res) {
     `${position(x.min_lat, x.min_lon)} and ${position(x.max_lat, x.max_lon)} (${size} across), outlined on the map.`;
 }
 
+// A rate as a count a reader pictures: 0.9 -> "9 in 10" (the answer's radius_rate; app/cli.py says it alike).
+function rateInWords(rate) {
+  for (const whole of [10, 20, 100]) {
+    const n = Math.round(rate * whole);
+    if (Math.abs(rate * whole - n) < 1e-6) return `${n} in ${whole}`;
+  }
+  return `${Math.round(rate * 100)} %`;
+}
+
+// How far the stated radius holds: the collection's calibrated rate when the answer states one.
+function radiusInWords(est) {
+  if (est.radius_rate == null) {
+    return " How often the truth lies within that radius is not calibrated on this collection.";
+  }
+  return ` Within ${metres(est.radius_m)}: ${rateInWords(est.radius_rate)} such answers are, on this ` +
+    "collection's own references.";
+}
+
 function verdict(res, level) {
   const cands = res.candidates;
   if (level === "likely") {
@@ -278,7 +296,7 @@ function verdict(res, level) {
       headline: `Taken within ${metres(est.radius_m)} of ${position(est.lat, est.lon)}.`,
       explain: `The best matches agree on this spot. ${inside} of the ${cands.length} candidates lie ` +
         `within that radius` + (nearest == null ? "." : `; the nearest one outside it is ${metres(nearest)} away.`) +
-        " Each candidate's distance is listed below.",
+        radiusInWords(est) + " Each candidate's distance is listed below.",
     };
   }
   if (level === "possible") {
