@@ -18,8 +18,10 @@ Each start: every snapshot of the data dir is deleted first, so the server rebui
 timed until /ready answers 200. Read from /proc: the server's peak resident memory up to ready (VmHWM) and its
 resident memory at ready; again after the snapshot the rebuild makes due has been written (a memory copy of
 the index, compacted and written while the first keeps serving); and after ``--locates`` /locate of real
-penn photos. The rebuild's own seconds come from the server's log line ("index rebuilt from N stored codes
-in S s").
+penn photos (RSS, and its anonymous part, the heap, and file-backed part, mapped files: the ``ivf-rabitq``
+kind's float codes are mapped from its snapshot file, and a kernel with large page-cache folios maps about a
+megabyte of the file per code the re-rank reads). The rebuild's own seconds come from the server's log line
+("index rebuilt from N stored codes in S s").
 
 ``--switch-at N`` (issue 35, item 2) starts the servers with GEOLOC_INDEX_SWITCH_AT=N: a collection of N or
 more references switches to the compressed kinds after the rebuild (trained and built in the background),
@@ -114,6 +116,7 @@ def one_start(
     photos: list[Path],
     locates: int,
     switch_at: int | None = None,
+    size: int = 0,
 ) -> dict:
     _drop_snapshots(data)
     t0 = time.perf_counter()
@@ -129,10 +132,11 @@ def one_start(
         time.sleep(1.0)
         out["rss_snapshot_mb"] = rss_bytes(pid) / MiB
         out["hwm_snapshot_mb"] = _status_kb(pid, "VmHWM") / 1024
-        if switch_at is not None and code is None:  # the baseline has no switch to wait for
+        if switch_at is not None and code is None and size >= switch_at:  # the baseline has no switch
             out["switch_s"] = _wait_switched(server, data)
             time.sleep(1.0)
             out["rss_switched_mb"] = rss_bytes(pid) / MiB
+            out["anon_switched_mb"] = _status_kb(pid, "RssAnon") / 1024
             out["hwm_switched_mb"] = _status_kb(pid, "VmHWM") / 1024
         ms = []
         for i in range(locates):
@@ -144,6 +148,8 @@ def one_start(
                 raise RuntimeError(f"/locate answered {r.status_code}: {r.text[:300]}")
         out["locate_p50_ms"] = statistics.median(ms) if ms else float("nan")
         out["rss_locates_mb"] = rss_bytes(pid) / MiB
+        out["anon_locates_mb"] = _status_kb(pid, "RssAnon") / 1024  # the heap; the rest is mapped files
+        out["file_locates_mb"] = _status_kb(pid, "RssFile") / 1024  # (ivf-rabitq's float codes, libraries)
         out["hwm_end_mb"] = _status_kb(pid, "VmHWM") / 1024
     finally:
         server.stop()
@@ -163,7 +169,10 @@ FIELDS = (
     ("switch_s", "switch to compressed s (after ready)", "{:.0f}"),
     ("rss_switched_mb", "RSS after switch and its snapshot MB", "{:,.0f}"),
     ("hwm_switched_mb", "peak RSS with switch MB", "{:,.0f}"),
+    ("anon_switched_mb", "RssAnon after switch MB", "{:,.0f}"),
     ("rss_locates_mb", "RSS after /locates MB", "{:,.0f}"),
+    ("anon_locates_mb", "RssAnon after /locates MB", "{:,.0f}"),
+    ("file_locates_mb", "RssFile after /locates MB", "{:,.0f}"),
     ("locate_p50_ms", "/locate p50 ms", "{:.0f}"),
 )
 
@@ -208,7 +217,9 @@ def main() -> None:
                 print(f"{engine} {size:,d}: seeded in {took:.0f} s", flush=True)
                 for rep in range(args.repeats):
                     for name, code in trees.items() if rep % 2 == 0 else reversed(trees.items()):
-                        r = one_start(data, args.models_dir, args.config, code, photos, args.locates, args.switch_at)
+                        r = one_start(
+                            data, args.models_dir, args.config, code, photos, args.locates, args.switch_at, size
+                        )
                         results.setdefault((engine, size, name), []).append(r)
                         print(f"  {engine} {size:,d} {name} #{rep + 1}: " + ", ".join(
                             f"{k} {v:.1f}" for k, v in r.items()), flush=True)  # fmt: skip
