@@ -111,10 +111,10 @@ class ReferenceIndex:
 
     def sample(self, n: int, seed: int = 0) -> tuple[np.ndarray | None, np.ndarray | None]:
         """Up to ``n`` live codes of each part, drawn reproducibly (the compressed kind's training sample);
-        read from the exact index in place, one copy of the sample only."""
-        out = {}
-        for name, idx in self.parts().items():
-            out[name] = idx.sample(n, seed) if hasattr(idx, "sample") else idx.reconstruct(idx.ids()[:n])
+        read from the exact (``flat``) index in place (``FlatIndex.sample``), one copy of the sample only."""
+        if not self.is_exact:
+            raise ValueError(f"only an exact index is sampled to train the compressed kinds, not {self.kinds()}")
+        out = {name: idx.sample(n, seed) for name, idx in self.parts().items()}
         return out.get("float"), out.get("binary")
 
     def compressed(self, size: int, float_codes: np.ndarray | None, binary_codes: np.ndarray | None) -> ReferenceIndex:
