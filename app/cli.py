@@ -279,7 +279,9 @@ def ingest(
         src = open_source(source, manifest, split)
     except SourceError as e:
         _fail(str(e))
-    service = GeolocService.open(data_dir, models_dir, config, limits=_S.image_limits(), backend=_S.backend(data_dir))
+    service = GeolocService.open(
+        data_dir, models_dir, config, limits=_S.image_limits(), backend=_S.backend(data_dir), sizing=_S.index_sizing()
+    )
     options = IngestOptions(chunk=chunk, batch=batch, workers=workers, ray=ray, shared_fs=shared_fs)
     summary, left = run_ingest(service, src, options, say=typer.echo)
     _print_summary(service, summary, left)
@@ -349,13 +351,15 @@ def locate(
     --brief what it means in words."""
     from app.api.schemas import LocateOut
     from app.domain import LocateOptions
+    from app.usecases.collection import IndexSizing
     from app.usecases.service import GeolocService
 
     data = image.read_bytes()  # a missing photo is said before the model loads
     options = LocateOptions(
         top_k=top_k, mode=mode, rerank=rerank, region=_region_option(lat, lon, radius_m, bbox), min_score=min_score
     )
-    service = GeolocService.open(data_dir, models_dir, config, backend=_S.backend(data_dir))
+    # one query, then the process ends: no switch of kind by size started for it (IndexSizing(0))
+    service = GeolocService.open(data_dir, models_dir, config, backend=_S.backend(data_dir), sizing=IndexSizing(0))
     answer = service.locate(data, options)
     out = LocateOut.of(answer).model_dump()
     if compare_exif:

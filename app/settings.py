@@ -94,6 +94,13 @@ class Settings(StorageSettings):
     snapshot_every_seconds: float = Field(
         300.0, gt=0, description="...or this long after the first change not in a snapshot"
     )
+    index_switch_at: int = Field(
+        200_000,
+        ge=0,
+        description="references at which a configuration with exact (flat) kinds switches to the compressed "
+        "kinds, ivf-rabitq for floats and binary-ivf for bits, built in the background (0: never; "
+        "app/usecases/collection.py, IndexSizing, says why 200,000)",
+    )
     ort_threads: int = Field(
         0,
         ge=0,
@@ -124,6 +131,11 @@ class Settings(StorageSettings):
         from app.usecases.collection import SnapshotPolicy
 
         return SnapshotPolicy(self.snapshot_every_changes, self.snapshot_every_seconds)
+
+    def index_sizing(self):
+        from app.usecases.collection import IndexSizing
+
+        return IndexSizing(self.index_switch_at)
 
     def image_limits(self):
         from app.engine.imageio import ImageLimits

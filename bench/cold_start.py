@@ -18,13 +18,21 @@ Each start: every snapshot of the data dir is deleted first, so the server rebui
 timed until /ready answers 200. Read from /proc: the server's peak resident memory up to ready (VmHWM) and its
 resident memory at ready; again after the snapshot the rebuild makes due has been written (a memory copy of
 the index, compacted and written while the first keeps serving); and after ``--locates`` /locate of real
-penn photos. The rebuild's own seconds come from the server's log line ("index rebuilt from N stored codes
-in S s").
+penn photos (RSS, and its anonymous part, the heap, and file-backed part, mapped files: the ``ivf-rabitq``
+kind's float codes are mapped from its snapshot file, and a kernel with large page-cache folios maps about a
+megabyte of the file per code the re-rank reads). The rebuild's own seconds come from the server's log line
+("index rebuilt from N stored codes in S s").
+
+``--switch-at N`` (issue 35, item 2) starts the servers with GEOLOC_INDEX_SWITCH_AT=N: a collection of N or
+more references switches to the compressed kinds after the rebuild (trained and built in the background),
+and for this tree the start also waits for the switch and the snapshot it makes due, then reads the
+resident memory again ("after switch"). A baseline without the setting keeps its exact index.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import re
 import shutil
@@ -73,22 +81,47 @@ def _drop_snapshots(data: Path) -> None:
         f.unlink(missing_ok=True)
 
 
-def _wait_snapshot(server: ServerProcess, timeout: float = 600) -> float:
-    """Seconds until the server's first snapshot (``geoloc_snapshot_writes`` >= 1)."""
+def _wait_snapshot(server: ServerProcess, timeout: float = 600, writes: int = 1) -> float:
+    """Seconds until the server has written ``writes`` snapshots (``geoloc_snapshot_writes``)."""
     t0 = time.perf_counter()
     while time.perf_counter() - t0 < timeout:
         text = server.client.get("/metrics").text
         m = re.search(r"^geoloc_snapshot_writes (\S+)", text, re.M)
-        if m and float(m.group(1)) >= 1:
+        if m and float(m.group(1)) >= writes:
             return time.perf_counter() - t0
         time.sleep(0.5)
     raise TimeoutError("no snapshot written")
 
 
-def one_start(data: Path, models: Path, config: str, code: Path | None, photos: list[Path], locates: int) -> dict:
+def _wait_switched(server: ServerProcess, data: Path, timeout: float = 1800) -> float:
+    """Seconds until the index serves the compressed kind and a snapshot of it is written (its manifest names
+    the kind)."""
+    t0 = time.perf_counter()
+    while time.perf_counter() - t0 < timeout:
+        try:
+            kind = json.loads((data / "index.json").read_text())["files"]["float"].get("kind")
+        except (FileNotFoundError, ValueError, KeyError):
+            kind = None
+        if kind not in (None, "flat"):
+            return time.perf_counter() - t0
+        time.sleep(1.0)
+    raise TimeoutError("the index did not switch kind")
+
+
+def one_start(
+    data: Path,
+    models: Path,
+    config: str,
+    code: Path | None,
+    photos: list[Path],
+    locates: int,
+    switch_at: int | None = None,
+    size: int = 0,
+) -> dict:
     _drop_snapshots(data)
     t0 = time.perf_counter()
-    server = ServerProcess(data, models, config, code=code)
+    env = {"GEOLOC_INDEX_SWITCH_AT": str(switch_at)} if switch_at is not None else None
+    server = ServerProcess(data, models, config, code=code, extra_env=env)
     pid = server.proc.pid
     try:
         with PeakRss(pid, every_s=0.05):
@@ -99,6 +132,12 @@ def one_start(data: Path, models: Path, config: str, code: Path | None, photos: 
         time.sleep(1.0)
         out["rss_snapshot_mb"] = rss_bytes(pid) / MiB
         out["hwm_snapshot_mb"] = _status_kb(pid, "VmHWM") / 1024
+        if switch_at is not None and code is None and size >= switch_at:  # the baseline has no switch
+            out["switch_s"] = _wait_switched(server, data)
+            time.sleep(1.0)
+            out["rss_switched_mb"] = rss_bytes(pid) / MiB
+            out["anon_switched_mb"] = _status_kb(pid, "RssAnon") / 1024
+            out["hwm_switched_mb"] = _status_kb(pid, "VmHWM") / 1024
         ms = []
         for i in range(locates):
             photo = photos[i % len(photos)]
@@ -109,6 +148,8 @@ def one_start(data: Path, models: Path, config: str, code: Path | None, photos: 
                 raise RuntimeError(f"/locate answered {r.status_code}: {r.text[:300]}")
         out["locate_p50_ms"] = statistics.median(ms) if ms else float("nan")
         out["rss_locates_mb"] = rss_bytes(pid) / MiB
+        out["anon_locates_mb"] = _status_kb(pid, "RssAnon") / 1024  # the heap; the rest is mapped files
+        out["file_locates_mb"] = _status_kb(pid, "RssFile") / 1024  # (ivf-rabitq's float codes, libraries)
         out["hwm_end_mb"] = _status_kb(pid, "VmHWM") / 1024
     finally:
         server.stop()
@@ -125,7 +166,13 @@ FIELDS = (
     ("rss_ready_mb", "RSS at ready MB", "{:,.0f}"),
     ("rss_snapshot_mb", "RSS after first snapshot MB", "{:,.0f}"),
     ("hwm_snapshot_mb", "peak RSS with snapshot MB", "{:,.0f}"),
+    ("switch_s", "switch to compressed s (after ready)", "{:.0f}"),
+    ("rss_switched_mb", "RSS after switch and its snapshot MB", "{:,.0f}"),
+    ("hwm_switched_mb", "peak RSS with switch MB", "{:,.0f}"),
+    ("anon_switched_mb", "RssAnon after switch MB", "{:,.0f}"),
     ("rss_locates_mb", "RSS after /locates MB", "{:,.0f}"),
+    ("anon_locates_mb", "RssAnon after /locates MB", "{:,.0f}"),
+    ("file_locates_mb", "RssFile after /locates MB", "{:,.0f}"),
     ("locate_p50_ms", "/locate p50 ms", "{:.0f}"),
 )
 
@@ -141,6 +188,9 @@ def main() -> None:
     ap.add_argument("--config", default=DEFAULT_CONFIG)
     ap.add_argument("--models-dir", type=Path, default=Path("models"))
     ap.add_argument("--work", type=Path, help="where the data dirs go (default: a temporary folder)")
+    ap.add_argument(
+        "--switch-at", type=int, help="GEOLOC_INDEX_SWITCH_AT for the servers; this tree's start waits for the switch"
+    )
     args = ap.parse_args()
     args.models_dir = args.models_dir.resolve()  # the baseline server runs in its own tree
     pipe = load_pipeline(args.models_dir, args.config)
@@ -167,7 +217,9 @@ def main() -> None:
                 print(f"{engine} {size:,d}: seeded in {took:.0f} s", flush=True)
                 for rep in range(args.repeats):
                     for name, code in trees.items() if rep % 2 == 0 else reversed(trees.items()):
-                        r = one_start(data, args.models_dir, args.config, code, photos, args.locates)
+                        r = one_start(
+                            data, args.models_dir, args.config, code, photos, args.locates, args.switch_at, size
+                        )
                         results.setdefault((engine, size, name), []).append(r)
                         print(f"  {engine} {size:,d} {name} #{rep + 1}: " + ", ".join(
                             f"{k} {v:.1f}" for k, v in r.items()), flush=True)  # fmt: skip
@@ -180,7 +232,9 @@ def main() -> None:
     print("| engine | references | code | " + " | ".join(label for _, label, _ in FIELDS) + " |")
     print("|---|---|---|" + "---|" * len(FIELDS))
     for (engine, size, name), runs in results.items():
-        cells = [fmt.format(statistics.median(r[key] for r in runs)) for key, _, fmt in FIELDS]
+        cells = [
+            fmt.format(statistics.median(r[key] for r in runs)) if key in runs[0] else "" for key, _, fmt in FIELDS
+        ]
         print(f"| {engine} | {size:,d} | {name} | " + " | ".join(cells) + " |")
 
 

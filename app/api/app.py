@@ -135,6 +135,7 @@ def _load(app: FastAPI, stop: threading.Event) -> None:
                 s.locate_concurrency,  # the extraction slots: app/usecases/service.py, extraction_slots
                 s.thumbnail_px,
                 s.backend(s.data_dir),
+                s.index_sizing(),
             )
             try:
                 check_images_shared(service.store)  # on PostgreSQL: one images folder for every host

@@ -9,7 +9,7 @@ from starlette.middleware.base import BaseHTTPMiddleware
 from starlette.requests import Request
 
 #: ``VectorIndex.stats`` keys shown as labels of ``geoloc_index_kind`` (None where a kind has no such one).
-KIND_LABELS = ("kind", "nlist", "nprobe", "m")
+KIND_LABELS = ("kind", "nlist", "nprobe", "shortlist", "m")
 
 BUCKETS = (0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1, 2.5, 5, 10, 30)
 
@@ -44,6 +44,15 @@ class Metrics:
             "1 for the index kind serving each part (float, binary) and its parameters",
             ["part", *KIND_LABELS],
             registry=self.registry,
+        )
+        self.index_switching = Gauge(
+            "geoloc_index_switching",
+            "1 while the compressed index is built in the background (the collection reached "
+            "GEOLOC_INDEX_SWITCH_AT references; the exact one serves meanwhile)",
+            registry=self.registry,
+        )
+        self.index_kind_switches = Gauge(
+            "geoloc_index_kind_switches", "exact -> compressed switches by size since start", registry=self.registry
         )
         self.queue_depth = Gauge(
             "geoloc_queue_depth", "references accepted and waiting to be encoded", registry=self.registry
@@ -89,6 +98,8 @@ class Metrics:
         self.replayed_at_start.set(st.replayed_at_start)
         self.full_rebuilds.set(st.full_rebuilds)
         self.tombstones.set(idx.tombstones)
+        self.index_switching.set(int(col.switching))
+        self.index_kind_switches.set(st.kind_switches)
 
 
 class MetricsMiddleware(BaseHTTPMiddleware):

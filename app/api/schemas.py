@@ -250,6 +250,9 @@ class ReadyOut(BaseModel):
     index_loaded: str | None = None
     #: Which index kind serves each part (``float``, ``binary``) and its parameters (``VectorIndex.stats``).
     index: dict[str, dict[str, Any]] | None = None
+    #: How the kind is chosen: exact below ``GEOLOC_INDEX_SWITCH_AT`` references then compressed (and whether
+    #: the switch is being built now), or the configuration's kinds at every size.
+    index_choice: str | None = None
     #: Which rule judges this collection's answers (its own calibration, or the conservative rule and why),
     #: and what a collection that cannot give a confident answer yet needs.
     calibration: str | None = None

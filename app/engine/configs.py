@@ -67,6 +67,11 @@ class PipelineConfig(BaseModel):
     float_index: str = "flat"
     binary_index: str = "flat"
     shortlist: int = 100  # two-stage: binary shortlist size before the float re-rank
+    #: Where both kinds are ``flat``, a large collection switches to the compressed kinds (ivf-rabitq for
+    #: floats, binary-ivf for bits) once it holds ``Settings.index_switch_at`` references (issue 35;
+    #: ``Collection``). False: the named kinds serve at every size. A configuration that names another kind
+    #: keeps it whatever this says.
+    index_by_size: bool = True
     #: ``geoloc fit`` trains an SVM bank (from the collection, METHOD.md "SVM bank") and queries aggregate
     #: only the features it keeps; False aggregates every feature. Ignored without local features. The
     #: default is True so that the definitions fitted before this field existed stay equal (Pipeline.load).

@@ -28,6 +28,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from app.engine.artifacts import atomic_write_bytes, atomic_write_file
+from app.engine.index.base import UnknownIndexKind
 from app.engine.index.references import ReferenceIndex
 from app.engine.pipeline import Pipeline
 from app.storage.identity import Binding, Identity
@@ -38,12 +39,14 @@ FORMAT = 2
 
 @dataclass(frozen=True)
 class SnapshotFile:
-    """One index file of a snapshot: its name in the data dir, size, checksum and deleted ids."""
+    """One index file of a snapshot: its name in the data dir, size, checksum, deleted ids, and the kind that
+    wrote it (None in a snapshot written before the kind could switch by size: the configuration's kind)."""
 
     file: str
     bytes: int
     sha256: str
     tombstones: list[int]
+    kind: str | None = None
 
 
 @dataclass(frozen=True)
@@ -154,7 +157,7 @@ def write_snapshot(
         path = data_dir / name
         atomic_write_file(path, idx.dump)
         size, sha256 = _file_digest(path)
-        files[part] = SnapshotFile(name, size, sha256, idx.removed_ids().tolist())
+        files[part] = SnapshotFile(name, size, sha256, idx.removed_ids().tolist(), idx.kind)
     manifest = SnapshotManifest(
         format=FORMAT,
         version=version,
@@ -209,7 +212,11 @@ def load_snapshot(
     if store is not None:
         check_binding(m, store)
     index = pipeline.new_index()
+    recorded = {part: f.kind for part, f in m.files.items() if f.kind}
     try:
+        if any(index.kinds().get(part, kind) != kind for part, kind in recorded.items()):
+            # the collection switched kind by size (``Collection``): each file holds its trained state
+            index = ReferenceIndex(pipeline.config, pipeline.float_dim, pipeline.bits, kinds=recorded)
         for part, idx in index.parts().items():
             entry = m.files[part]
             path = data_dir / entry.file
@@ -219,7 +226,7 @@ def load_snapshot(
             idx.remove(entry.tombstones)
     except SnapshotInvalid:
         raise
-    except (OSError, KeyError, TypeError, ValueError, RuntimeError) as e:
+    except (OSError, KeyError, TypeError, ValueError, RuntimeError, UnknownIndexKind) as e:
         raise SnapshotInvalid(f"the snapshot cannot be loaded ({type(e).__name__}: {e})") from None
     return index, m
 

@@ -5,6 +5,11 @@ Why it is built this way (cost per change independent of the collection's size):
   trusted, a full rebuild from the codes in SQLite) and then only *caught up*: before each search the
   process compares the log's last version with the one it holds (one indexed SQL read) and applies exactly
   the changes in between, adds in place and deletions as tombstones.
+- The index's kind follows the collection's size (``IndexSizing``, issue 35): exact (flat) while small, the
+  compressed kinds (``ivf-rabitq`` / ``binary-ivf``) once it reaches ``switch_at`` references. The switch is
+  made as a new generation is loaded: trained on a sample of the collection's own codes and filled from the
+  store in the background while the exact index serves, then swapped in under the lock after replaying
+  what arrived meanwhile; the next snapshot records the kind, so a restart comes back with it.
 - Snapshots are written by one process only (the one holding the worker lock), in the background, by the
   policy below: on a copy of the index taken under the lock (a memory copy), compacted and written to disk
   with the lock released, then swapped in after replaying what arrived meanwhile. Searches never wait for
@@ -24,8 +29,9 @@ import numpy as np
 
 from app.engine.calibration import Calibration
 from app.engine.configs import DEFAULT_CONFIG
-from app.engine.index.references import ReferenceIndex
+from app.engine.index.references import COMPRESSED_KINDS, ReferenceIndex
 from app.engine.pipeline import Pipeline, PipelineSource
+from app.runtime import release_free_memory
 from app.storage.backend import StorageBackend
 from app.storage.changes import Change
 from app.storage.generations import CodeChunk
@@ -48,6 +54,45 @@ class SnapshotPolicy:
         return pending_changes >= self.every_changes or (pending_changes > 0 and seconds_pending >= self.every_seconds)
 
 
+#: ``IndexSizing.switch_at``'s default (``Settings.index_switch_at``).
+DEFAULT_SWITCH_AT = 200_000
+
+
+@dataclass(frozen=True)
+class IndexSizing:
+    """When the exact index gives way to the compressed kinds (issue 35, item 2): at ``switch_at`` live
+    references (0: never), for a configuration whose kinds are exact and that lets the size choose
+    (``PipelineConfig.index_by_size``). The switch goes one way: a collection that shrinks again keeps the
+    compressed kind (no back-and-forth around the threshold, and no second training).
+
+    Why 200,000 by default (docs/BENCHMARKS.md, one FAISS thread): the exact float search costs 5.1 ms at
+    10^5 references and 52 ms at 10^6, growing with the size, against a /locate of about 56 ms at 10^4
+    (issue 35); the issue allows /locate at size 1.2x that at 10^4, about 11 ms of search, which the exact
+    search reaches near 2 x 10^5 references (and 200 MB of index at 1,032 B each). Below it the exact
+    search costs no accuracy and no training; above it the compressed kind searches in about 1 ms and holds
+    114 B per reference in RAM (``ivf-rabitq``; its float codes for the re-rank are memory-mapped from the
+    snapshot file)."""
+
+    switch_at: int = DEFAULT_SWITCH_AT
+    #: After a failed switch, the next try waits this long (a training that fails fails again at once).
+    retry_seconds: float = 600.0
+
+    def due(self, index: ReferenceIndex) -> bool:
+        return self.switch_at > 0 and index.switches_by_size and index.is_exact and index.size >= self.switch_at
+
+    def describe(self, index: ReferenceIndex, switching: bool) -> str:
+        """How the kind is chosen, for /ready."""
+        if not index.switches_by_size:
+            return "the configuration's kinds at every size"
+        if self.switch_at <= 0:
+            return "exact at every size (GEOLOC_INDEX_SWITCH_AT=0)"
+        compressed = " / ".join(COMPRESSED_KINDS[p] for p in index.parts())
+        if not index.is_exact:
+            return f"{compressed}: switched from exact at {self.switch_at} references"
+        now = "; switching now (built in the background, the exact index serves meanwhile)" if switching else ""
+        return f"exact below {self.switch_at} references, then {compressed}{now}"
+
+
 @dataclass
 class IndexStats:
     """What /metrics reports about the index's upkeep in this process."""
@@ -58,6 +103,7 @@ class IndexStats:
     snapshot_version: int | None = None
     snapshot_written_at: float | None = None  # wall time of the snapshot loaded or last written
     changes_applied: int = 0
+    kind_switches: int = 0  # exact -> compressed switches by size (``IndexSizing``)
 
 
 def apply_changes(index: ReferenceIndex, changes: list[Change]) -> None:
@@ -90,10 +136,13 @@ def apply_changes(index: ReferenceIndex, changes: list[Change]) -> None:
     flush()
 
 
-def index_from_stream(pipeline: Pipeline, chunks: Iterable[CodeChunk]) -> ReferenceIndex:
-    """A new index of ``pipeline``'s kinds holding the streamed codes, added chunk by chunk as they are read
-    (``Generations.code_stream``): the reader holds one chunk, the index the rest."""
-    index = pipeline.new_index()
+def index_from_stream(
+    pipeline: Pipeline, chunks: Iterable[CodeChunk], into: ReferenceIndex | None = None
+) -> ReferenceIndex:
+    """A new index of ``pipeline``'s kinds (or ``into``, empty and trained) holding the streamed codes, added
+    chunk by chunk as they are read (``Generations.code_stream``): the reader holds one chunk, the index the
+    rest."""
+    index = into if into is not None else pipeline.new_index()
     for c in chunks:
         index.add(c.ids, c.float_codes, c.binary_codes)
     return index
@@ -138,18 +187,24 @@ class Collection:
         policy: SnapshotPolicy | None = None,
         generation: int = 0,
         models_dir: Path | None = None,
+        sizing: IndexSizing | None = None,
     ):
         self.store = store
         self.pipeline = pipeline
         self.generation = generation
         self.models_dir = models_dir  # where a new generation's ONNX models are loaded from
         self.policy = policy or SnapshotPolicy()
+        self.sizing = sizing or IndexSizing()
         self.lock = threading.RLock()
         self.stats = IndexStats()
         self._snapshot_lock = threading.Lock()
         self._reload_lock = threading.Lock()
         self._reloader: threading.Thread | None = None
         self.reload_error: str | None = None  # why the last attempt to load a newer generation failed
+        self._switch_lock = threading.Lock()
+        self._switcher: threading.Thread | None = None
+        self.switch_error: str | None = None  # why the last switch to the compressed kind failed
+        self._switch_failed_at: float | None = None
         self._first_pending_at: float | None = None  # when the oldest change not in a snapshot was applied
         self.rebuilt = False  # loaded by a full rebuild: a snapshot is due as soon as a writer can take it
         self._calibration: tuple[tuple[int, int], Calibration] | None = None  # (pipeline, version) -> the rule
@@ -163,6 +218,7 @@ class Collection:
         config: str | None,
         policy: SnapshotPolicy | None = None,
         backend: StorageBackend | None = None,
+        sizing: IndexSizing | None = None,
     ):
         """The data dir's own configuration and pipeline win over ``config``: its codes were made by them.
         ``backend``: the storage backend the process made once from its Settings (None: from the environment)."""
@@ -176,7 +232,7 @@ class Collection:
         store.bind(pipeline)
         if ref is None and not store.read_only:
             store.set_meta("pipeline", DEFAULT_PIPELINE + name)
-        return cls(store, pipeline, policy, generation, Path(models_dir))
+        return cls(store, pipeline, policy, generation, Path(models_dir), sizing)
 
     def view(self) -> View:
         """The current generation's pipeline and index, for one request."""
@@ -208,6 +264,7 @@ class Collection:
             index, version = index_from_stream(self.pipeline, stream.chunks), stream.version
         self.stats.full_rebuilds += 1
         self.rebuilt = True
+        release_free_memory()  # what the stream's chunks left in the allocator's arenas
         log.info("index rebuilt from %d stored codes in %.1f s", index.size, time.perf_counter() - t0)
         return index, version
 
@@ -243,6 +300,7 @@ class Collection:
             self.stats.snapshot_version = None if rebuilt else version
             if rebuilt:
                 self.stats.full_rebuilds += 1
+        release_free_memory()  # the old generation's index and the stream's chunks
         log.info("switched to generation %d (%s) in %.1f s", generation, ref, time.perf_counter() - t0)
         self.catch_up()
         return True
@@ -266,12 +324,87 @@ class Collection:
         if wait:
             thread.join(timeout)
 
+    # -- switching kind by size -----------------------------------------------------------------------
+    @property
+    def switching(self) -> bool:
+        """Whether a compressed index is being built in the background now."""
+        return self._switcher is not None and self._switcher.is_alive()
+
+    def index_choice(self) -> str:
+        """How this collection's index kind is chosen (/ready)."""
+        return self.sizing.describe(self.index, self.switching)
+
+    def _start_switch_if_due(self) -> None:
+        """Start ``switch_index_kind`` in the background when the size calls for it (one size comparison: it
+        runs at every catch-up)."""
+        if not self.sizing.due(self.index):
+            return
+        failed = self._switch_failed_at
+        if failed is not None and time.monotonic() - failed < self.sizing.retry_seconds:
+            return
+        with self._switch_lock:
+            if not self.switching:
+                self._switcher = threading.Thread(target=self._switch_loop, name="geoloc-index-switch", daemon=True)
+                self._switcher.start()
+
+    def _switch_loop(self) -> None:
+        try:
+            self.switch_index_kind()
+            self.switch_error, self._switch_failed_at = None, None
+        except Exception as e:  # keep serving the exact index; try again after ``retry_seconds``
+            log.exception("switching the index to the compressed kind failed")
+            self.switch_error, self._switch_failed_at = str(e), time.monotonic()
+
+    def switch_index_kind(self) -> bool:
+        """Replace the exact index by the compressed kinds, as a new generation is loaded: a training sample
+        read from the exact index under the lock, then without it the compressed kinds trained on it and
+        filled from the store's code stream (the exact index serves meanwhile), then under the lock the
+        changes logged since the stream's version replayed and the new index swapped in. Returns whether it
+        swapped (False: not due, or a new generation came meanwhile)."""
+        t0 = time.perf_counter()
+        with self.lock:
+            exact, generation = self.index, self.generation
+            if not self.sizing.due(exact):
+                return False
+            size = exact.size
+            sample = exact.sample(ReferenceIndex.sample_size(size))
+        compressed = exact.compressed(size, *sample)
+        del sample
+        trained_s = time.perf_counter() - t0
+        with self.store.code_stream() as stream:
+            if stream.generation != generation:
+                return False
+            compressed, built_at = index_from_stream(self.pipeline, stream.chunks, into=compressed), stream.version
+        with self.lock:
+            if self.generation != generation:
+                return False
+            if built_at < self.version:
+                apply_changes(compressed, [c for c in self.store.changes_since(built_at) if c.version <= self.version])
+            self.index, self.version = compressed, max(self.version, built_at)
+            self.rebuilt = True  # a snapshot of the new kind is due at once: a restart comes back with it
+            self.stats.kind_switches += 1
+        del exact
+        release_free_memory()  # the exact index's codes, the stream's chunks
+        log.info(
+            "index switched to %s at %d references (trained in %.1f s, built in %.1f s)",
+            compressed.kinds(),
+            compressed.size,
+            trained_s,
+            time.perf_counter() - t0 - trained_s,
+        )
+        return True
+
     # -- keeping current ------------------------------------------------------------------------------
     def catch_up(self) -> int:
         """Apply the changes other processes (or this one's worker) logged since our version; returns how many.
         One read gives the version and the generation; a newer generation is loaded in the background and,
         until it is swapped in, the old index takes no change (those logged after the switch are the new
-        generation's codes)."""
+        generation's codes). The size this leaves may start the switch to the compressed kinds."""
+        applied = self._apply_logged()
+        self._start_switch_if_due()
+        return applied
+
+    def _apply_logged(self) -> int:
         version, generation = self.store.head()
         if generation != self.generation:
             self.refresh_generation()
@@ -349,8 +482,8 @@ class Collection:
             with self.lock:
                 if self.stats.snapshot_version == self.version and not self.rebuilt:
                     return False
-                v0, gen0, pipeline = self.version, self.generation, self.pipeline
-                copy = self.index.copy()
+                v0, gen0, pipeline, source = self.version, self.generation, self.pipeline, self.index
+                copy = source.copy()
             copy.compact()
             t0 = time.perf_counter()
             if self.store.head()[1] != gen0:  # a re-fit switched meanwhile: this generation is done with
@@ -359,10 +492,13 @@ class Collection:
             with self.lock:
                 if self.generation != gen0:  # swapped while we wrote: the new generation's index stays
                     return False
-                later = [c for c in self.store.changes_since(v0) if c.version <= self.version]
-                apply_changes(copy, later)
-                self.index = copy
-                self.rebuilt = False
+                if self.index is source:  # else the kind switched meanwhile: it stays, due for its snapshot
+                    later = [c for c in self.store.changes_since(v0) if c.version <= self.version]
+                    apply_changes(copy, later)
+                    self.index = copy
+                    self.rebuilt = False
+                del source
+            release_free_memory()  # the index replaced by its compacted copy, and the writer's buffers
             self.stats.snapshot_writes += 1
             self.stats.snapshot_version = v0
             self._first_pending_at = time.time() if self.version > v0 else None

@@ -28,7 +28,7 @@ from app.storage.backend import StorageBackend
 from app.storage.feature_files import FeatureFiles, profile_root
 from app.storage.queue import Job
 from app.storage.store import KeysetPage, NewReference, Reference, ReferenceStore
-from app.usecases.collection import Collection, SnapshotPolicy
+from app.usecases.collection import Collection, IndexSizing, SnapshotPolicy
 from app.usecases.locate import StoredReferenceFeatures, StoreReferences, locate_features
 from app.usecases.thumbnails import THUMBNAIL_PX, keep_thumbnail, thumbnail
 from app.usecases.uploads import _differences, prepare_upload
@@ -77,9 +77,11 @@ class GeolocService:
         locate_concurrency: int = 0,
         thumbnail_px: int = THUMBNAIL_PX,
         backend: StorageBackend | None = None,
+        sizing: IndexSizing | None = None,
     ) -> GeolocService:
-        """``backend``: made once from the process's Settings (``Settings.backend``) and passed down."""
-        collection = Collection.open(data_dir, models_dir, config, policy, backend)
+        """``backend``: made once from the process's Settings (``Settings.backend``) and passed down; ``sizing``:
+        when the index switches to the compressed kinds (``Settings.index_sizing``)."""
+        collection = Collection.open(data_dir, models_dir, config, policy, backend, sizing)
         return cls(collection, limits, keep_queries, locate_concurrency, thumbnail_px)
 
     @property

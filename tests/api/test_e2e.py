@@ -134,7 +134,8 @@ def test_health_metrics_openapi(tmp_path, fitted_models):
         assert ready["index"]["float"]["kind"] == "flat" and binary["code_bytes"] == binary["dim"] // 8
         s.client.get("/references")
         text = s.client.get("/metrics").text
-        assert 'geoloc_index_kind{kind="flat",m="None",nlist="None",nprobe="None",part="binary"} 1.0' in text
+        labels = 'kind="flat",m="None",nlist="None",nprobe="None",part="binary",shortlist="None"'
+        assert f"geoloc_index_kind{{{labels}}} 1.0" in text
         for name in (
             "geoloc_http_requests_total",
             "geoloc_index_size",

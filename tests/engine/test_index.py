@@ -153,3 +153,33 @@ def test_search_threads_come_from_settings_not_from_the_environment_at_import():
     env = {**os.environ, "GEOLOC_FAISS_THREADS": "2"}
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "2"
+
+
+@pytest.mark.parametrize("binary", [False, True])
+def test_flat_sample_is_live_codes_drawn_reproducibly(binary):
+    """The compressed kind's training sample (``FlatIndex.sample``): live codes only, the same draw each time,
+    at most ``n``; and a reference index of the compressed kinds trained on it finds its own codes."""
+    x = _data(binary)
+    idx = build_index("flat", 64, binary)
+    ids = np.arange(len(x)) + 1000
+    idx.add(ids, x)
+    idx.remove(ids[:50])
+    everything = idx.sample(10_000)
+    assert len(everything) == len(x) - 50 and (everything == x[50:]).all()
+    some = idx.sample(100)
+    assert len(some) == 100 and (some == idx.sample(100)).all()
+    assert {r.tobytes() for r in some} <= {r.tobytes() for r in x[50:]}
+    assert len(build_index("flat", 64, binary).sample(5)) == 0
+
+
+def test_compressed_twin_is_trained_on_the_sample_and_serves():
+    index = ReferenceIndex(get_config("hybrid-bin"), 64, 64)
+    f, b = _data(False), _data(True)
+    ids = np.arange(len(f))
+    index.add(ids, f, b)
+    assert index.switches_by_size and index.is_exact
+    twin = index.compressed(index.size, *index.sample(ReferenceIndex.sample_size(index.size)))
+    assert twin.kinds() == {"float": "ivf-rabitq", "binary": "binary-ivf"} and twin.size == 0
+    twin.add(ids, f, b)
+    for mode in ("float", "binary", "two-stage"):
+        assert twin.search(f[7], b[7], 1, mode)[1][0] == 7, mode

@@ -54,6 +54,7 @@ def ready(request: Request, x_api_key: Annotated[str | None, Header()] = None):
         database=state.service.store.engine,
         index_loaded="rebuilt" if col.stats.full_rebuilds else "snapshot",
         index=col.index.stats(),
+        index_choice=col.index_choice(),
         calibration=col.calibration_summary(),
         features_backfill=state.backfill,
     )

@@ -16,6 +16,7 @@ from app.engine.artifacts import atomic_write_file
 from app.engine.configs import CONFIGS, PipelineConfig
 from app.engine.errors import GeolocError
 from app.engine.index.base import VectorIndex, build_index
+from app.engine.index.ivf_lists import MAX_POINTS_PER_LIST, default_nlist
 
 
 class UnsupportedMode(GeolocError):
@@ -24,6 +25,10 @@ class UnsupportedMode(GeolocError):
 
 #: Every search mode some configuration can serve.
 SEARCH_MODES = ("float", "binary", "two-stage")
+
+#: The exact kind, and the compressed kind each part switches to at size (``ReferenceIndex.compressed``).
+EXACT_KIND = "flat"
+COMPRESSED_KINDS = {"float": "ivf-rabitq", "binary": "binary-ivf"}
 
 
 def trained_file(part: str) -> str:
@@ -49,10 +54,25 @@ class ReferenceIndex:
     """The pair a collection searches: a float and/or a binary ``VectorIndex`` of the same references, of
     the kinds the configuration names, built by ``build_index`` and used through the protocol only."""
 
-    def __init__(self, config: PipelineConfig, float_dim: int | None, bits: int | None):
+    def __init__(
+        self,
+        config: PipelineConfig,
+        float_dim: int | None,
+        bits: int | None,
+        kinds: dict[str, str] | None = None,
+        params: dict[str, dict[str, Any]] | None = None,
+    ):
+        """``kinds``: the part's kind by part name where it is not the configuration's (a snapshot of an index
+        that switched by size, ``compressed``); ``params``: keyword arguments of a part's ``build_index``."""
         self.config = config
-        self.float: VectorIndex | None = build_index(config.float_index, float_dim, False) if float_dim else None
-        self.binary: VectorIndex | None = build_index(config.binary_index, bits, True) if bits else None
+        kinds = {"float": config.float_index, "binary": config.binary_index, **(kinds or {})}
+        params = params or {}
+        self.float: VectorIndex | None = (
+            build_index(kinds["float"], float_dim, False, **params.get("float", {})) if float_dim else None
+        )
+        self.binary: VectorIndex | None = (
+            build_index(kinds["binary"], bits, True, **params.get("binary", {})) if bits else None
+        )
 
     def parts(self) -> dict[str, VectorIndex]:
         """The indexes this one holds, by name (``float``, ``binary``): what snapshots write one file each of."""
@@ -70,6 +90,51 @@ class ReferenceIndex:
         """The live reference ids (both parts hold the same ones)."""
         idx = self._first()
         return idx.ids() if idx is not None else np.zeros(0, np.int64)
+
+    def kinds(self) -> dict[str, str]:
+        """Each part's serving kind."""
+        return {name: idx.kind for name, idx in self.parts().items()}
+
+    # -- the kind by size (issue 35) ------------------------------------------------------------------
+    @property
+    def switches_by_size(self) -> bool:
+        """Whether this index may be replaced by ``compressed`` once the collection is large: the
+        configuration lets the size choose (``index_by_size``) and names the exact kind for every part it
+        has. A configuration that names another kind (``lite2-hybrid-384-ivf``) keeps it at every size."""
+        c = self.config
+        named = {"float": c.float_index, "binary": c.binary_index}
+        return c.index_by_size and all(named[p] == EXACT_KIND for p in self.parts())
+
+    @property
+    def is_exact(self) -> bool:
+        return all(kind == EXACT_KIND for kind in self.kinds().values())
+
+    def sample(self, n: int, seed: int = 0) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """Up to ``n`` live codes of each part, drawn reproducibly (the compressed kind's training sample);
+        read from the exact (``flat``) index in place (``FlatIndex.sample``), one copy of the sample only."""
+        if not self.is_exact:
+            raise ValueError(f"only an exact index is sampled to train the compressed kinds, not {self.kinds()}")
+        out = {name: idx.sample(n, seed) for name, idx in self.parts().items()}
+        return out.get("float"), out.get("binary")
+
+    def compressed(self, size: int, float_codes: np.ndarray | None, binary_codes: np.ndarray | None) -> ReferenceIndex:
+        """A new, empty index of the compressed kinds (``COMPRESSED_KINDS``), trained on the collection's
+        own codes (``sample``), with about 4 sqrt(``size``) lists (``default_nlist``). The caller fills it."""
+        nlist = default_nlist(size)
+        twin = ReferenceIndex(
+            self.config,
+            self.float.dim if self.float is not None else None,
+            self.binary.dim if self.binary is not None else None,
+            kinds={p: COMPRESSED_KINDS[p] for p in self.parts()},
+            params={p: {"nlist": nlist} for p in self.parts()},
+        )
+        twin.train(float_codes, binary_codes)
+        return twin
+
+    @staticmethod
+    def sample_size(size: int) -> int:
+        """How many codes ``compressed`` trains on for a collection of ``size``: the most its lists use."""
+        return default_nlist(size) * MAX_POINTS_PER_LIST
 
     # -- training -------------------------------------------------------------------------------------
     @property

@@ -1,0 +1,72 @@
+"""GEOLOC_INDEX_SWITCH_AT on a real server (issue 35, item 2): uploads carry the collection past the
+(lowered) threshold, /ready and /metrics say the exact kind serves and then the compressed kinds with
+their parameters, every upload is found first before and after the switch, a delete is gone at once, and
+a restart (clean stop: the final snapshot records the kinds) serves the compressed kinds without a
+rebuild."""
+
+import re
+import time
+
+from tests.api.conftest import Server, wait_job
+from tests.api.test_live_index import KEY, H, _locate, _upload, metric, rows  # noqa: F401  (rows: a fixture)
+
+SWITCH_AT = 8
+
+
+def _kinds(client) -> dict:
+    return {part: s["kind"] for part, s in client.get("/ready").json()["index"].items()}
+
+
+def _found_first(client, photos, ids) -> None:
+    for row, ref_id in zip(photos, ids, strict=True):
+        assert _locate(client, row.image, top_k=3)["candidates"][0]["reference_id"] == ref_id, row.image.name
+
+
+def test_the_kind_switches_by_size_on_a_server(tmp_path, fitted_models, rows):  # noqa: F811
+    data = tmp_path / "data"
+    env = {"GEOLOC_INDEX_SWITCH_AT": str(SWITCH_AT)}
+    with Server(data, fitted_models, api_key=KEY, extra_env=env) as s:
+        first = _upload(s.client, rows[: SWITCH_AT - 1])
+        wait_job(s.client, first["job_id"])
+        ready = s.client.get("/ready").json()
+        assert _kinds(s.client) == {"float": "flat", "binary": "flat"}
+        assert ready["index_choice"] == f"exact below {SWITCH_AT} references, then ivf-rabitq / binary-ivf"
+        assert re.search(
+            r'^geoloc_index_kind\{.*kind="flat".*part="float".*\} 1\.0$', s.client.get("/metrics").text, re.M
+        )
+        ids = first["reference_ids"]
+        _found_first(s.client, rows[:3], ids[:3])
+
+        more = _upload(s.client, rows[SWITCH_AT - 1 : SWITCH_AT + 3])
+        wait_job(s.client, more["job_id"])
+        ids += more["reference_ids"]
+        deadline = time.time() + 120
+        while _kinds(s.client)["float"] == "flat" and time.time() < deadline:  # built in the background
+            _found_first(s.client, rows[:1], ids[:1])  # answers keep coming meanwhile
+            time.sleep(0.2)
+        ready = s.client.get("/ready").json()
+        assert _kinds(s.client) == {"float": "ivf-rabitq", "binary": "binary-ivf"}, ready
+        assert ready["index_size"] == SWITCH_AT + 3 and "switched from exact" in ready["index_choice"]
+        assert {"nlist", "nprobe", "shortlist"} <= set(ready["index"]["float"])
+        text = s.client.get("/metrics").text
+        line = re.search(r'^geoloc_index_kind\{[^}]*part="float"[^}]*\} 1\.0$', text, re.M).group(0)
+        f = ready["index"]["float"]
+        for label, value in (
+            ("kind", "ivf-rabitq"),
+            ("nlist", f["nlist"]),
+            ("nprobe", f["nprobe"]),
+            ("shortlist", 100),
+        ):
+            assert f'{label}="{value}"' in line, line
+        assert metric(s, "geoloc_index_kind_switches") == 1 and metric(s, "geoloc_index_switching") == 0
+        _found_first(s.client, rows[: SWITCH_AT + 3 : 2], ids[::2])
+
+        gone = ids[1]
+        assert s.client.delete(f"/references/{gone}", headers=H).status_code == 200
+        assert gone not in [c["reference_id"] for c in _locate(s.client, rows[1].image, top_k=10)["candidates"]]
+    with Server(data, fitted_models, api_key=KEY, extra_env=env) as again:
+        ready = again.client.get("/ready").json()
+        assert ready["index_loaded"] == "snapshot" and ready["index_size"] == SWITCH_AT + 2
+        assert _kinds(again.client) == {"float": "ivf-rabitq", "binary": "binary-ivf"}
+        assert metric(again, "geoloc_index_full_rebuilds") == 0 and metric(again, "geoloc_index_kind_switches") == 0
+        _found_first(again.client, rows[2 : SWITCH_AT + 3 : 3], ids[2::3])
