@@ -126,6 +126,15 @@ def rules(runs: list[tuple[int, Head]], recorded_floor: int) -> list[tuple[str, 
     return out
 
 
+def recorded_r1(run: dict) -> tuple[float, float]:
+    """The run's own R@1, verified and not: a finished run's, or the mean of the folds a ``.partial.json`` holds."""
+    if "recall_at" in run:
+        return run["recall_at"]["1"], run["without_rerank"]["recall_at"]["1"]
+    n = len(run["recall_at_per_fold"])
+    plain = run["without_rerank_recall_at_per_fold"][:n]
+    return float(np.mean([f["1"] for f in run["recall_at_per_fold"]])), float(np.mean([f["1"] for f in plain]))
+
+
 def main(argv: Sequence[str] | None = None) -> None:
     from app.engine.stored_profiles import get_profile
 
@@ -136,12 +145,15 @@ def main(argv: Sequence[str] | None = None) -> None:
     recorded = a.recorded_floor if a.recorded_floor is not None else get_profile("xfeat-640-n900").fusion_floor
     for path in a.runs:
         run = json.loads(path.read_text())
+        if "recall_at" not in run:  # a .partial.json: only the folds whose R@1 it holds
+            run["queries"] = [q for q in run["queries"] if (q.get("fold") or 0) < len(run["recall_at_per_fold"])]
         hs = heads(run)
         wrong = [n for _, h in hs for _, ok, n in h if n is not None and not ok]
         right = [n for _, h in hs for _, ok, n in h if n is not None and ok]
+        verified, unverified = recorded_r1(run)
         print(
-            f"{path.name}: {len(hs)} queries, R@1 recorded {run['recall_at']['1']:.3f} (verified) / "
-            f"{run['without_rerank']['recall_at']['1']:.3f} (unverified); verified candidates: "
+            f"{path.name}: {len(hs)} queries, R@1 recorded {verified:.3f} (verified) / "
+            f"{unverified:.3f} (unverified); verified candidates: "
             f"{len(right)} right (inliers p50 {np.median(right):.0f}, p90 {np.percentile(right, 90):.0f}), "
             f"{len(wrong)} wrong (p50 {np.median(wrong):.0f}, p90 {np.percentile(wrong, 90):.0f}, "
             f"p95 {np.percentile(wrong, 95):.0f}, p99 {np.percentile(wrong, 99):.0f})"
