@@ -6,7 +6,7 @@
 Why: "Not in this collection" must be an answer (issue 20). The sf-streetview-toy images are street views of
 San Francisco; against the Penn demo collection (`make demo`) none is present, so every confident estimate
 is a wrong answer. Each photo goes through ``GeolocService.locate``, the use case /locate serves. Prints one
-line per photo (reason code, best p_within_25m) and the summary: confident share and mean best p.
+line per photo (reason code, best p_within_25m) and the summary: confident share, mean and highest best p.
 """
 
 from __future__ import annotations
@@ -50,7 +50,8 @@ def main() -> None:
         print(f"{path.parent.name}/{path.name}: {a.reason_code or 'CONFIDENT'}  best p_within_25m {shown}")
     print(
         f"{len(confident)} photos against {args.data_dir} ({service.collection.view().index.size} references): "
-        f"{sum(confident)} confident ({np.mean(confident):.0%}), mean best p_within_25m {np.nanmean(best):.3f}"
+        f"{sum(confident)} confident ({np.mean(confident):.0%}), best p_within_25m mean {np.nanmean(best):.3f}, "
+        f"highest {np.nanmax(best):.3f}"
     )
 
 

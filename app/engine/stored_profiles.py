@@ -42,11 +42,15 @@ class StoredProfile:
     settings: Settings = field(default_factory=Settings)
     #: ``verify_stored``'s adaptive stop; the fusion weight (0.5) never changes the first candidate.
     stop_margin: float | None = 0.5
-    #: Inliers up to this count nothing in the fused score (``matchers.fusion.fused_score``'s ``floor``).
-    #: XFeat's chance level is lower than RootSIFT's (whose floor is 20): pairs over 150 m apart had 0 inliers
-    #: median and 12 at p90 on penn-photos-40, the right top-1 15 median. 12 is that p90, a provisional
-    #: choice until it is fitted leave-one-fold-out as RootSIFT's was.
-    fusion_floor: int = 12
+    #: Inliers up to this count nothing in the fused score (``matchers.fusion.fused_score``'s ``floor``), and the
+    #: adaptive stop reads the same score. The floor is the chance level of the candidates retrieval confuses,
+    #: not of random pairs: XFeat pairs over 150 m apart had 0 inliers median, 12 at p90 on penn-photos-40, but
+    #: the WRONG (beyond 25 m) candidates among the verified top 10 of penn-campus-gps's 5 folds had 18 median,
+    #: 40 at p90 and 48 at p95 (a shared facade verifies from 30-45 m). At the old floor 12 verification lost
+    #: R@1 (0.360 against 0.372 unverified); at that p95 (47-48 when chosen per fold on the other four folds)
+    #: it gives 0.385 (``bench.fusion_replay``, then a 5-fold run; docs/RESULTS.md, "Verified confidence from
+    #: stored features").
+    fusion_floor: int = 48
 
 
 PROFILES: dict[str, StoredProfile] = {

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from app.engine.matchers.base import Verification
-from app.engine.matchers.fusion import fused_score
+from app.engine.matchers.fusion import FUSION_FLOOR, fused_score
 from app.engine.matchers.geometry import MIN_MATCHES_TO_FIT, fit_geometry
 from app.engine.matchers.sift_mnn import PixelFeatures
 from app.engine.stored_features import StoredFeatures
@@ -117,10 +117,12 @@ def verify_stored(
     global_scores: Sequence[float] | None = None,
     settings: Settings = Settings(),
     stop_margin: float | None = None,
+    floor: int = FUSION_FLOOR,
 ) -> BatchOutcome:
     """Verify ``query`` (features extracted once, positions in pixels) against each candidate's stored
     features, in the order given (retrieval order). ``stop_margin`` with ``global_scores``: the adaptive
-    stop of the module's docstring; None verifies every candidate."""
+    stop of the module's docstring; None verifies every candidate. ``floor``: the fused score's inlier floor
+    the candidates will be ordered by (the stop is exact only when it reads the same score)."""
     if stop_margin is not None and global_scores is None:
         raise ValueError("the adaptive stop needs the candidates' global scores")
     have = [i for i, c in enumerate(candidates) if c is not None and len(c) > 0]
@@ -138,7 +140,7 @@ def verify_stored(
         )
         if stop_margin is None:
             continue
-        best_fused = max(best_fused, fused_score(float(global_scores[i]), out[i].inliers))
+        best_fused = max(best_fused, fused_score(float(global_scores[i]), out[i].inliers, floor=floor))
         if n + 1 < len(candidates) and best_fused >= float(global_scores[n + 1]) + stop_margin:
             return BatchOutcome(out, stopped_after=n + 1)
     return BatchOutcome(out)

@@ -226,7 +226,9 @@ def verify_from_stored(
         return out
     try:
         q = query if query is not None else extractor.query(query_rgb)
-        outcome = verify_stored(q, given, [s for _, s in head], profile.settings, profile.stop_margin)
+        outcome = verify_stored(
+            q, given, [s for _, s in head], profile.settings, profile.stop_margin, profile.fusion_floor
+        )
     except (cv2.error, GeolocError) as e:
         log.debug("verification of references %s skipped: %s", ids, e)
         return out

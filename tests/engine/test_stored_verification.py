@@ -21,6 +21,7 @@ from app.engine.imageio import ImageLimits, load_image
 from app.engine.matchers.fusion import FUSION_FLOOR, FUSION_WEIGHT, fused_score
 from app.engine.matchers.geometry import fit_geometry, mutual_matches
 from app.engine.matchers.sift_mnn import PixelFeatures, SiftMnnMatcher, features_for_verification
+from app.engine.stored_profiles import get_profile
 from app.engine.stored_verification import matches_many, verify_stored
 from app.usecases.locate import verify_candidate_pairs
 from tests.conftest import PENN
@@ -122,18 +123,20 @@ def test_one_product_for_many_candidates_matches_as_pairwise_matching_does(pairs
     assert len(batch[-1]) == 0
 
 
-def test_the_exact_adaptive_stop_never_changes_the_first_candidate(pairs):
-    """With the margin at the fusion weight, stopping early picks the candidate full verification picks."""
+@pytest.mark.parametrize("floor", [FUSION_FLOOR, get_profile("xfeat-640-n900").fusion_floor, 0])
+def test_the_exact_adaptive_stop_never_changes_the_first_candidate(pairs, floor):
+    """With the margin at the fusion weight, stopping early picks the candidate full verification picks, at
+    the floor the candidates are then ordered by (the stored profile's is not the re-extracting rerank's)."""
     query, candidates, _ = pairs
     q = features_for_verification(load_image(query.read_bytes()).rgb)
     recs = [_stored(p) for p in candidates]
     near_first = [0.70, 0.69, 0.68, 0.67, 0.66]  # the near photos ranked first: a clear answer
     full = verify_stored(q, recs, near_first)
-    early = verify_stored(q, recs, near_first, stop_margin=FUSION_WEIGHT)
+    early = verify_stored(q, recs, near_first, stop_margin=FUSION_WEIGHT, floor=floor)
 
     def first(out):
         inl = [0 if v is None else v.inliers for v in out.verifications]
-        return max(range(len(recs)), key=lambda n: (fused_score(near_first[n], inl[n]), -n))
+        return max(range(len(recs)), key=lambda n: (fused_score(near_first[n], inl[n], floor=floor), -n))
 
     assert first(early) == first(full)
     if early.stopped_after is not None:
