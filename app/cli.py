@@ -633,6 +633,7 @@ def worker_cmd(
             on_ready=ready,
             retry_seconds=_S.worker_retry_seconds,
             max_attempts=_S.encode_attempts,
+            sizing=_S.index_sizing(),
         )
     except WriterBusy as e:
         _fail(str(e), code=4)

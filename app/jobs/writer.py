@@ -22,7 +22,7 @@ from pathlib import Path
 
 from app.jobs.worker import IngestWorker, writer_lock
 from app.storage.orphans import Janitor
-from app.usecases.collection import Collection, SnapshotWriter
+from app.usecases.collection import Collection, IndexSizing, SnapshotWriter
 from app.usecases.service import GeolocService
 
 log = logging.getLogger("geoloc.worker")
@@ -308,17 +308,19 @@ def run_worker(
     on_ready: Callable[[GeolocService], None],
     retry_seconds: float | None = None,
     max_attempts: int = 3,
+    sizing: IndexSizing | None = None,
 ) -> None:
     """``geoloc worker``: take the lock (``WriterBusy`` when another process holds it; nothing is opened),
     open the service, call ``on_ready`` and run the role in this (the main) thread until SIGTERM or Ctrl-C;
     a clean stop writes the last snapshot. ``retry_seconds``: on PostgreSQL, how often the lock's session
-    is checked (and, once lost, the lock retried): see ``Writer.run``."""
+    is checked (and, once lost, the lock retried): see ``Writer.run``. ``sizing``: the process's
+    ``Settings.index_sizing``, so the worker switches index kinds at the same size as the server."""
     import signal
 
     writer = Writer(data_dir, batch, max_attempts=max_attempts)
     if not writer.acquire():
         raise WriterBusy(f"another worker already holds {writer.lock.where}")
-    service = GeolocService.open(data_dir, models_dir, config)
+    service = GeolocService.open(data_dir, models_dir, config, sizing=sizing)
     signal.signal(signal.SIGTERM, lambda *_: writer.request_stop())
     on_ready(service)
     writer.run(service, retry_seconds)
