@@ -75,8 +75,8 @@ def test_add_search_remove_allowed_round_trip(codes, tmp_path):
     path = tmp_path / "index.faiss"
     index.dump(path)
     loaded = IvfCompressedIndex(256, nprobe=16)
-    loaded.load(path)  # the float codes come back mapped from the file, not read into RAM
-    assert isinstance(loaded.table._base_codes, np.memmap) and not loaded.table.recent
+    loaded.load(path)  # the float codes stay in the file (read by pread), not read into RAM
+    assert loaded.table.where() == (index.size, 0) and index.table.where() == (index.size, 0)
     assert loaded.size == index.size and np.array_equal(loaded.ids(), index.ids())
     assert loaded.stats()["nlist"] == 64 and loaded.stats()["code_bytes"] == 40  # RaBitQ: 256 bits + 2 floats
     q = codes[100:140]

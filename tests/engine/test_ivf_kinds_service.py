@@ -7,7 +7,6 @@ codes inside the ivf-rabitq file) and a reopened service serves from it with the
 
 from __future__ import annotations
 
-import numpy as np
 import pytest
 
 from app.engine import configs as configs_mod
@@ -92,8 +91,8 @@ def test_fit_ingest_locate_delete_snapshot_reopen(ivf_models, mini_manifest, tmp
         answer = service.locate(db[7].image.read_bytes(), LocateOptions(top_k=10, mode=mode))
         assert gone not in [c.reference_id for c in answer.candidates], mode
     assert service.collection.write_snapshot()
-    table = service.collection.index.float.table  # the serving index maps the codes the snapshot wrote
-    assert isinstance(table._base_codes, np.memmap) and not table.recent
+    table = service.collection.index.float.table  # the serving index reads the codes the snapshot wrote
+    assert table.where() == (service.collection.size, 0)
     own_image_first(service, 9)
     service.store.close()
 
@@ -101,7 +100,7 @@ def test_fit_ingest_locate_delete_snapshot_reopen(ivf_models, mini_manifest, tmp
     assert again.collection.stats.full_rebuilds == 0  # served from the kinds' own snapshot files
     index = again.collection.index
     assert isinstance(index.float, IvfCompressedIndex) and isinstance(index.binary, BinaryIvfIndex)
-    assert isinstance(index.float.table._base_codes, np.memmap) and not index.float.table.recent
+    assert index.float.table.where() == (len(db) - 1, 0)
     assert again.collection.size == len(db) - 1 and gone not in index.ids()
     own_image_first(again, 5)
     own_image_first(again, 9)

@@ -15,6 +15,7 @@ from __future__ import annotations
 import importlib
 import pkgutil
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol, runtime_checkable
 
@@ -97,6 +98,17 @@ class VectorIndex(Protocol):
         """Write the index to one file, streamed (no second copy in memory at 10^7 references)."""
         ...
 
+    def stage_dump(self, path: Path) -> StagedDump:
+        """Begin ``dump`` into ``path`` (a new file) from this very index, without a copy of it: what must be
+        read while nothing changes the index is written now (the caller holds its lock), the rest by the
+        returned ``StagedDump`` afterwards, without the lock."""
+        ...
+
+    @property
+    def compaction_due(self) -> bool:
+        """Whether ``compact`` would drop something now (a snapshot then writes a compacted copy)."""
+        ...
+
     def load(self, path: Path) -> None:
         """Replace this index by the one ``dump`` wrote (trained state included; no removals)."""
         ...
@@ -104,6 +116,16 @@ class VectorIndex(Protocol):
     def stats(self) -> dict[str, Any]:
         """The kind and its parameters (nlist, nprobe, code bytes, ...), for /ready and /metrics."""
         ...
+
+
+@dataclass(frozen=True)
+class StagedDump:
+    """The rest of a ``stage_dump``: ``finish()`` writes it without the index's lock (and closes the file);
+    ``adopt(final_path)``, called under the lock once the file is in place and only if the index is still
+    the one served, lets the index read from that file (the float code table of ``ivf-rabitq``)."""
+
+    finish: Callable[[], None] = lambda: None
+    adopt: Callable[[Path], None] = lambda path: None
 
 
 #: ``factory(dim, binary, **params)`` -> a ``VectorIndex``.

@@ -15,7 +15,7 @@ from typing import Any, ClassVar
 import faiss
 import numpy as np
 
-from app.engine.index.base import IndexNotTrained
+from app.engine.index.base import IndexNotTrained, StagedDump
 
 #: FAISS's OpenMP threads when nothing says otherwise. One query at a time is the service's load: more
 #: threads would only fight onnxruntime's and OpenBLAS's for the cores (measured: a 0.05 ms flat search took
@@ -109,6 +109,10 @@ class FaissIndex:
     def _dead(self) -> np.ndarray:
         """The tombstones, unordered (what every search with tombstones filters by)."""
         return np.fromiter(self.tombstones, np.int64, len(self.tombstones))
+
+    @property
+    def compaction_due(self) -> bool:
+        return bool(self.tombstones) and (self.removes_in_place or self.needs_rebuild)
 
     @property
     def needs_rebuild(self) -> bool:
@@ -224,6 +228,11 @@ class FaissIndex:
         if self._index is None:
             raise IndexNotTrained(f"the {self.kind} index was never trained: nothing to write")
         (faiss.write_index_binary if self.binary else faiss.write_index)(self._index, str(path))
+
+    def stage_dump(self, path: Path) -> StagedDump:
+        """FAISS streams the whole index into the file (no serialised copy in memory): all of it now."""
+        self.dump(path)
+        return StagedDump()
 
     def load(self, path: Path) -> None:
         """Read what ``dump`` (or the service before the index seam: the same FAISS files) wrote."""

@@ -182,6 +182,11 @@ class ReferenceIndex:
             idx.compact()
 
     @property
+    def compaction_due(self) -> bool:
+        """Whether a part would drop removed vectors now (a snapshot then writes a compacted copy)."""
+        return any(idx.compaction_due for idx in self.parts().values())
+
+    @property
     def tombstones(self) -> int:
         """Removed references still stored (``VectorIndex.removed_ids``), until compaction."""
         idx = self._first()

@@ -5,8 +5,8 @@ thread, and keeps 1 KB per reference in RAM. Following FAISS's guidance for that
 compressed codes (RaBitQ by default: one bit per dimension plus two floats; ``codec`` takes any FAISS
 factory code, "PQ32", "SQ4", ... for the bench), the coarse quantizer is an HNSW graph over the centroids
 (assigning a query or a new reference costs O(log nlist)), and a shortlist of ``shortlist`` ids is re-scored
-exactly from the float codes (``FloatCodeTable``: memory-mapped from the index's own file, so the float codes
-are not a second in-RAM copy). Fast-scan codes are not offered: FAISS 1.15 cannot remove from their
+exactly from the float codes (``FloatCodeTable``: read by ``pread`` from the index's own file, so the float
+codes are neither a second copy in RAM nor resident in the process). Fast-scan codes are not offered: FAISS 1.15 cannot remove from their
 block-packed lists with a hashtable direct map, and the service deletes live.
 
 The region filter: a small region (up to ``exact_filter_max`` ids) is scored exactly from the float codes,
@@ -26,7 +26,7 @@ from pathlib import Path
 import faiss
 import numpy as np
 
-from app.engine.index.base import register_index_kind
+from app.engine.index.base import StagedDump, register_index_kind
 from app.engine.index.float_code_table import FloatCodeTable
 from app.engine.index.ivf_lists import IvfListsIndex, training_sample, usable_nlist
 
@@ -166,41 +166,75 @@ class IvfCompressedIndex(IvfListsIndex):
         twin.table = self.table.copy()
         return twin
 
-    def dump(self, path: Path) -> None:
-        """One file, streamed: header, FAISS's index, then the float codes (``FloatCodeTable.write``), which
-        this index then maps instead of holding them (the collection serves the copy it snapshotted). Written
-        beside ``path`` and renamed over it: truncating a file in place would pull the pages from under an
-        index that maps it (a bus error, not an exception)."""
+    def stage_dump(self, path: Path) -> StagedDump:
+        """One file: header, FAISS's index, then the float codes (``FloatCodeTable.write``). FAISS's part is
+        streamed into the file now (the caller holds the index's lock: about 114 B per reference); the float
+        codes are written by ``finish`` without the lock from a ``copy`` of the table taken now (ids and
+        live flags only: the codes stay in their files), and ``adopt`` makes the table read from the new
+        file, which frees its spill file of the codes added since the last one."""
         index = self._require_trained()
-        path = Path(path)
-        tmp = path.with_name(path.name + ".part")
-        with open(tmp, "wb") as f:
+        f = open(path, "wb")  # noqa: SIM115 (closed by ``finish``)
+        try:
             f.write(_HEAD.pack(MAGIC, 0, 0))
             faiss.write_index(index, faiss.PyCallbackIOWriter(f.write))
             faiss_bytes = f.tell() - _HEAD.size
             f.write(b"\0" * (-f.tell() % 8))
             table_at = f.tell()
-            # with an external reader the codes live elsewhere: an empty table keeps the file well-formed
-            (self.table if self.external_codes is None else FloatCodeTable(self.dim)).write(f)
-            f.seek(0)
-            f.write(_HEAD.pack(MAGIC, faiss_bytes, table_at))
-        if self.external_codes is None:  # the codes just written replace the RAM-held ones: a snapshot's
-            self.table = FloatCodeTable.read(tmp, table_at)  # copy is swapped in to serve, mapped (the
-        os.replace(tmp, path)  # mapping holds the inode, whatever becomes of the path)
+        except BaseException:
+            f.close()
+            raise
+        # with an external reader the codes live elsewhere: an empty table keeps the file well-formed
+        frozen = self.table.copy() if self.external_codes is None else FloatCodeTable(self.dim)
+
+        def finish() -> None:
+            with f:
+                frozen.write(f)
+                f.seek(0)
+                f.write(_HEAD.pack(MAGIC, faiss_bytes, table_at))
+
+        def adopt(final: Path) -> None:
+            if self.external_codes is None:
+                self.table.rebase(FloatCodeTable.read(final, table_at), frozen)
+
+        return StagedDump(finish, adopt)
+
+    def dump(self, path: Path) -> None:
+        """``stage_dump`` in one go, written beside ``path`` and renamed over it: truncating a file in place
+        would change the float codes under an index that reads them from it."""
+        path = Path(path)
+        tmp = path.with_name(path.name + ".part")
+        staged = self.stage_dump(tmp)
+        staged.finish()
+        os.replace(tmp, path)  # an open file stays valid whatever becomes of its path
+        staged.adopt(path)
 
     def load(self, path: Path) -> None:
-        """Read what ``dump`` wrote: FAISS's part into RAM, the float codes mapped (not read)."""
+        """Read what ``dump`` wrote: FAISS's part into RAM (streamed from the file: no second copy of its
+        bytes), the float codes left in the file (their ids read)."""
         with open(path, "rb") as f:
             magic, faiss_bytes, table_at = _HEAD.unpack(f.read(_HEAD.size))
             if magic != MAGIC:
                 raise ValueError(f"{path} is not an {self.kind} index file")
-            index = faiss.deserialize_index(np.fromfile(f, np.uint8, faiss_bytes))
+            index = faiss.read_index(faiss.PyCallbackIOReader(_bounded_reader(f, faiss_bytes)))
         if index.d != self.dim:
             raise ValueError(f"{path} holds a {index.d}-d index; this one is {self.dim}-d")
         self._adopt(index)
         self.table = FloatCodeTable.read(Path(path), table_at) if self.external_codes is None else self.table
         if self.external_codes is None and len(self.table.live_ids()) != index.ntotal:
             raise ValueError(f"{path}: {index.ntotal} codes in the lists but a float table of another size")
+
+
+def _bounded_reader(f, limit: int) -> Callable[[int], bytes]:
+    """``f.read`` that never reads past ``limit`` bytes (FAISS's part: a reader asking for more hits the
+    float code table's bytes, not an error)."""
+    left = [limit]
+
+    def read(n: int) -> bytes:
+        data = f.read(min(n, left[0]))
+        left[0] -= len(data)
+        return data
+
+    return read
 
 
 register_index_kind(IvfCompressedIndex.kind, IvfCompressedIndex)
