@@ -16,17 +16,22 @@ COPY on PostgreSQL, no image files: nothing here reads a reference's image). Pos
 Each start: every snapshot of the data dir is deleted first, so the server rebuilds its index from the store
 (the cold start: ``Collection._rebuild``); then ``geoloc serve`` (``tools.server_process``) is started and
 timed until /ready answers 200. Read from /proc: the server's peak resident memory up to ready (VmHWM) and its
-resident memory at ready; again after the snapshot the rebuild makes due has been written (a memory copy of
-the index, compacted and written while the first keeps serving); and after ``--locates`` /locate of real
-penn photos (RSS, and its anonymous part, the heap, and file-backed part, mapped files: the ``ivf-rabitq``
-kind's float codes are mapped from its snapshot file, and a kernel with large page-cache folios maps about a
-megabyte of the file per code the re-rank reads). The rebuild's own seconds come from the server's log line
+resident memory at ready; again after the snapshot the rebuild makes due has been written (from the served
+index itself, or a compacted copy of it where deletions are due to be dropped); and after ``--locates`` /locate of real
+penn photos (RSS, and its anonymous part, the heap, and file-backed part, mapped files: before the
+``ivf-rabitq`` kind read its float codes by ``pread``, they were mapped from its snapshot file, and a kernel
+with large page-cache folios mapped about a megabyte of the file per code the re-rank read). The rebuild's own seconds come from the server's log line
 ("index rebuilt from N stored codes in S s").
 
 ``--switch-at N`` (issue 35, item 2) starts the servers with GEOLOC_INDEX_SWITCH_AT=N: a collection of N or
 more references switches to the compressed kinds after the rebuild (trained and built in the background),
 and for this tree the start also waits for the switch and the snapshot it makes due, then reads the
 resident memory again ("after switch"). A baseline without the setting keeps its exact index.
+
+``--restart``: after each start is stopped (a clean stop writes a last snapshot if one is due), the same
+tree is started again on the snapshot it left, as a replica made ready from a snapshot is: seconds to /ready,
+its peak resident memory (VmHWM) up to ready against the snapshot files' size, and its memory after
+``--locates`` /locates.
 """
 
 from __future__ import annotations
@@ -108,6 +113,43 @@ def _wait_switched(server: ServerProcess, data: Path, timeout: float = 1800) -> 
     raise TimeoutError("the index did not switch kind")
 
 
+def _locate(server: ServerProcess, photos: list[Path], locates: int) -> list[float]:
+    ms = []
+    for i in range(locates):
+        photo = photos[i % len(photos)]
+        t = time.perf_counter()
+        r = server.client.post("/locate", files=[("image", ("q.jpg", photo.read_bytes(), "image/jpeg"))])
+        ms.append((time.perf_counter() - t) * 1e3)
+        if r.status_code != 200:
+            raise RuntimeError(f"/locate answered {r.status_code}: {r.text[:300]}")
+    return ms
+
+
+def restart(data: Path, models: Path, config: str, code: Path | None, photos: list[Path], locates: int, env) -> dict:
+    """A second start on the snapshot the first one left (a replica made ready from a snapshot): seconds to
+    /ready, peak and resident memory then, and after ``locates`` /locates; the snapshot files' bytes."""
+    manifest = json.loads((data / "index.json").read_text())
+    out = {"snapshot_file_mb": sum(f["bytes"] for f in manifest["files"].values()) / MiB}
+    t0 = time.perf_counter()
+    server = ServerProcess(data, models, config, code=code, extra_env=env)
+    pid = server.proc.pid
+    try:
+        server.wait_ready(timeout=900)
+        out["restart_ready_s"] = time.perf_counter() - t0
+        out["restart_hwm_ready_mb"] = _status_kb(pid, "VmHWM") / 1024
+        out["restart_rss_ready_mb"] = rss_bytes(pid) / MiB
+        out["restart_anon_ready_mb"] = _status_kb(pid, "RssAnon") / 1024
+        ms = _locate(server, photos, locates)
+        out["restart_locate_p50_ms"] = statistics.median(ms) if ms else float("nan")
+        out["restart_rss_locates_mb"] = rss_bytes(pid) / MiB
+        out["restart_anon_locates_mb"] = _status_kb(pid, "RssAnon") / 1024
+    finally:
+        server.stop()
+    log = Path(server.log.name).read_text()
+    out["restart_rebuilt"] = float(bool(REBUILT.search(log)))  # 1: the snapshot was not used
+    return out
+
+
 def one_start(
     data: Path,
     models: Path,
@@ -117,6 +159,7 @@ def one_start(
     locates: int,
     switch_at: int | None = None,
     size: int = 0,
+    restarts: bool = False,
 ) -> dict:
     _drop_snapshots(data)
     t0 = time.perf_counter()
@@ -138,14 +181,7 @@ def one_start(
             out["rss_switched_mb"] = rss_bytes(pid) / MiB
             out["anon_switched_mb"] = _status_kb(pid, "RssAnon") / 1024
             out["hwm_switched_mb"] = _status_kb(pid, "VmHWM") / 1024
-        ms = []
-        for i in range(locates):
-            photo = photos[i % len(photos)]
-            t = time.perf_counter()
-            r = server.client.post("/locate", files=[("image", ("q.jpg", photo.read_bytes(), "image/jpeg"))])
-            ms.append((time.perf_counter() - t) * 1e3)
-            if r.status_code != 200:
-                raise RuntimeError(f"/locate answered {r.status_code}: {r.text[:300]}")
+        ms = _locate(server, photos, locates)
         out["locate_p50_ms"] = statistics.median(ms) if ms else float("nan")
         out["rss_locates_mb"] = rss_bytes(pid) / MiB
         out["anon_locates_mb"] = _status_kb(pid, "RssAnon") / 1024  # the heap; the rest is mapped files
@@ -156,6 +192,8 @@ def one_start(
     m = REBUILT.search(Path(server.log.name).read_text())
     out["rebuild_s"] = float(m.group(2)) if m else float("nan")
     out["rebuilt_refs"] = int(m.group(1)) if m else -1
+    if restarts:
+        out.update(restart(data, models, config, code, photos, locates, env))
     return out
 
 
@@ -174,6 +212,15 @@ FIELDS = (
     ("anon_locates_mb", "RssAnon after /locates MB", "{:,.0f}"),
     ("file_locates_mb", "RssFile after /locates MB", "{:,.0f}"),
     ("locate_p50_ms", "/locate p50 ms", "{:.0f}"),
+    ("snapshot_file_mb", "snapshot files MB", "{:,.0f}"),
+    ("restart_ready_s", "restart: to /ready s", "{:.1f}"),
+    ("restart_hwm_ready_mb", "restart: peak RSS to ready MB", "{:,.0f}"),
+    ("restart_rss_ready_mb", "restart: RSS at ready MB", "{:,.0f}"),
+    ("restart_anon_ready_mb", "restart: RssAnon at ready MB", "{:,.0f}"),
+    ("restart_rss_locates_mb", "restart: RSS after /locates MB", "{:,.0f}"),
+    ("restart_anon_locates_mb", "restart: RssAnon after /locates MB", "{:,.0f}"),
+    ("restart_locate_p50_ms", "restart: /locate p50 ms", "{:.0f}"),
+    ("restart_rebuilt", "restart: rebuilt (1) or from the snapshot (0)", "{:.0f}"),
 )
 
 
@@ -190,6 +237,11 @@ def main() -> None:
     ap.add_argument("--work", type=Path, help="where the data dirs go (default: a temporary folder)")
     ap.add_argument(
         "--switch-at", type=int, help="GEOLOC_INDEX_SWITCH_AT for the servers; this tree's start waits for the switch"
+    )
+    ap.add_argument(
+        "--restart",
+        action="store_true",
+        help="after each start, start again on the snapshot it left (a replica ready from a snapshot)",
     )
     args = ap.parse_args()
     args.models_dir = args.models_dir.resolve()  # the baseline server runs in its own tree
@@ -218,7 +270,15 @@ def main() -> None:
                 for rep in range(args.repeats):
                     for name, code in trees.items() if rep % 2 == 0 else reversed(trees.items()):
                         r = one_start(
-                            data, args.models_dir, args.config, code, photos, args.locates, args.switch_at, size
+                            data,
+                            args.models_dir,
+                            args.config,
+                            code,
+                            photos,
+                            args.locates,
+                            args.switch_at,
+                            size,
+                            args.restart,
                         )
                         results.setdefault((engine, size, name), []).append(r)
                         print(f"  {engine} {size:,d} {name} #{rep + 1}: " + ", ".join(

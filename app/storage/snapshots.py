@@ -23,12 +23,14 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
+import tempfile
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-from app.engine.artifacts import atomic_write_bytes, atomic_write_file
-from app.engine.index.base import UnknownIndexKind
+from app.engine.artifacts import atomic_write_bytes
+from app.engine.index.base import StagedDump, UnknownIndexKind
 from app.engine.index.references import ReferenceIndex
 from app.engine.pipeline import Pipeline
 from app.storage.identity import Binding, Identity
@@ -140,6 +142,85 @@ def check_binding(manifest: SnapshotManifest, store: Identity) -> None:
         raise SnapshotMismatch(f"the snapshot does not belong to this database: {why}", manifest)
 
 
+@dataclass
+class _StagedFile:
+    name: str
+    tmp: Path
+    dump: StagedDump | None
+    tombstones: list[int]
+    kind: str
+
+
+class StagedSnapshot:
+    """A snapshot begun from the served index itself, without a copy of it (``VectorIndex.stage_dump``):
+    made under the collection's lock, then ``finish`` (without the lock: the rest of each file, fsync,
+    rename, the manifest) and ``adopt`` (under the lock again, if the index is still the one served)."""
+
+    def __init__(self, data_dir: Path, index: ReferenceIndex, version: int, generation: int):
+        """Files named by generation and version (two generations at one version never share a file name)."""
+        self.data_dir, self.version, self.generation, self.size = data_dir, version, generation, index.size
+        self.files: dict[str, _StagedFile] = {}
+        data_dir.mkdir(parents=True, exist_ok=True)
+        try:
+            for part, idx in index.parts().items():
+                name = f"{part}-g{generation}-v{version}.faiss"
+                fd, tmp = tempfile.mkstemp(dir=data_dir, prefix=f".{name}.", suffix=".tmp")
+                os.close(fd)
+                self.files[part] = _StagedFile(name, Path(tmp), None, idx.removed_ids().tolist(), idx.kind)
+                self.files[part].dump = idx.stage_dump(Path(tmp))
+        except BaseException:
+            self.discard()
+            raise
+
+    def discard(self) -> None:
+        for f in self.files.values():
+            f.tmp.unlink(missing_ok=True)
+
+    def finish(self, pipeline: Pipeline, binding: Binding) -> SnapshotManifest:
+        """The manifest carries the pipeline's fingerprint, so one generation's snapshot is never loaded for
+        another, and ``binding`` (``ReferenceStore.binding``), so it is never loaded for another database.
+        Files first, each fsynced and renamed into place, the manifest last (atomically)."""
+        files: dict[str, SnapshotFile] = {}
+        try:
+            for part, f in self.files.items():
+                f.dump.finish()
+                with open(f.tmp, "rb+") as fh:
+                    os.fsync(fh.fileno())
+                os.replace(f.tmp, self.data_dir / f.name)
+                size, sha256 = _file_digest(self.data_dir / f.name)
+                files[part] = SnapshotFile(f.name, size, sha256, f.tombstones, f.kind)
+        except BaseException:
+            self.discard()
+            raise
+        manifest = SnapshotManifest(
+            format=FORMAT,
+            version=self.version,
+            generation=self.generation,
+            size=self.size,
+            config=pipeline.config.name,
+            fingerprint=pipeline.fingerprint,
+            float_dim=pipeline.float_dim,
+            bits=pipeline.bits,
+            files=files,
+            written_at=time.time(),
+            database_id=binding.database_id,
+            ref_high_water=binding.ref_high_water,
+            last_change=binding.last_change,
+        )
+        atomic_write_bytes(self.data_dir / MANIFEST, manifest.to_json().encode())
+        keep = {f.file for f in files.values()}
+        for old in self.data_dir.glob("*-v*.faiss"):
+            if old.name not in keep:
+                old.unlink(missing_ok=True)
+        return manifest
+
+    def adopt(self) -> None:
+        """Under the lock, with the index still served: each part reads from its new file where it reads
+        from one (``StagedDump.adopt``)."""
+        for f in self.files.values():
+            f.dump.adopt(self.data_dir / f.name)
+
+
 def write_snapshot(
     data_dir: Path,
     index: ReferenceIndex,
@@ -148,36 +229,10 @@ def write_snapshot(
     generation: int,
     binding: Binding,
 ) -> SnapshotManifest:
-    """Files named by generation and version (two generations at one version never share a file name); the
-    manifest carries the pipeline's fingerprint, so one generation's snapshot is never loaded for another,
-    and ``binding`` (``ReferenceStore.binding``), so it is never loaded for another database."""
-    files: dict[str, SnapshotFile] = {}
-    for part, idx in index.parts().items():
-        name = f"{part}-g{generation}-v{version}.faiss"
-        path = data_dir / name
-        atomic_write_file(path, idx.dump)
-        size, sha256 = _file_digest(path)
-        files[part] = SnapshotFile(name, size, sha256, idx.removed_ids().tolist(), idx.kind)
-    manifest = SnapshotManifest(
-        format=FORMAT,
-        version=version,
-        generation=generation,
-        size=index.size,
-        config=pipeline.config.name,
-        fingerprint=pipeline.fingerprint,
-        float_dim=pipeline.float_dim,
-        bits=pipeline.bits,
-        files=files,
-        written_at=time.time(),
-        database_id=binding.database_id,
-        ref_high_water=binding.ref_high_water,
-        last_change=binding.last_change,
-    )
-    atomic_write_bytes(data_dir / MANIFEST, manifest.to_json().encode())
-    keep = {f.file for f in files.values()}
-    for old in data_dir.glob("*-v*.faiss"):
-        if old.name not in keep:
-            old.unlink(missing_ok=True)
+    """One snapshot of ``index`` in one go (nothing else changes it meanwhile: a copy, or a lone process)."""
+    staged = StagedSnapshot(data_dir, index, version, generation)
+    manifest = staged.finish(pipeline, binding)
+    staged.adopt()
     return manifest
 
 

@@ -35,7 +35,7 @@ from app.runtime import release_free_memory
 from app.storage.backend import StorageBackend
 from app.storage.changes import Change
 from app.storage.generations import CodeChunk
-from app.storage.snapshots import SnapshotInvalid, SnapshotMismatch, load_snapshot, write_snapshot
+from app.storage.snapshots import SnapshotInvalid, SnapshotMismatch, StagedSnapshot, load_snapshot
 from app.storage.store import ReferenceStore
 
 log = logging.getLogger("geoloc.collection")
@@ -70,8 +70,8 @@ class IndexSizing:
     (issue 35); the issue allows /locate at size 1.2x that at 10^4, about 11 ms of search, which the exact
     search reaches near 2 x 10^5 references (and 200 MB of index at 1,032 B each). Below it the exact
     search costs no accuracy and no training; above it the compressed kind searches in about 1 ms and holds
-    114 B per reference in RAM (``ivf-rabitq``; its float codes for the re-rank are memory-mapped from the
-    snapshot file)."""
+    114 B per reference in RAM (``ivf-rabitq``; its float codes for the re-rank are read by ``pread`` from
+    the snapshot file, spilled to a temporary file until the first one)."""
 
     switch_at: int = DEFAULT_SWITCH_AT
     #: After a failed switch, the next try waits this long (a training that fails fails again at once).
@@ -475,27 +475,44 @@ class Collection:
         return self.policy.due(pending, waited)
 
     def write_snapshot(self) -> bool:
-        """Copy under the lock, compact and write without it, then swap the compacted copy in (after
-        replaying whatever was applied meanwhile). Returns False when there was nothing to write."""
+        """Write the index as of now. Without a compaction due (always for the IVF kinds), from the served
+        index itself, with no copy of it: under the lock what must not change meanwhile is written (FAISS's
+        part, streamed to the file; ``StagedSnapshot``), the rest (``ivf-rabitq``'s float codes, the fsync,
+        the manifest) without it, then under the lock again the index reads from its new file. With a
+        compaction due (tombstones of a flat index), a copy is compacted and written without the lock and
+        swapped in after replaying whatever was applied meanwhile. Returns False when there was nothing to
+        write."""
         with self._snapshot_lock:
             self.catch_up()
             with self.lock:
                 if self.stats.snapshot_version == self.version and not self.rebuilt:
                     return False
                 v0, gen0, pipeline, source = self.version, self.generation, self.pipeline, self.index
-                copy = source.copy()
-            copy.compact()
-            t0 = time.perf_counter()
-            if self.store.head()[1] != gen0:  # a re-fit switched meanwhile: this generation is done with
-                return False
-            manifest = write_snapshot(self.store.snapshots_dir, copy, pipeline, v0, gen0, self.store.binding(v0))
+                if self.store.head()[1] != gen0:  # a re-fit switched: this generation is done with
+                    return False
+                t0 = time.perf_counter()
+                in_place = not source.compaction_due
+                if in_place:
+                    staged, written = StagedSnapshot(self.store.snapshots_dir, source, v0, gen0), source
+                    locked_s = time.perf_counter() - t0
+                else:
+                    written = source.copy()
+            if not in_place:
+                written.compact()
+                t0 = time.perf_counter()
+                if self.store.head()[1] != gen0:  # a re-fit switched meanwhile: this generation is done with
+                    return False
+                staged, locked_s = StagedSnapshot(self.store.snapshots_dir, written, v0, gen0), 0.0
+            manifest = staged.finish(pipeline, self.store.binding(v0))
             with self.lock:
                 if self.generation != gen0:  # swapped while we wrote: the new generation's index stays
                     return False
                 if self.index is source:  # else the kind switched meanwhile: it stays, due for its snapshot
-                    later = [c for c in self.store.changes_since(v0) if c.version <= self.version]
-                    apply_changes(copy, later)
-                    self.index = copy
+                    staged.adopt()
+                    if not in_place:
+                        later = [c for c in self.store.changes_since(v0) if c.version <= self.version]
+                        apply_changes(written, later)
+                        self.index = written
                     self.rebuilt = False
                 del source
             release_free_memory()  # the index replaced by its compacted copy, and the writer's buffers
@@ -504,7 +521,12 @@ class Collection:
             self._first_pending_at = time.time() if self.version > v0 else None
             self.stats.snapshot_written_at = manifest.written_at
             log.info(
-                "snapshot of version %d written (%d references) in %.2f s", v0, copy.size, time.perf_counter() - t0
+                "snapshot of version %d written (%d references, %s) in %.2f s, %.2f s of it holding the index",
+                v0,
+                written.size,
+                "in place" if in_place else "a compacted copy",
+                time.perf_counter() - t0,
+                locked_s,
             )
             self.store.checkpoint()  # the main file catches up with the snapshot: a copy of it alone matches
             return True

@@ -98,29 +98,45 @@ def test_a_damaged_snapshot_is_never_served(tmp_path, fitted, damage):  # noqa: 
     assert Collection(ReferenceStore(tmp_path), pipe).stats.full_rebuilds == 0
 
 
-def test_snapshot_write_keeps_changes_that_arrive_meanwhile(tmp_path, fitted):  # noqa: F811
+@pytest.mark.parametrize("compaction", [False, True], ids=["in place", "compacted copy"])
+def test_snapshot_write_keeps_changes_that_arrive_meanwhile(tmp_path, fitted, compaction):  # noqa: F811
+    """Without a compaction due the snapshot is written from the served index itself (no copy); with one
+    (a tombstone of the flat index) from a compacted copy swapped in after a replay. Either way, changes
+    that another process logs while the file is being finished (without the lock) are kept."""
     pipe, rows, codes = fitted
     col = Collection(ReferenceStore(tmp_path), pipe)
-    _fill(col.store, rows, codes, 3)
+    ids = _fill(col.store, rows, codes, 3)
     col.catch_up()
-    v0 = col.version
-    # Another process adds while our copy is being written: simulate by adding between copy and swap.
-    original = col.store.changes_since
-
-    calls = []
+    if compaction:
+        col.store.delete(ids[0])
+    else:
+        assert col.write_snapshot()  # the rebuild's snapshot
+    ids += _fill(col.store, rows, codes, 1, start=3)
+    col.catch_up()
+    assert col.index.compaction_due is compaction
+    served, v0, size0 = col.index, col.version, col.size
+    # Another process adds while the file is written: the binding is read after the files, without the lock.
+    original = col.store.binding
+    added = []
 
     def later(version):
-        if not calls:
-            calls.append(version)
-            _fill(col.store, rows, codes, 2, start=3)
+        if not added:
+            added.extend(_fill(col.store, rows, codes, 2, start=4))
             col.catch_up()
         return original(version)
 
-    col.store.changes_since = later
-    col.write_snapshot()
-    col.store.changes_since = original
-    assert json.loads((tmp_path / MANIFEST).read_text())["version"] == v0
-    assert col.size == 5 and col.version == v0 + 2
+    col.store.binding = later
+    assert col.write_snapshot()
+    col.store.binding = original
+    assert added and json.loads((tmp_path / MANIFEST).read_text())["version"] == v0
+    assert col.size == size0 + 2 and col.version == v0 + 2
+    assert (col.index is served) is not compaction  # in place: the same index object keeps serving
+    assert col.index.tombstones == 0
+    for i, ref_id in zip(range(1, 6), ids[1:] + added, strict=True):
+        assert _top(col, codes[i]) == ref_id
+    restarted = Collection(ReferenceStore(tmp_path), pipe)
+    assert restarted.stats.full_rebuilds == 0 and restarted.stats.replayed_at_start == 2
+    assert restarted.size == col.size
 
 
 def test_the_time_rule_counts_from_the_first_change_not_in_a_snapshot(tmp_path, fitted):  # noqa: F811
