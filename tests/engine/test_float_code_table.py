@@ -118,3 +118,31 @@ def test_no_code_is_mapped_into_the_process(tmp_path):
     loaded.search(codes[:20], 5)
     maps = Path(f"/proc/{os.getpid()}/maps").read_text()
     assert str(path) not in maps and "geoloc-float-codes" not in maps
+
+
+def test_a_file_in_the_layout_main_wrote_loads(tmp_path):
+    """The file layout is unchanged (header, FAISS's serialised index, padding to 8 bytes, then count, dim,
+    sorted ids and their codes): a file put together by hand in that layout, as the memory-mapping version
+    wrote it, loads and answers as the index it was made from."""
+    import struct
+
+    import faiss
+
+    codes = clustered(1500)
+    index = IvfCompressedIndex(256, nlist=16, nprobe=16)
+    index.train(codes)
+    ids = np.arange(1000, 2500)
+    index.add(ids, codes)
+    faiss_part = faiss.serialize_index(index._index).tobytes()
+    table_at = 24 + len(faiss_part) + (-(24 + len(faiss_part)) % 8)
+    path = tmp_path / "float-g0-v9.faiss"
+    with open(path, "wb") as f:
+        f.write(struct.pack("<8sQQ", b"GEOIVFC1", len(faiss_part), table_at))
+        f.write(faiss_part)
+        f.write(b"\0" * (table_at - f.tell()))
+        f.write(struct.pack("<QQ", len(ids), 256) + ids.astype(np.int64).tobytes() + codes.tobytes())
+    loaded = IvfCompressedIndex(256, nprobe=16)
+    loaded.load(path)
+    assert loaded.size == 1500 and loaded.table.where() == (1500, 0)
+    assert np.array_equal(loaded.table.get(ids[::-7]), codes[::-7])
+    assert np.array_equal(loaded.search(codes[:50], 10)[1], index.search(codes[:50], 10)[1])
