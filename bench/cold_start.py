@@ -17,11 +17,11 @@ Each start: every snapshot of the data dir is deleted first, so the server rebui
 (the cold start: ``Collection._rebuild``); then ``geoloc serve`` (``tools.server_process``) is started and
 timed until /ready answers 200. Read from /proc: the server's peak resident memory up to ready (VmHWM) and its
 resident memory at ready; again after the snapshot the rebuild makes due has been written (from the served
-index itself, or a compacted copy of it where deletions are due to be dropped); and after ``--locates`` /locate of real
-penn photos (RSS, and its anonymous part, the heap, and file-backed part, mapped files: before the
-``ivf-rabitq`` kind read its float codes by ``pread``, they were mapped from its snapshot file, and a kernel
-with large page-cache folios mapped about a megabyte of the file per code the re-rank read). The rebuild's own seconds come from the server's log line
-("index rebuilt from N stored codes in S s").
+index itself, or a compacted copy of it where deletions are due to be dropped); and after ``--locates``
+/locate of real penn photos (RSS, and its anonymous part, the heap, and file-backed part, mapped files:
+before the ``ivf-rabitq`` kind read its float codes by ``pread``, they were mapped from its snapshot file,
+and a kernel with large page-cache folios mapped about a megabyte of the file per code the re-rank read).
+The rebuild's own seconds come from the server's log line ("index rebuilt from N stored codes in S s").
 
 ``--switch-at N`` (issue 35, item 2) starts the servers with GEOLOC_INDEX_SWITCH_AT=N: a collection of N or
 more references switches to the compressed kinds after the rebuild (trained and built in the background),

@@ -6,8 +6,8 @@ compressed codes (RaBitQ by default: one bit per dimension plus two floats; ``co
 factory code, "PQ32", "SQ4", ... for the bench), the coarse quantizer is an HNSW graph over the centroids
 (assigning a query or a new reference costs O(log nlist)), and a shortlist of ``shortlist`` ids is re-scored
 exactly from the float codes (``FloatCodeTable``: read by ``pread`` from the index's own file, so the float
-codes are neither a second copy in RAM nor resident in the process). Fast-scan codes are not offered: FAISS 1.15 cannot remove from their
-block-packed lists with a hashtable direct map, and the service deletes live.
+codes are neither a second copy in RAM nor resident in the process). Fast-scan codes are not offered: FAISS
+1.15 cannot remove from their block-packed lists with a hashtable direct map, and the service deletes live.
 
 The region filter: a small region (up to ``exact_filter_max`` ids) is scored exactly from the float codes,
 because an IVF scan with an id selector sees only the allowed ids in the ``nprobe`` probed lists and would
