@@ -514,7 +514,8 @@ class Collection:
                         apply_changes(written, later)
                         self.index = written
                     self.rebuilt = False
-                del source
+                size = written.size
+                del source, written, staged  # before the trim: the table's lookups and the frozen copy's
             release_free_memory()  # the index replaced by its compacted copy, and the writer's buffers
             self.stats.snapshot_writes += 1
             self.stats.snapshot_version = v0
@@ -523,7 +524,7 @@ class Collection:
             log.info(
                 "snapshot of version %d written (%d references, %s) in %.2f s, %.2f s of it holding the index",
                 v0,
-                written.size,
+                size,
                 "in place" if in_place else "a compacted copy",
                 time.perf_counter() - t0,
                 locked_s,
