@@ -522,10 +522,10 @@ class Collection:
             self._first_pending_at = time.time() if self.version > v0 else None
             self.stats.snapshot_written_at = manifest.written_at
             log.info(
-                "snapshot of version %d written (%d references, %s) in %.2f s, %.2f s of it holding the index",
+                "snapshot of version %d written (%d references) %s in %.2f s, %.2f s of it holding the index",
                 v0,
                 size,
-                "in place" if in_place else "a compacted copy",
+                "in place" if in_place else "from a compacted copy",
                 time.perf_counter() - t0,
                 locked_s,
             )
