@@ -217,7 +217,7 @@ def _fit(
         raise FirstStartError(f"no photos in {source.path}: put geotagged photos (EXIF GPS) there")
     log.info("first start: fitting the %s pipeline on %d photos from %s", cfg.name, len(items), source.path)
     steps = _FitSteps(say, len(items))
-    photos = [FitPhoto(it.path, lat=it.lat, lon=it.lon, captured_at=it.captured_at) for it in items]
+    photos = [FitPhoto(it.path, lat=it.lat, lon=it.lon) for it in items]
     options = FitOptions(
         bank=bank_source(cfg, None),
         bank_optional=True,  # too small or too uniform for a bank: serve without one, and say so

@@ -113,7 +113,7 @@ def fit_generation(
             store.image_path(i),
             lat=rows[i].lat,
             lon=rows[i].lon,
-            group=capture_group(rows[i].lat, rows[i].lon, rows[i].captured_at),
+            group=capture_group(rows[i].lat, rows[i].lon),
             ref_id=i,
             sha256=rows[i].sha256,
         )

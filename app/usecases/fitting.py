@@ -91,10 +91,15 @@ def train_bank(
     return fit_bank_from(source, pipe, index, refs, train, BankParams(kind=kind, seed=seed), pos_radius_m=pos_radius_m)
 
 
-def capture_group(lat: float, lon: float, captured_at: str | None) -> str:
+def capture_group(lat: float, lon: float) -> str:
     """Which references count as one capture (a photo and its crops) for the SVM bank's "never learn from
-    yourself" rule: the same position to about 0.1 m, and the same capture time when the photo says it."""
-    return f"{captured_at or ''}@{lat:.6f},{lon:.6f}"
+    yourself" rule and the calibration's "place present" answers: the same position to about 0.1 m.
+
+    Why not the capture time as well: a photo's crops carry no EXIF time, so a crop and the photo it was cut
+    from were two captures, and ``geoloc refit``'s calibration located each against the other (0 m off): a
+    60-reference collection's rule stated a 2.5 m radius and ``p_within_25m`` 0.965 for an answer 289 m
+    off (docs/RESULTS.md, issue 32). Two photos taken at one spot, to 0.1 m, count as one capture."""
+    return f"@{lat:.6f},{lon:.6f}"
 
 
 # -- the fit, once --------------------------------------------------------------------------------------------
@@ -105,7 +110,7 @@ class FitPhoto:
     ``path``: where to read it; ``features``: its features, extracted already (the evaluation's folds share
     one extraction; ``path`` is then only read to verify, with ``FitOptions.calibrate_verified``).
     ``lat``/``lon`` None: the photo's EXIF position (one with neither is left out); ``group`` None: its
-    capture (``capture_group``) from the position and ``captured_at``, else the EXIF time.
+    capture (``capture_group``) from the position.
     ``reference``: one of the collection (the SVM bank retrieves against it, the calibration locates it),
     numbered ``ref_id`` (None: by its place among the references kept); else a training photo: geotagged,
     not a reference. ``in_fit``: whether the codebook, PCA-whitening and binariser learn from it (a
@@ -117,7 +122,6 @@ class FitPhoto:
     lat: float | None = None
     lon: float | None = None
     group: str | None = None
-    captured_at: str | None = None
     reference: bool = True
     ref_id: int | None = None
     in_fit: bool = True
@@ -315,7 +319,7 @@ def _extracted(pipe: Pipeline, photos: Sequence[FitPhoto], options: FitOptions, 
             log.warning("%s: not used (no GPS position)", p.path)
             continue
         lat, lon = position
-        group = p.group or capture_group(lat, lon, p.captured_at or (e.captured_at if e else None))
+        group = p.group or capture_group(lat, lon)
         features = p.features if p.features is not None else e.features
         sha256 = p.sha256 or (e.sha256 if e else None)
         out.append(_Ready(p.path, features, lat, lon, group, p.reference, p.ref_id, p.in_fit, sha256))
@@ -378,7 +382,9 @@ class GeotaggedReferences:
             return None
 
 
-def calibration_sample(answer: LocateAnswer, lat: float, lon: float, absent: bool, radius_m: float = 25.0):
+def calibration_sample(
+    answer: LocateAnswer, lat: float, lon: float, absent: bool, radius_m: float = 25.0, group: str | None = None
+):
     """One located answer as a calibration ``Sample`` (None when it had nothing to say: no features, no
     candidates). The answer must show its fused candidates (``top_k`` = ``ESTIMATE_CANDIDATES``)."""
     ev, e = answer.evidence, answer.estimate
@@ -390,7 +396,7 @@ def calibration_sample(answer: LocateAnswer, lat: float, lon: float, absent: boo
     m = np.asarray(e.members, bool)[: len(members)]
     members[: len(m)] = m
     error_m = float(haversine_m(lat, lon, e.lat, e.lon))
-    return Sample(ev, within, members, error_m <= radius_m, absent, error_m)
+    return Sample(ev, within, members, error_m <= radius_m, absent, error_m, group)
 
 
 def near_ids(refs: dict[int, Geotagged], lat: float, lon: float, radius_m: float) -> list[int]:
@@ -525,7 +531,7 @@ def calibrate_collection(
             for absent, excluded in ((False, own), (True, own + near_ids(refs, r.lat, r.lon, absent_radius_m))):
                 searched = Excluding(index, excluded)
                 answer = locate_features(aux, searched, source, r.features, options, codes=codes)
-                s = calibration_sample(answer, r.lat, r.lon, absent)
+                s = calibration_sample(answer, r.lat, r.lon, absent, group=r.group)
                 if s is not None:
                     samples.append(s)
                 if not verify:
@@ -544,7 +550,7 @@ def calibrate_collection(
                     stored_query=query,
                 )
                 verified_seconds += time.perf_counter() - t0
-                s = calibration_sample(answer, r.lat, r.lon, absent)
+                s = calibration_sample(answer, r.lat, r.lon, absent, group=r.group)
                 if s is not None:
                     verified_samples.append(s)
     cal = fit_calibration(samples, seed)

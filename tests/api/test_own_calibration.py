@@ -75,3 +75,25 @@ def test_a_new_collection_is_judged_by_its_own_calibration_or_by_none(tmp_path, 
         ready = s.client.get("/ready").json()
     assert needs in ready["calibration"], ready
     assert "fitted on another collection" not in ready["calibration"]
+
+
+def test_a_refit_counts_a_photo_and_its_crops_as_one_capture(tmp_path, calibrated):
+    """Penn photos carry an EXIF time and their crops none; a refit groups references by position alone, so
+    a photo and its crops are one capture and the calibration never locates a crop against the photo it was
+    cut from (issue 32: a 60-reference collection's rule then stated 0.965 for an answer 289 m off)."""
+    models, manifest = calibrated
+    data = tmp_path / "forty"
+    where = ["--models-dir", str(models), "--config", CONFIG]
+    geoloc("ingest", "--manifest", str(manifest), "--split", "db", "--data-dir", str(data), *where)
+    service = GeolocService.open(data, models, CONFIG)
+    try:
+        rows = service.store.get_many(service.store.indexed_ids().tolist()).values()
+    finally:
+        service.store.close()
+    timed = {(r.lat, r.lon) for r in rows if r.captured_at}
+    assert len(timed) > 0 and any(r.captured_at is None and (r.lat, r.lon) in timed for r in rows)
+    geoloc("refit", "--data-dir", str(data), *where)
+    cal = json.loads(next(data.glob("pipelines/*-g1/calibration.json")).read_text())
+    assert cal["source"] == "collection", cal["note"]
+    positions = {(r.lat, r.lon) for r in rows}  # 40 captures, a few of them taken at one spot
+    assert cal["report"]["captures"] == len(positions) <= 40

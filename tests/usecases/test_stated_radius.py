@@ -2,7 +2,9 @@
 its crops) calibrates each confident answer's radius split-conformally on its own references, per bin of
 evidence strength; the radii are the conformal quantiles of the errors the calibration recorded, a
 confident answer states its bin's radius and the rate, a conservative collection keeps the constant rule
-and says its rate is not calibrated, and a calibration.json from before stated radii still loads."""
+and says its rate is not calibrated, and a calibration.json from before stated radii still loads. The
+same fit's calibration counts its support in captures (a photo and its crops, issue 32): no probability
+above what its captures can show, a confident level only on the right answers of enough captures."""
 
 from __future__ import annotations
 
@@ -23,7 +25,10 @@ from app.engine.calibration import (
     RADIUS_RATE,
     Calibration,
     answer_probability,
+    choose_threshold,
+    fit_calibration,
     fit_radius,
+    max_p,
 )
 from app.engine.configs import get_config
 from app.engine.estimate import MARGIN_M, RADIUS_FLOOR_M, Estimate
@@ -166,3 +171,41 @@ def test_a_calibration_from_before_stated_radii_still_loads_and_keeps_the_consta
     # Today's file round-trips with its radii.
     cal.save(tmp_path)
     assert Calibration.load(tmp_path).radius == cal.radius
+
+
+def test_the_calibration_counts_its_support_in_captures(fitted):
+    """Each photo's crops answer like the photo, so the calibration's 60 references are 20 observations: its
+    probabilities never exceed what 20 right captures could show (``max_p``); the same answers of 8 captures
+    (24 references, enough to calibrate) state at most ``max_p(8)``, which binds, and their threshold is the
+    one the regression's own probabilities give wherever it lies below the ceiling."""
+    fit, samples = fitted
+    cal = fit.pipeline.calibration
+    present = [s for s in samples if not s.absent]
+    captures = {s.group for s in present}
+    assert None not in captures and len(captures) == PHOTOS < len(present)  # 3 references per capture
+    assert cal.report["captures"] == PHOTOS and cal.ceiling == pytest.approx(max_p(PHOTOS)) and cal.ceiling < 0.93
+    assert max(float(cal.probabilities(s.evidence).max()) for s in samples) <= cal.ceiling
+    eight = sorted(captures)[:8]
+    small = fit_calibration([s for s in samples if s.group in eight])
+    assert small.calibrated and small.report["captures"] == 8 and small.ceiling == pytest.approx(max_p(8))
+    top = max(float(small.probabilities(s.evidence).max()) for s in samples)
+    assert top == pytest.approx(small.ceiling)
+    uncapped = replace(small, ceiling=1.0)
+    assert max(float(uncapped.probabilities(s.evidence).max()) for s in samples) > small.ceiling
+    if choose_threshold(uncapped, [s for s in samples if s.group in eight]) < small.ceiling:
+        assert small.confident_p == choose_threshold(uncapped, [s for s in samples if s.group in eight])
+
+
+def test_a_calibration_from_before_the_ceiling_still_loads_and_states_its_regression(fitted, tmp_path):
+    fit, samples = fitted
+    cal = fit.pipeline.calibration
+    cal.save(tmp_path)
+    data = json.loads((tmp_path / "calibration.json").read_text())
+    del data["ceiling"]
+    (tmp_path / "calibration.json").write_text(json.dumps(data))
+    old = Calibration.load(tmp_path)
+    assert old.ceiling == 1.0
+    top = max(samples, key=lambda s: answer_probability(cal, s))
+    assert old.probabilities(top.evidence).max() >= cal.probabilities(top.evidence).max()
+    cal.save(tmp_path)
+    assert Calibration.load(tmp_path).ceiling == cal.ceiling
