@@ -32,7 +32,7 @@ from pathlib import Path
 import faiss
 import numpy as np
 
-from app.engine.index.ivf_lists import MAX_POINTS_PER_LIST, default_nlist
+from app.engine.index.ivf_lists import MAX_POINTS_PER_LIST, TWO_LEVEL_FROM, default_nlist
 from app.engine.index.kinds.binary_ivf import BinaryIvfIndex
 from app.engine.index.kinds.ivf_rabitq import IvfCompressedIndex
 from bench.scale_codes import (
@@ -53,6 +53,7 @@ TARGETS = {"p50_ms": 5.0, "recall10": 0.95, "penn_top1": 0.97, "ram_bytes_per_re
 #: Threads for building (training, adding, the exact ground truth); searches are always timed on one. The
 #: shared development machine allows two, and on a loaded one a single thread is faster (OpenMP barriers wait
 #: on descheduled threads): GEOLOC_BENCH_BUILD_THREADS chooses, 1 by default.
+KMEANS = ("two-level", "one-level")
 BUILD_THREADS, SEARCH_THREADS = int(os.environ.get("GEOLOC_BENCH_BUILD_THREADS", "1")), 1
 
 
@@ -177,11 +178,24 @@ def _sample(codes: np.ndarray, n: int, m: int, rng: np.random.Generator) -> np.n
     return np.asarray(codes[rows], dtype=np.float32)
 
 
-def build_float(codes, n: int, codec: str, rng, progress) -> tuple[IvfCompressedIndex, float, float]:
+def _set_kmeans(index, kmeans: str) -> None:
+    """The service's training (two-level k-means from TWO_LEVEL_FROM lists), or one level at every size."""
+    if kmeans not in KMEANS:
+        raise ValueError(f"--kmeans takes {', '.join(KMEANS)}, not {kmeans!r}")
+    if kmeans == "one-level":
+        index.two_level_from = 1 << 62
+
+
+def _kmeans_used(kmeans: str, nlist: int) -> str:
+    return "two-level" if kmeans == "two-level" and nlist >= TWO_LEVEL_FROM else "one-level"
+
+
+def build_float(codes, n: int, codec: str, kmeans: str, rng, progress) -> tuple[IvfCompressedIndex, float, float]:
     """Train on a sample of the first ``n`` codes, then add them all in chunks; returns (index, train s, add s)."""
     index = IvfCompressedIndex(
         codes.shape[1], codec=codec, float_codes=lambda ids: np.asarray(codes[ids], dtype=np.float32)
     )
+    _set_kmeans(index, kmeans)
     sample = _sample(codes, n, MAX_POINTS_PER_LIST * default_nlist(n), rng)
     t0 = time.perf_counter()
     index.nlist = default_nlist(n)
@@ -192,14 +206,17 @@ def build_float(codes, n: int, codec: str, rng, progress) -> tuple[IvfCompressed
     for lo, x in chunks(codes, n):
         index.add(np.arange(lo, lo + len(x), dtype=np.int64), x)
     build_s = time.perf_counter() - t0
-    progress(f"  {codec}: nlist {index.nlist}, trained in {train_s:.1f} s, {n:,} added in {build_s:.1f} s")
+    progress(
+        f"  {codec}: nlist {index.nlist}, {_kmeans_used(kmeans, index.nlist)} k-means, trained in {train_s:.1f} s,"
+        f" {n:,} added in {build_s:.1f} s"
+    )
     return index, train_s, build_s
 
 
 def measure_float_kind(
-    codes, n, codec, queries, exact, n_synth_q, n_penn, sweep_nprobe, sweep_shortlist, gen, rng, progress
+    codes, n, codec, kmeans, queries, exact, n_synth_q, n_penn, sweep_nprobe, sweep_shortlist, gen, rng, progress
 ):
-    index, train_s, build_s = build_float(codes, n, codec, rng, progress)
+    index, train_s, build_s = build_float(codes, n, codec, kmeans, rng, progress)
     faiss.omp_set_num_threads(SEARCH_THREADS)
     sweep = []
     for nprobe in sweep_nprobe:
@@ -222,11 +239,14 @@ def measure_float_kind(
     index.set_search(best["nprobe"], best["shortlist"])
     add_ms, remove_ms = _change_costs(index, gen.draw(200, rng), first_id=10**12)
     faiss.omp_set_num_threads(BUILD_THREADS)
-    persist = _persist(index, n, OUT / f"float-{codec}-{n}.faiss")
+    persist = _persist(index, n, OUT / f"float-{codec}-{kmeans}-{n}.faiss")
     fig = KindFigures(
         n,
         f"ivf-{codec.lower()}",
-        {k: v for k, v in index.stats().items() if k in ("codec", "nlist", "nprobe", "shortlist", "code_bytes")},
+        {
+            **{k: v for k, v in index.stats().items() if k in ("codec", "nlist", "nprobe", "shortlist", "code_bytes")},
+            "kmeans": _kmeans_used(kmeans, index.nlist),
+        },
         best["p50_ms"],
         best["recall10"],
         best["penn_top1"],
@@ -269,7 +289,7 @@ def measure_exact_float(codes, n, queries, progress) -> KindFigures | None:
     return KindFigures(n, "flat (exact)", {}, p50, 1.0, 1.0, ram_bytes_per_ref=4.0 * codes.shape[1] + 8)
 
 
-def measure_binary(codes, n, queries, n_synth_q, sweep_nprobe, gen, rng, progress) -> list[KindFigures]:
+def measure_binary(codes, n, queries, n_synth_q, sweep_nprobe, kmeans, gen, rng, progress) -> list[KindFigures]:
     """Binary IVF against the exhaustive Hamming search, on the sign bits of the same codes. Agreement
     counts ties as agreeing (Hamming distances tie often): top-1 agrees when its distance equals the exact
     top-1's, and a top-10 hit is any result at most the exact 10th distance away."""
@@ -285,6 +305,7 @@ def measure_binary(codes, n, queries, n_synth_q, sweep_nprobe, gen, rng, progres
     nlist = default_nlist(n)
     sample = sign_bits(_sample(codes, n, 64 * nlist, rng))
     index = BinaryIvfIndex(bits, nlist=nlist)
+    _set_kmeans(index, kmeans)
     t0 = time.perf_counter()
     index.train(sample)
     train_s = time.perf_counter() - t0
@@ -312,7 +333,7 @@ def measure_binary(codes, n, queries, n_synth_q, sweep_nprobe, gen, rng, progres
     fig = KindFigures(
         n,
         "binary-ivf",
-        {"nlist": index.nlist, "nprobe": index.nprobe, "code_bytes": bits // 8},
+        {"nlist": index.nlist, "nprobe": index.nprobe, "code_bytes": bits // 8, "kmeans": _kmeans_used(kmeans, nlist)},
         best["p50_ms"],
         best["recall10"],
         best["top1"],
@@ -374,16 +395,33 @@ def run(args, progress=print) -> tuple[list[KindFigures], dict]:
         base = measure_exact_float(codes, n, queries, progress)
         if base is not None:
             figures.append(base)
-        for codec in args.codecs:
-            figures.append(
-                measure_float_kind(
-                    codes, n, codec, queries, exact, n_synth_q, n_penn, args.nprobe, args.shortlist, gen, rng, progress
+        for kmeans in args.kmeans:
+            for codec in args.codecs:
+                figures.append(
+                    measure_float_kind(
+                        codes,
+                        n,
+                        codec,
+                        kmeans,
+                        queries,
+                        exact,
+                        n_synth_q,
+                        n_penn,
+                        args.nprobe,
+                        args.shortlist,
+                        gen,
+                        rng,
+                        progress,
+                    )
                 )
-            )
-            _save(figures, context, args.out)
+                _save(figures, context, args.out)
         if not args.no_binary:
-            figures += measure_binary(codes, n, queries, n_synth_q, args.nprobe, gen, rng, progress)
-            _save(figures, context, args.out)
+            exact_hamming = None
+            for kmeans in args.kmeans:
+                rows = measure_binary(codes, n, queries, n_synth_q, args.nprobe, kmeans, gen, rng, progress)
+                figures += rows if exact_hamming is None else rows[1:]
+                exact_hamming = rows[0]
+                _save(figures, context, args.out)
     return figures, context
 
 
@@ -459,6 +497,12 @@ def main() -> None:
     ap.add_argument("--queries", type=int, default=200, help="synthetic queries (penn's real ones are added)")
     ap.add_argument("--query-cosine", type=float, default=None)
     ap.add_argument("--no-binary", action="store_true")
+    ap.add_argument(
+        "--kmeans",
+        type=lambda t: t.split(","),
+        default=["two-level"],
+        help="coarse training: two-level (the service's, from TWO_LEVEL_FROM lists) and/or one-level",
+    )
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", type=Path, default=OUT)
     ap.add_argument("--penn-codes", type=Path, default=REPO / "out" / "penn_codes.npz")

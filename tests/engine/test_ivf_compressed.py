@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from app.engine.index.base import IndexNotTrained, build_index
+from app.engine.index.ivf_lists import two_level_centroids
 from app.engine.index.kinds.binary_ivf import BinaryIvfIndex
 from app.engine.index.kinds.ivf_rabitq import IvfCompressedIndex
 
@@ -145,3 +146,38 @@ def test_binary_ivf_round_trip_and_agreement_with_exact_hamming(codes, tmp_path)
     loaded.load(path)
     assert loaded.size == len(bits) - 2 and np.array_equal(loaded.ids(), index.ids())
     assert np.array_equal(loaded.search(bits[5:30], 5)[0], index.search(bits[5:30], 5)[0])
+
+
+def test_two_level_centroids_are_unit_for_inner_product_lists_and_cover_the_points(codes):
+    centroids = two_level_centroids(codes, 64, spherical=True)
+    assert centroids.shape == (64, 256) and np.allclose(np.linalg.norm(centroids, axis=1), 1, atol=1e-4)
+    # every point is nearer (in cosine) to its best centroid than to a random unit vector, by far
+    best = (codes @ centroids.T).max(axis=1)
+    assert np.median(best) > 0.5
+
+
+@pytest.mark.parametrize("binary", [False, True])
+def test_two_level_training_ranks_as_one_level_training(codes, binary):
+    """Two-level k-means (the service's from TWO_LEVEL_FROM lists, forced here at 64) loses no recall that
+    matters against FAISS's one-level k-means at the same nprobe."""
+    rng = np.random.default_rng(2)
+    q = codes[rng.choice(len(codes), 100, replace=False)] + 0.05 * rng.standard_normal((100, 256)).astype(np.float32)
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    data, queries = (np.packbits(codes > 0, axis=1), np.packbits(q > 0, axis=1)) if binary else (codes, q)
+    found = {}
+    for two_level_from in (64, 1 << 62):
+        index = BinaryIvfIndex(256, nlist=64, nprobe=8) if binary else IvfCompressedIndex(256, nlist=64, nprobe=8)
+        index.two_level_from = two_level_from
+        index.train(data)
+        index.add(np.arange(len(data)), data)
+        assert index.nlist == 64
+        found[two_level_from] = index.search(queries, 10)
+    if binary:  # scores are 1 - Hamming / bits: compare how near the found top-1 is
+        two, one = found[64][0][:, 0].mean(), found[1 << 62][0][:, 0].mean()
+        assert two >= one - 0.01
+    else:
+        exact = exact_top(codes, q, 10)
+        recall = {
+            k: np.mean([len(set(f) & set(e)) / 10 for f, e in zip(v[1], exact, strict=True)]) for k, v in found.items()
+        }
+        assert recall[64] >= 0.9 and recall[64] >= recall[1 << 62] - 0.03

@@ -13,6 +13,7 @@ import math
 
 import faiss
 import numpy as np
+from faiss.contrib.clustering import two_level_clustering
 
 from app.engine.index.base import IndexNotTrained
 from app.engine.index.faiss_index import FaissIndex
@@ -32,10 +33,37 @@ def usable_nlist(wanted: int | None, n_train: int) -> int:
     return max(1, min(wanted or default_nlist(n_train), n_train // MIN_POINTS_PER_LIST))
 
 
+#: From this many lists on, the coarse centroids come from FAISS's two-level k-means. One k-means over
+#: ``nlist`` centroids costs n_train x nlist distances per iteration, and both grow with the collection: 64
+#: points per list at 16,384 lists is 1M x 16,384 x 25 iterations, hours on one core (the switch's training
+#: at 4,096 lists took 440 s of one thread). Two levels (sqrt(nlist) clusters, then each split into its share
+#: of the lists) cost about 2 sqrt(nlist) distances per point; ``bench.index_scale --kmeans`` measures both.
+TWO_LEVEL_FROM = 1024
+#: Full k-means iterations after the two levels (FAISS's one-level training runs 25).
+REFINE_ITERATIONS = 3
+
+
 def training_sample(x: np.ndarray, nlist: int) -> np.ndarray:
     """At most ``MAX_POINTS_PER_LIST`` points per list, drawn reproducibly."""
     m = nlist * MAX_POINTS_PER_LIST
     return x if len(x) <= m else x[np.random.default_rng(0).choice(len(x), m, replace=False)]
+
+
+def two_level_centroids(x: np.ndarray, nlist: int, spherical: bool, refine: int | None = None) -> np.ndarray:
+    """``nlist`` centroids of float points ``x``: two-level k-means, then ``refine`` iterations of k-means
+    over all of them started from its centroids (a point near a first-level border was split among the wrong
+    lists; the refinement moves it). Unit centroids when ``spherical``, for inner-product lists, as FAISS's own
+    IVF training makes them."""
+    x = np.ascontiguousarray(x, dtype=np.float32)
+    refine = REFINE_ITERATIONS if refine is None else refine
+    start, _ = two_level_clustering(x, max(2, round(math.sqrt(nlist))), nlist, spherical=spherical, seed=1234)
+    if refine <= 0:
+        return np.ascontiguousarray(start, dtype=np.float32)
+    clustering = faiss.Clustering(x.shape[1], nlist)
+    clustering.niter, clustering.spherical, clustering.max_points_per_centroid = refine, spherical, 1 << 30
+    faiss.copy_array_to_vector(np.ascontiguousarray(start, dtype=np.float32).ravel(), clustering.centroids)
+    clustering.train(x, faiss.IndexFlatIP(x.shape[1]) if spherical else faiss.IndexFlatL2(x.shape[1]))
+    return faiss.vector_to_array(clustering.centroids).reshape(nlist, x.shape[1])
 
 
 class IvfListsIndex(FaissIndex):
@@ -43,6 +71,8 @@ class IvfListsIndex(FaissIndex):
 
     def __init__(self, dim: int, binary: bool, nlist: int | None = None, nprobe: int = 64):
         self.nlist, self.nprobe = nlist, nprobe
+        #: lists from which training uses two-level k-means (the bench sets it past nlist to measure one level)
+        self.two_level_from = TWO_LEVEL_FROM
         super().__init__(dim, binary)
 
     def _make(self) -> None:

@@ -13,7 +13,7 @@ import faiss
 import numpy as np
 
 from app.engine.index.base import register_index_kind
-from app.engine.index.ivf_lists import IvfListsIndex, training_sample, usable_nlist
+from app.engine.index.ivf_lists import IvfListsIndex, training_sample, two_level_centroids, usable_nlist
 
 
 class BinaryIvfIndex(IvfListsIndex):
@@ -39,7 +39,12 @@ class BinaryIvfIndex(IvfListsIndex):
         index = faiss.IndexBinaryIVF(quantizer, self.dim, nlist)
         index.own_fields = True
         quantizer.this.disown()
-        index.train(training_sample(x, nlist))
+        sample = training_sample(x, nlist)
+        if nlist >= self.two_level_from:
+            # as FAISS's binary training does: k-means on the bits as -1/+1 floats, centroids back to their signs
+            signs = np.unpackbits(sample, axis=1).astype(np.float32) * 2 - 1
+            quantizer.add(np.packbits(two_level_centroids(signs, nlist, spherical=False) > 0, axis=1))
+        index.train(sample)
         self._adopt(index)
 
     def search(self, q: np.ndarray, k: int, allowed: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:

@@ -28,7 +28,7 @@ import numpy as np
 
 from app.engine.index.base import StagedDump, register_index_kind
 from app.engine.index.float_code_table import FloatCodeTable
-from app.engine.index.ivf_lists import IvfListsIndex, training_sample, usable_nlist
+from app.engine.index.ivf_lists import IvfListsIndex, training_sample, two_level_centroids, usable_nlist
 
 #: Float codes of given ids, in the order asked: a caller that already holds them memory-mapped (the bench's
 #: 10^7 synthetic codes) passes this instead of having the index keep its own table.
@@ -87,7 +87,10 @@ class IvfCompressedIndex(IvfListsIndex):
             # converge for 8-d sub-vectors (the PQ's k-means was 216 of 264 s at nlist 1,024 with 256).
             index.do_polysemous_training = False
             index.pq.cp.max_points_per_centroid = 64
-        index.train(training_sample(x, nlist))
+        sample = training_sample(x, nlist)
+        if nlist >= self.two_level_from:  # the quantizer already holds nlist centroids: train fits the codec
+            faiss.extract_index_ivf(index).quantizer.add(two_level_centroids(sample, nlist, spherical=True))
+        index.train(sample)
         self.table = FloatCodeTable(self.dim)
         self._adopt(index)
 
