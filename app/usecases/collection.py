@@ -29,6 +29,7 @@ import numpy as np
 
 from app.engine.calibration import Calibration
 from app.engine.configs import DEFAULT_CONFIG
+from app.engine.index.float_code_table import use_spill_dir
 from app.engine.index.references import COMPRESSED_KINDS, ReferenceIndex
 from app.engine.pipeline import Pipeline, PipelineSource
 from app.runtime import release_free_memory
@@ -223,6 +224,7 @@ class Collection:
         """The data dir's own configuration and pipeline win over ``config``: its codes were made by them.
         ``backend``: the storage backend the process made once from its Settings (None: from the environment)."""
         store = ReferenceStore(data_dir, backend=backend)
+        use_spill_dir(store.data_dir)  # the ivf-rabitq kind's new float codes: on the data dir's disk
         for _ in range(3):  # a re-fit switching between the read and the load: read again
             generation, ref, name = store.generation_state()
             name = name or config or DEFAULT_CONFIG

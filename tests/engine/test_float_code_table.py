@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from app.engine.index.float_code_table import RowFile
+from app.engine.index.float_code_table import FloatCodeTable, RowFile, use_spill_dir
 from app.engine.index.kinds.ivf_rabitq import IvfCompressedIndex
 from tests.engine.test_ivf_compressed import clustered
 
@@ -146,3 +146,21 @@ def test_a_file_in_the_layout_main_wrote_loads(tmp_path):
     assert loaded.size == 1500 and loaded.table.where() == (1500, 0)
     assert np.array_equal(loaded.table.get(ids[::-7]), codes[::-7])
     assert np.array_equal(loaded.search(codes[:50], 10)[1], index.search(codes[:50], 10)[1])
+
+
+def test_spill_files_go_to_the_folder_named_and_leave_nothing_there(tmp_path):
+    """The service names its data dir: a switch spills 1 KB per reference, too much for a small TMPDIR."""
+    use_spill_dir(tmp_path)
+    try:
+        table = FloatCodeTable(4)
+        table.put(np.arange(3), np.eye(3, 4, dtype=np.float32))
+        target = os.readlink(f"/proc/self/fd/{table._spill.fd}")
+        assert target.startswith(str(tmp_path)) and target.endswith("(deleted)")
+        assert list(tmp_path.iterdir()) == []  # unlinked at once: a crash leaves nothing behind
+        assert np.array_equal(table.get(np.array([2, 0])), np.eye(3, 4, dtype=np.float32)[[2, 0]])
+        use_spill_dir(tmp_path / "gone")  # a folder that cannot take the file: the system's temporary folder
+        other = FloatCodeTable(4)
+        other.put(np.arange(1), np.ones((1, 4), np.float32))
+        assert not os.readlink(f"/proc/self/fd/{other._spill.fd}").startswith(str(tmp_path))
+    finally:
+        use_spill_dir(None)

@@ -14,7 +14,8 @@ A ``pread`` copies the ~100 rows a query asks for and leaves the file's pages in
 evictable), counted in no process. Runs of nearby rows are read in one call (a snapshot's sorted copy).
 
 Live changes: codes added since the file was written go to a spill file (an unlinked temporary file in the
-system's temporary folder, ``TMPDIR``), not to the heap, and are read back the same way; the table keeps
+folder ``use_spill_dir`` names: the service names its data dir; else the system's ``TMPDIR``), not to the
+heap, and are read back the same way; the table keeps
 their ids, rows and a live flag (24 bytes each). So an index built from the database (a first start, the
 switch from the exact index) never holds the float codes a second time in RAM beside whatever else holds
 them. A removed or replaced id is marked dead where it is. A snapshot writes the live codes into a new
@@ -42,6 +43,18 @@ GAP = 16
 RESORT_TAIL = 4096
 
 
+_spill_dir: Path | None = None
+
+
+def use_spill_dir(folder: Path | None) -> None:
+    """Spill files made from now on go to ``folder`` (None: the system's temporary folder). Why the service
+    names its data dir: the switch to ``ivf-rabitq`` spills every code of the collection, 1 KB per reference
+    (10 GB at 10^7), and a temporary folder is often small or a tmpfs held in RAM; the data dir's disk holds
+    the same codes in the snapshot anyway. A folder that cannot take the file falls back to ``TMPDIR``."""
+    global _spill_dir
+    _spill_dir = None if folder is None else Path(folder)
+
+
 class RowFile:
     """float32 rows of one width at ``offset`` of an open file, read by ``pread``; a spill file is also
     appended to (under a lock: the copies a snapshot makes share it). The descriptor closes with the last
@@ -61,7 +74,10 @@ class RowFile:
     @classmethod
     def spill(cls, dim: int) -> RowFile:
         """An unlinked temporary file: on disk (through the page cache), gone with the process."""
-        fd, path = tempfile.mkstemp(prefix="geoloc-float-codes-", suffix=".spill")
+        try:
+            fd, path = tempfile.mkstemp(prefix=".geoloc-float-codes-", suffix=".spill", dir=_spill_dir)
+        except OSError:  # a read-only or vanished data dir: the system's temporary folder still works
+            fd, path = tempfile.mkstemp(prefix=".geoloc-float-codes-", suffix=".spill")
         os.unlink(path)
         return cls(fd, 0, dim)
 
