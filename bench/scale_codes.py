@@ -149,3 +149,31 @@ def exact_search(codes: np.ndarray, n: int, queries: np.ndarray, k: int) -> tupl
 def sign_bits(x: np.ndarray) -> np.ndarray:
     """256-bit sign codes of float codes (the binary configurations' shape)."""
     return np.packbits(x > 0, axis=1)
+
+
+def effective_dimension(x: np.ndarray) -> float:
+    """The participation ratio of the covariance's eigenvalues, (sum l)^2 / sum l^2: how many directions
+    the codes really vary in (256 for isotropic 256-d codes, 1 for codes on one line)."""
+    eig = np.linalg.eigvalsh(np.cov(x, rowvar=False))
+    return float(eig.sum() ** 2 / (eig**2).sum())
+
+
+def fidelity(penn: PennCodes, gen: CodeGenerator, rng: np.random.Generator, n_synthetic: int = 20_000) -> dict:
+    """How far the synthetic distractors are from penn's real queries, against the real references: the
+    measure that decides whether an approximate index can find the queries' exact neighbours. Cosine
+    percentiles of query-to-reference pairs (real, then synthetic), each query's best real reference (its
+    match, mostly) against the best of as many synthetic codes, and the effective dimension of both."""
+    synthetic = gen.draw(n_synthetic, rng)
+    real = penn.queries @ penn.refs.T
+    fake = penn.queries @ synthetic.T
+    pct = (50, 90, 99, 99.9)
+    refs = penn.refs @ penn.refs.T
+    return {
+        "query_real_cos_pct": dict(zip(pct, np.percentile(real, pct).round(3).tolist(), strict=True)),
+        "query_synthetic_cos_pct": dict(zip(pct, np.percentile(fake, pct).round(3).tolist(), strict=True)),
+        "best_real_median": float(np.median(real.max(axis=1))),
+        "best_synthetic_same_count_median": float(np.median(fake[:, : len(penn.refs)].max(axis=1))),
+        "real_ref_pairs_cos_999": float(np.percentile(refs[~np.eye(len(refs), dtype=bool)], 99.9)),
+        "effective_dim_real": effective_dimension(penn.refs),
+        "effective_dim_synthetic": effective_dimension(synthetic),
+    }

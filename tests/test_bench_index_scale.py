@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.scale_codes import CodeGenerator, PennCodes, codes_file, exact_search
+from bench.scale_codes import CodeGenerator, PennCodes, codes_file, effective_dimension, exact_search
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -54,3 +54,12 @@ def test_bench_runs_end_to_end_at_a_tiny_size(tmp_path):
     # every list probed: the re-ranked search finds the exact top-10 on the clustered part at least
     assert max(s["recall10"] for s in pq["sweep"]) > min(s["recall10"] for s in pq["sweep"]) - 1e-9
     assert "| 2,000 | ivf-pq32 |" in run.stdout and "## Index kinds" in run.stdout
+    fid = saved["context"]["fidelity"]  # 200 fake codes span under 256 directions; the generator floors the rest
+    assert fid["effective_dim_real"] < fid["effective_dim_synthetic"] and "effective dimension" in run.stdout
+
+
+def test_effective_dimension_counts_the_directions_codes_vary_in():
+    rng = np.random.default_rng(0)
+    assert 230 < effective_dimension(rng.standard_normal((20_000, 256))) <= 256
+    line = np.outer(rng.standard_normal(5000), rng.standard_normal(256)) + 1e-6 * rng.standard_normal((5000, 256))
+    assert effective_dimension(line) < 1.01
