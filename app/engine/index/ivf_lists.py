@@ -49,18 +49,16 @@ def training_sample(x: np.ndarray, nlist: int) -> np.ndarray:
     return x if len(x) <= m else x[np.random.default_rng(0).choice(len(x), m, replace=False)]
 
 
-def two_level_centroids(x: np.ndarray, nlist: int, spherical: bool, refine: int | None = None) -> np.ndarray:
-    """``nlist`` centroids of float points ``x``: two-level k-means, then ``refine`` iterations of k-means
+def two_level_centroids(x: np.ndarray, nlist: int, spherical: bool) -> np.ndarray:
+    """``nlist`` centroids of float points ``x``: two-level k-means, then ``REFINE_ITERATIONS`` of k-means
     over all of them started from its centroids (a point near a first-level border was split among the wrong
     lists; the refinement moves it). Unit centroids when ``spherical``, for inner-product lists, as FAISS's own
     IVF training makes them."""
     x = np.ascontiguousarray(x, dtype=np.float32)
-    refine = REFINE_ITERATIONS if refine is None else refine
     start, _ = two_level_clustering(x, max(2, round(math.sqrt(nlist))), nlist, spherical=spherical, seed=1234)
-    if refine <= 0:
-        return np.ascontiguousarray(start, dtype=np.float32)
     clustering = faiss.Clustering(x.shape[1], nlist)
-    clustering.niter, clustering.spherical, clustering.max_points_per_centroid = refine, spherical, 1 << 30
+    clustering.niter, clustering.spherical = REFINE_ITERATIONS, spherical
+    clustering.max_points_per_centroid = 1 << 30  # x is already the training sample: no second subsampling
     faiss.copy_array_to_vector(np.ascontiguousarray(start, dtype=np.float32).ravel(), clustering.centroids)
     clustering.train(x, faiss.IndexFlatIP(x.shape[1]) if spherical else faiss.IndexFlatL2(x.shape[1]))
     return faiss.vector_to_array(clustering.centroids).reshape(nlist, x.shape[1])
