@@ -32,6 +32,11 @@ resident memory again ("after switch"). A baseline without the setting keeps its
 tree is started again on the snapshot it left, as a replica made ready from a snapshot is: seconds to /ready,
 its peak resident memory (VmHWM) up to ready against the snapshot files' size, and its memory after
 ``--locates`` /locates.
+
+``--uploads N`` (default 5): after the /locates of each start, N penn reference photos are uploaded through
+POST /references one at a time; after each one's job, /locate of the same photo should answer its new
+reference first, and after DELETE /references/{id} the next /locate should not name it (issue 35: "each
+uploaded photo found first after its job, deletes gone at once", on the served kind at that size).
 """
 
 from __future__ import annotations
@@ -55,7 +60,7 @@ from bench.common import is_photo, machine, penn_rows
 from bench.pg_catchup import FLOAT_DIM, _seed_rows
 from bench.seed import seed
 from tools.process_memory import MiB, PeakRss, rss_bytes
-from tools.server_process import ServerProcess
+from tools.server_process import ServerProcess, wait_job
 
 REBUILT = re.compile(r"index rebuilt from (\d+) stored codes in ([0-9.]+) s")
 
@@ -125,6 +130,39 @@ def _locate(server: ServerProcess, photos: list[Path], locates: int) -> list[flo
     return ms
 
 
+def uploads_found_then_deleted(server: ServerProcess, photos: list[Path]) -> dict:
+    """Each photo uploaded as a new reference (the API's job: accepted, encoded, added to the served index),
+    then located: is its own reference the first candidate? Then deleted: is it gone from the next /locate
+    at once? The issue's "each uploaded photo found first after its job, deletes gone at once", at size."""
+    job_ms, first, gone = [], 0, 0
+    for n, photo in enumerate(photos):
+        body = photo.read_bytes()
+        t = time.perf_counter()
+        r = server.client.post(
+            "/references",
+            files=[("image", (photo.name, body, "image/jpeg"))],
+            data={"lat": 39.95 + n * 1e-4, "lon": -75.19, "label": f"cold-start upload {n}"},
+        )
+        r.raise_for_status()
+        ref = r.json()["reference_ids"][0]
+        job = wait_job(server.client, r.json()["job_id"], timeout=600)
+        job_ms.append((time.perf_counter() - t) * 1e3)
+        if job["status"] != "done":
+            raise RuntimeError(f"upload job failed: {job}")
+        files = [("image", ("q.jpg", body, "image/jpeg"))]
+        top = server.client.post("/locate", files=files).json()["candidates"]
+        first += bool(top) and top[0]["reference_id"] == ref
+        server.client.delete(f"/references/{ref}").raise_for_status()
+        after = server.client.post("/locate", files=files).json()["candidates"]
+        gone += all(c["reference_id"] != ref for c in after)
+    return {
+        "upload_job_p50_ms": statistics.median(job_ms) if job_ms else float("nan"),
+        "uploads_found_first": float(first),
+        "deletes_gone": float(gone),
+        "uploads": float(len(photos)),
+    }
+
+
 def restart(data: Path, models: Path, config: str, code: Path | None, photos: list[Path], locates: int, env) -> dict:
     """A second start on the snapshot the first one left (a replica made ready from a snapshot): seconds to
     /ready, peak and resident memory then, and after ``locates`` /locates; the snapshot files' bytes."""
@@ -160,6 +198,7 @@ def one_start(
     switch_at: int | None = None,
     size: int = 0,
     restarts: bool = False,
+    uploads: list[Path] | None = None,
 ) -> dict:
     _drop_snapshots(data)
     t0 = time.perf_counter()
@@ -186,6 +225,8 @@ def one_start(
         out["rss_locates_mb"] = rss_bytes(pid) / MiB
         out["anon_locates_mb"] = _status_kb(pid, "RssAnon") / 1024  # the heap; the rest is mapped files
         out["file_locates_mb"] = _status_kb(pid, "RssFile") / 1024  # (ivf-rabitq's float codes, libraries)
+        if uploads:
+            out.update(uploads_found_then_deleted(server, uploads))
         out["hwm_end_mb"] = _status_kb(pid, "VmHWM") / 1024
     finally:
         server.stop()
@@ -212,6 +253,10 @@ FIELDS = (
     ("anon_locates_mb", "RssAnon after /locates MB", "{:,.0f}"),
     ("file_locates_mb", "RssFile after /locates MB", "{:,.0f}"),
     ("locate_p50_ms", "/locate p50 ms", "{:.0f}"),
+    ("uploads", "uploads", "{:.0f}"),
+    ("upload_job_p50_ms", "upload job p50 ms", "{:.0f}"),
+    ("uploads_found_first", "uploads found first after the job", "{:.0f}"),
+    ("deletes_gone", "deleted at once", "{:.0f}"),
     ("snapshot_file_mb", "snapshot files MB", "{:,.0f}"),
     ("restart_ready_s", "restart: to /ready s", "{:.1f}"),
     ("restart_hwm_ready_mb", "restart: peak RSS to ready MB", "{:,.0f}"),
@@ -243,12 +288,19 @@ def main() -> None:
         action="store_true",
         help="after each start, start again on the snapshot it left (a replica ready from a snapshot)",
     )
+    ap.add_argument(
+        "--uploads",
+        type=int,
+        default=5,
+        help="after the /locates, upload this many penn reference photos, locate each, delete it, locate again",
+    )
     args = ap.parse_args()
     args.models_dir = args.models_dir.resolve()  # the baseline server runs in its own tree
     pipe = load_pipeline(args.models_dir, args.config)
     if pipe.float_dim != FLOAT_DIM or pipe.bits:
         raise SystemExit(f"the seeding writes {FLOAT_DIM}-float codes only; {args.config} has others")
     photos = [r.image for r in penn_rows() if is_photo(r) and r.split == "query"][: max(args.locates, 1)]
+    uploads = [r.image for r in penn_rows() if is_photo(r) and r.split == "db"][: args.uploads]
     trees = {"this tree": None, **({"baseline": args.baseline.resolve()} if args.baseline else {})}
     print(machine(), f"config {args.config}", flush=True)
     results: dict[tuple[str, int, str], list[dict]] = {}
@@ -279,6 +331,7 @@ def main() -> None:
                             args.switch_at,
                             size,
                             args.restart,
+                            uploads,
                         )
                         results.setdefault((engine, size, name), []).append(r)
                         print(f"  {engine} {size:,d} {name} #{rep + 1}: " + ", ".join(
