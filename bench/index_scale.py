@@ -191,10 +191,15 @@ def _kmeans_used(kmeans: str, nlist: int) -> str:
     return "two-level" if kmeans == "two-level" and nlist >= TWO_LEVEL_FROM else "one-level"
 
 
-def build_float(codes, n: int, codec: str, kmeans: str, rng, progress) -> tuple[IvfCompressedIndex, float, float]:
+def build_float(
+    codes, n: int, codec: str, kmeans: str, rng, progress, quantizer: str = "flat"
+) -> tuple[IvfCompressedIndex, float, float]:
     """Train on a sample of the first ``n`` codes, then add them all in chunks; returns (index, train s, add s)."""
     index = IvfCompressedIndex(
-        codes.shape[1], codec=codec, float_codes=lambda ids: np.asarray(codes[ids], dtype=np.float32)
+        codes.shape[1],
+        codec=codec,
+        quantizer=quantizer,
+        float_codes=lambda ids: np.asarray(codes[ids], dtype=np.float32),
     )
     _set_kmeans(index, kmeans)
     sample = _sample(codes, n, MAX_POINTS_PER_LIST * default_nlist(n), rng)
@@ -208,16 +213,29 @@ def build_float(codes, n: int, codec: str, kmeans: str, rng, progress) -> tuple[
         index.add(np.arange(lo, lo + len(x), dtype=np.int64), x)
     build_s = time.perf_counter() - t0
     progress(
-        f"  {codec}: nlist {index.nlist}, {_kmeans_used(kmeans, index.nlist)} k-means, trained in {train_s:.1f} s,"
-        f" {n:,} added in {build_s:.1f} s"
+        f"  {codec} ({quantizer} quantizer): nlist {index.nlist}, {_kmeans_used(kmeans, index.nlist)} k-means,"
+        f" trained in {train_s:.1f} s, {n:,} added in {build_s:.1f} s"
     )
     return index, train_s, build_s
 
 
 def measure_float_kind(
-    codes, n, codec, kmeans, queries, exact, n_synth_q, n_penn, sweep_nprobe, sweep_shortlist, gen, rng, progress
+    codes,
+    n,
+    codec,
+    kmeans,
+    queries,
+    exact,
+    n_synth_q,
+    n_penn,
+    sweep_nprobe,
+    sweep_shortlist,
+    gen,
+    rng,
+    progress,
+    quantizer="flat",
 ):
-    index, train_s, build_s = build_float(codes, n, codec, kmeans, rng, progress)
+    index, train_s, build_s = build_float(codes, n, codec, kmeans, rng, progress, quantizer)
     faiss.omp_set_num_threads(SEARCH_THREADS)
     sweep = []
     for nprobe in sweep_nprobe:
@@ -240,12 +258,16 @@ def measure_float_kind(
     index.set_search(best["nprobe"], best["shortlist"])
     add_ms, remove_ms = _change_costs(index, gen.draw(200, rng), first_id=10**12)
     faiss.omp_set_num_threads(BUILD_THREADS)
-    persist = _persist(index, n, OUT / f"float-{codec}-{kmeans}-{n}.faiss")
+    persist = _persist(index, n, OUT / f"float-{codec}-{kmeans}-{quantizer}-{n}.faiss")
     fig = KindFigures(
         n,
-        f"ivf-{codec.lower()}",
+        f"ivf-{codec.lower()}" + ("" if quantizer == "flat" else f" ({quantizer} quantizer)"),
         {
-            **{k: v for k, v in index.stats().items() if k in ("codec", "nlist", "nprobe", "shortlist", "code_bytes")},
+            **{
+                k: v
+                for k, v in index.stats().items()
+                if k in ("codec", "nlist", "nprobe", "shortlist", "code_bytes", "quantizer")
+            },
             "kmeans": _kmeans_used(kmeans, index.nlist),
         },
         best["p50_ms"],
@@ -400,24 +422,26 @@ def run(args, progress=print) -> tuple[list[KindFigures], dict]:
             figures.append(base)
         for kmeans in args.kmeans:
             for codec in args.codecs:
-                figures.append(
-                    measure_float_kind(
-                        codes,
-                        n,
-                        codec,
-                        kmeans,
-                        queries,
-                        exact,
-                        n_synth_q,
-                        n_penn,
-                        args.nprobe,
-                        args.shortlist,
-                        gen,
-                        rng,
-                        progress,
+                for quantizer in args.quantizer:
+                    figures.append(
+                        measure_float_kind(
+                            codes,
+                            n,
+                            codec,
+                            kmeans,
+                            queries,
+                            exact,
+                            n_synth_q,
+                            n_penn,
+                            args.nprobe,
+                            args.shortlist,
+                            gen,
+                            rng,
+                            progress,
+                            quantizer,
+                        )
                     )
-                )
-                _save(figures, context, args.out)
+                    _save(figures, context, args.out)
         if not args.no_binary:
             exact_hamming = None
             for kmeans in args.kmeans:
@@ -520,6 +544,12 @@ def main() -> None:
         type=lambda t: t.split(","),
         default=["two-level"],
         help="coarse training: two-level (the service's, from TWO_LEVEL_FROM lists) and/or one-level",
+    )
+    ap.add_argument(
+        "--quantizer",
+        type=lambda t: t.split(","),
+        default=["flat"],
+        help="ivf-rabitq's coarse quantizer: flat (the service's, exact) and/or hnsw (an HNSW graph)",
     )
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", type=Path, default=OUT)

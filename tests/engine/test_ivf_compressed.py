@@ -181,3 +181,48 @@ def test_two_level_training_ranks_as_one_level_training(codes, binary):
             k: np.mean([len(set(f) & set(e)) / 10 for f, e in zip(v[1], exact, strict=True)]) for k, v in found.items()
         }
         assert recall[64] >= 0.9 and recall[64] >= recall[1 << 62] - 0.03
+
+
+def test_lists_probed_are_the_exact_nearest_and_near_duplicates_come_first():
+    """The default quantizer is exact: the lists a query probes are its ``nprobe`` nearest centroids, so a
+    reference's own photo encoded again as a query (cosine about 0.95 on real photos) is always in a probed
+    list. With an HNSW graph over 4,096 centroids at efSearch 64, 2 of 5 uploads on a real server at 10^6
+    were not: their nearest list was not among the 64 the graph returned (docs/BENCHMARKS.md)."""
+    import faiss
+
+    rng = np.random.default_rng(3)
+    n, nlist = 256 * 40, 256
+    x = rng.standard_normal((n, 256), dtype=np.float32)
+    x /= np.linalg.norm(x, axis=1, keepdims=True)
+    index = IvfCompressedIndex(256, nlist=nlist, nprobe=8)
+    index.train(x)
+    index.add(np.arange(n), x)
+    assert index.params()["quantizer"] == "flat"
+    stored = rng.choice(n, 200, replace=False)
+    noise = rng.standard_normal((len(stored), 256), dtype=np.float32)
+    noise -= (noise * x[stored]).sum(1, keepdims=True) * x[stored]  # orthogonal to the stored code
+    q = 0.95 * x[stored] + np.sqrt(1 - 0.95**2) * noise / np.linalg.norm(noise, axis=1, keepdims=True)
+    ivf = index._index
+    centroids = ivf.quantizer.reconstruct_n(0, nlist)
+    _, probed = ivf.quantizer.search(q, 8)
+    nearest = np.argsort(-(q @ centroids.T), axis=1)[:, :8]
+    assert all(set(a) == set(b) for a, b in zip(probed, nearest, strict=True))
+    assert isinstance(faiss.downcast_index(ivf.quantizer), faiss.IndexFlat)
+    _, ids = index.search(q, 1)
+    assert (ids[:, 0] == stored).all()
+
+
+def test_hnsw_quantizer_still_trains_and_loads(codes, tmp_path):
+    """``quantizer="hnsw"`` (the bench's comparison, and what snapshots before the exact quantizer hold):
+    trained, searched, and loaded back with its graph searched at least ``nprobe`` deep."""
+    import faiss
+
+    index = make(codes, nprobe=16, quantizer="hnsw")
+    assert index.params()["quantizer"] == "hnsw32"
+    _, ids = index.search(codes[:20], 1)
+    assert (ids[:, 0] == np.arange(20)).mean() >= 0.9
+    index.dump(tmp_path / "h.faiss")
+    again = IvfCompressedIndex(256, nprobe=16)  # configured flat: the file's graph is what it serves
+    again.load(tmp_path / "h.faiss")
+    assert again.params()["quantizer"] == "hnsw32"
+    assert faiss.downcast_index(again._index.quantizer).hnsw.efSearch >= 16

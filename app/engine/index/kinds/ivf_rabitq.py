@@ -1,13 +1,20 @@
-"""A compressed IVF for 10^6-10^7 float references: HNSW coarse quantizer, RaBitQ codes, exact re-rank.
+"""A compressed IVF for 10^6-10^7 float references: exact coarse quantizer, RaBitQ codes, exact re-rank.
 
 Why: an exact search over 256-d float codes costs 52 ms at 10^6 references and about 0.5 s at 10^7 on one
 thread, and keeps 1 KB per reference in RAM. Following FAISS's guidance for that size, the lists hold
 compressed codes (RaBitQ by default: one bit per dimension plus two floats; ``codec`` takes any FAISS
-factory code, "PQ32", "SQ4", ... for the bench), the coarse quantizer is an HNSW graph over the centroids
-(assigning a query or a new reference costs O(log nlist)), and a shortlist of ``shortlist`` ids is re-scored
-exactly from the float codes (``FloatCodeTable``: read by ``pread`` from the index's own file, so the float
+factory code, "PQ32", "SQ4", ... for the bench), and a shortlist of ``shortlist`` ids is re-scored exactly
+from the float codes (``FloatCodeTable``: read by ``pread`` from the index's own file, so the float
 codes are neither a second copy in RAM nor resident in the process). Fast-scan codes are not offered: FAISS
 1.15 cannot remove from their block-packed lists with a hashtable direct map, and the service deletes live.
+
+The coarse quantizer is exact (a flat scan of the ``nlist`` centroids, 0.02 ms at 1,024 lists, 0.65 ms at
+16,384), not an HNSW graph: our codes are nearly isotropic (about 210 effective dimensions of 256), and there
+an HNSW over 4,096 centroids searched at efSearch 64 returned the exact nearest list for only 91 % of codes
+(``bench.quantizer_assign``); on a real server at 10^6 references 2 of 5 uploaded photos were then not found
+by their own /locate, their list being the query's nearest yet not among the 64 the graph returned
+(docs/BENCHMARKS.md). ``quantizer="hnsw"`` keeps the graph for the bench; a snapshot written with it loads
+as it was written.
 
 The region filter: a small region (up to ``exact_filter_max`` ids) is scored exactly from the float codes,
 because an IVF scan with an id selector sees only the allowed ids in the ``nprobe`` probed lists and would
@@ -49,6 +56,7 @@ class IvfCompressedIndex(IvfListsIndex):
         nprobe: int = 64,
         shortlist: int = 100,
         codec: str = "RaBitQ",
+        quantizer: str = "flat",
         hnsw_m: int = 32,
         ef_search: int = 64,
         exact_filter_max: int = 4096,
@@ -56,7 +64,10 @@ class IvfCompressedIndex(IvfListsIndex):
     ):
         if binary:
             raise ValueError("ivf-rabitq indexes float codes; binary configurations use binary-ivf")
-        self.shortlist, self.codec, self.hnsw_m, self.ef_search = shortlist, codec, hnsw_m, ef_search
+        if quantizer not in ("flat", "hnsw"):
+            raise ValueError(f"quantizer {quantizer!r}: flat or hnsw")
+        self.shortlist, self.codec, self.quantizer = shortlist, codec, quantizer
+        self.hnsw_m, self.ef_search = hnsw_m, ef_search
         self.exact_filter_max = exact_filter_max
         self.external_codes = float_codes
         self.table = FloatCodeTable(dim)
@@ -67,7 +78,9 @@ class IvfCompressedIndex(IvfListsIndex):
 
     def _adopt(self, index) -> None:
         super()._adopt(index)
-        faiss.downcast_index(index.quantizer).hnsw.efSearch = max(self.ef_search, self.nprobe)
+        graph = faiss.downcast_index(index.quantizer)
+        if isinstance(graph, faiss.IndexHNSW):  # quantizer="hnsw", or a snapshot written with it
+            graph.hnsw.efSearch = max(self.ef_search, self.nprobe)
 
     def set_search(self, nprobe: int, shortlist: int) -> None:
         """Search depth (the bench's sweep); applies to the next search."""
@@ -81,7 +94,8 @@ class IvfCompressedIndex(IvfListsIndex):
         if not len(x):
             raise ValueError("an IVF index cannot be trained on no codes")
         nlist = usable_nlist(self.nlist, len(x))
-        index = faiss.index_factory(self.dim, f"IVF{nlist}_HNSW{self.hnsw_m},{self.codec}", faiss.METRIC_INNER_PRODUCT)
+        lists = f"IVF{nlist}_HNSW{self.hnsw_m}" if self.quantizer == "hnsw" else f"IVF{nlist}"
+        index = faiss.index_factory(self.dim, f"{lists},{self.codec}", faiss.METRIC_INNER_PRODUCT)
         if isinstance(index, faiss.IndexIVFPQ):
             # The factory turns on polysemous training (minutes, never used here); 64 points per PQ centroid
             # converge for 8-d sub-vectors (the PQ's k-means was 216 of 264 s at nlist 1,024 with 256).
@@ -158,10 +172,17 @@ class IvfCompressedIndex(IvfListsIndex):
             **super().params(),
             "codec": self.codec,
             "shortlist": self.shortlist,
-            "hnsw_m": self.hnsw_m,
+            "quantizer": self._quantizer_name(),
             "exact_filter_max": self.exact_filter_max,
             "code_bytes": None if self._index is None else int(self._index.code_size),
         }
+
+    def _quantizer_name(self) -> str:
+        """What assigns lists in the index served (a loaded snapshot's, which may predate the flat one)."""
+        if self._index is None:
+            return self.quantizer
+        graph = faiss.downcast_index(self._index.quantizer)
+        return f"hnsw{graph.hnsw.nb_neighbors(1)}" if isinstance(graph, faiss.IndexHNSW) else "flat"
 
     # -- files and copies -----------------------------------------------------------------------------
     def copy(self) -> IvfCompressedIndex:
