@@ -327,7 +327,7 @@ for _config in [
 ]:
     CONFIGS[_config.name] = _config
 
-# Issue 35: the same pipelines over the index kinds for 10^6-10^7 references (IVF with an HNSW quantizer:
+# Issue 35: the same pipelines over the index kinds for 10^6-10^7 references (IVF with an exact quantizer:
 # RaBitQ codes re-ranked exactly from the float codes; binary IVF for Hamming codes). The codes, and so the
 # fitted pipelines, are those of the configurations they derive from; only the index differs.
 for _base, _kinds in [

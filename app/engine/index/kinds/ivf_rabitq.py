@@ -10,7 +10,7 @@ codes are neither a second copy in RAM nor resident in the process). Fast-scan c
 
 The coarse quantizer is exact (a flat scan of the ``nlist`` centroids, 0.02 ms at 1,024 lists, 0.65 ms at
 16,384), not an HNSW graph: our codes are nearly isotropic (about 210 effective dimensions of 256), and there
-an HNSW over 4,096 centroids searched at efSearch 64 returned the exact nearest list for only 91 % of codes
+an HNSW over 4,096 centroids searched at efSearch 64 returned the exact nearest list for only 93 % of codes
 (``bench.quantizer_assign``); on a real server at 10^6 references 2 of 5 uploaded photos were then not found
 by their own /locate, their list being the query's nearest yet not among the 64 the graph returned
 (docs/BENCHMARKS.md). ``quantizer="hnsw"`` keeps the graph for the bench; a snapshot written with it loads
