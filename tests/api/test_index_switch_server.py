@@ -48,6 +48,7 @@ def test_the_kind_switches_by_size_on_a_server(tmp_path, fitted_models, rows):  
         assert _kinds(s.client) == {"float": "ivf-rabitq", "binary": "binary-ivf"}, ready
         assert ready["index_size"] == SWITCH_AT + 3 and "switched from exact" in ready["index_choice"]
         assert {"nlist", "nprobe", "shortlist"} <= set(ready["index"]["float"])
+        assert ready["index"]["float"]["quantizer"] == "flat"  # exact list assignment (README)
         text = s.client.get("/metrics").text
         line = re.search(r'^geoloc_index_kind\{[^}]*part="float"[^}]*\} 1\.0$', text, re.M).group(0)
         f = ready["index"]["float"]
