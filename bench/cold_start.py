@@ -300,7 +300,7 @@ def main() -> None:
     if pipe.float_dim != FLOAT_DIM or pipe.bits:
         raise SystemExit(f"the seeding writes {FLOAT_DIM}-float codes only; {args.config} has others")
     photos = [r.image for r in penn_rows() if is_photo(r) and r.split == "query"][: max(args.locates, 1)]
-    uploads = [r.image for r in penn_rows() if is_photo(r) and r.split == "db"][: args.uploads]
+    uploads = [r.image for r in penn_rows() if is_photo(r) and r.split == "db"][: max(args.uploads, 0)]
     trees = {"this tree": None, **({"baseline": args.baseline.resolve()} if args.baseline else {})}
     print(machine(), f"config {args.config}", flush=True)
     results: dict[tuple[str, int, str], list[dict]] = {}

@@ -452,6 +452,14 @@ def run(args, progress=print) -> tuple[list[KindFigures], dict]:
     return figures, context
 
 
+def _quantizers(text: str) -> list[str]:
+    """--quantizer's values, checked before any index is built."""
+    names = text.split(",")
+    if not set(names) <= {"flat", "hnsw"}:
+        raise argparse.ArgumentTypeError(f"flat and/or hnsw, not {text!r}")
+    return names
+
+
 def _fmt(v, spec: str) -> str:
     return "" if v is None else format(v, spec)
 
@@ -547,7 +555,7 @@ def main() -> None:
     )
     ap.add_argument(
         "--quantizer",
-        type=lambda t: t.split(","),
+        type=_quantizers,
         default=["flat"],
         help="ivf-rabitq's coarse quantizer: flat (the service's, exact) and/or hnsw (an HNSW graph)",
     )

@@ -9,7 +9,7 @@ from starlette.middleware.base import BaseHTTPMiddleware
 from starlette.requests import Request
 
 #: ``VectorIndex.stats`` keys shown as labels of ``geoloc_index_kind`` (None where a kind has no such one).
-KIND_LABELS = ("kind", "nlist", "nprobe", "shortlist", "m")
+KIND_LABELS = ("kind", "nlist", "nprobe", "shortlist", "quantizer", "m")
 
 BUCKETS = (0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1, 2.5, 5, 10, 30)
 

@@ -134,7 +134,7 @@ def test_health_metrics_openapi(tmp_path, fitted_models):
         assert ready["index"]["float"]["kind"] == "flat" and binary["code_bytes"] == binary["dim"] // 8
         s.client.get("/references")
         text = s.client.get("/metrics").text
-        labels = 'kind="flat",m="None",nlist="None",nprobe="None",part="binary",shortlist="None"'
+        labels = 'kind="flat",m="None",nlist="None",nprobe="None",part="binary",quantizer="None",shortlist="None"'
         assert f"geoloc_index_kind{{{labels}}} 1.0" in text
         for name in (
             "geoloc_http_requests_total",

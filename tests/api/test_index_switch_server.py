@@ -57,6 +57,7 @@ def test_the_kind_switches_by_size_on_a_server(tmp_path, fitted_models, rows):  
             ("nlist", f["nlist"]),
             ("nprobe", f["nprobe"]),
             ("shortlist", 100),
+            ("quantizer", "flat"),
         ):
             assert f'{label}="{value}"' in line, line
         assert metric(s, "geoloc_index_kind_switches") == 1 and metric(s, "geoloc_index_switching") == 0

@@ -12,9 +12,10 @@ The coarse quantizer is exact (a flat scan of the ``nlist`` centroids, 0.02 ms a
 16,384), not an HNSW graph: our codes are nearly isotropic (about 210 effective dimensions of 256), and there
 an HNSW over 4,096 centroids searched at efSearch 64 returned the exact nearest list for only 93 % of codes
 (``bench.quantizer_assign``); on a real server at 10^6 references 2 of 5 uploaded photos were then not found
-by their own /locate, their list being the query's nearest yet not among the 64 the graph returned
-(docs/BENCHMARKS.md). ``quantizer="hnsw"`` keeps the graph for the bench; a snapshot written with it loads
-as it was written.
+by their own /locate, their list being among the query's nearest yet not among the 64 the graph returned
+(docs/BENCHMARKS.md). ``quantizer="hnsw"`` keeps the graph for the bench. An index written with the graph
+(before the exact quantizer) is served with an exact one over the same centroids when it is loaded: the
+lists and their codes stay valid, since the codes are residuals from those centroids.
 
 The region filter: a small region (up to ``exact_filter_max`` ids) is scored exactly from the float codes,
 because an IVF scan with an id selector sees only the allowed ids in the ``nprobe`` probed lists and would
@@ -79,8 +80,18 @@ class IvfCompressedIndex(IvfListsIndex):
     def _adopt(self, index) -> None:
         super()._adopt(index)
         graph = faiss.downcast_index(index.quantizer)
-        if isinstance(graph, faiss.IndexHNSW):  # quantizer="hnsw", or a snapshot written with it
+        if not isinstance(graph, faiss.IndexHNSW):
+            return
+        if self.quantizer == "hnsw":
             graph.hnsw.efSearch = max(self.ef_search, self.nprobe)
+            return
+        # An index written with the graph: the same centroids, scanned exactly from now on.
+        exact = faiss.IndexFlatIP(index.d)
+        exact.add(graph.storage.reconstruct_n(0, graph.ntotal))
+        graph.thisown = True  # freed with this proxy: the IVF no longer points to it
+        index.quantizer = exact
+        exact.thisown = False  # the IVF owns it from now on (own_fields)
+        index.own_fields = True
 
     def set_search(self, nprobe: int, shortlist: int) -> None:
         """Search depth (the bench's sweep); applies to the next search."""
