@@ -40,6 +40,7 @@ import numpy as np
 
 from app.storage.postgres import _bind, translate
 from app.storage.store import NewReference, ReferenceStore
+from bench.scale_codes import unit_rows
 from tools.postgres_server import PostgresServer
 
 FLOAT_DIM = 256  # the default configuration's float code (hybrid): 1 KB per reference
@@ -58,7 +59,7 @@ def _items(rng: np.random.Generator, start: int, n: int) -> list[NewReference]:
             "jpg",
             float(rng.uniform(39.9, 40.0)),
             float(rng.uniform(-75.2, -75.1)),
-            float_code=_unit(rng.standard_normal(FLOAT_DIM).astype(np.float32)),
+            float_code=unit_rows(rng.standard_normal((1, FLOAT_DIM), dtype=np.float32))[0],
         )
         for i in range(n)
     ]
@@ -77,17 +78,12 @@ def _peak_rss_mb() -> float:
     return _status_mb("VmHWM")
 
 
-def _unit(codes: np.ndarray) -> np.ndarray:
-    """Rows scaled to unit length, as the pipeline's codes are (a raw Gaussian row has norm about 16, and
-    its inner products would outrank a real photo's own code)."""
-    return codes / np.linalg.norm(codes, axis=-1, keepdims=True)
-
-
 def _seed_rows(store: ReferenceStore, rng: np.random.Generator, start: int, n: int) -> None:
     """``n`` indexed rows and their 'add' change log entries in one transaction, as ``add_many`` writes them,
     by the engine's bulk path (COPY on PostgreSQL): the rows of a pre-encoded bulk load, without images."""
-    codes = rng.standard_normal((n, FLOAT_DIM), dtype=np.float32)
-    codes = _unit(codes)
+    # unit rows, as the pipeline's codes are: a raw Gaussian row has norm about 16, and its inner products
+    # would outrank a real photo's own code
+    codes = unit_rows(rng.standard_normal((n, FLOAT_DIM), dtype=np.float32))
     lats, lons = rng.uniform(39.9, 40.0, n), rng.uniform(-75.2, -75.1, n)
     now = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
     rows = [

@@ -27,12 +27,9 @@ import faiss
 import numpy as np
 
 from bench.common import machine
+from bench.scale_codes import unit_rows
 
 DIM = 256
-
-
-def _unit(x: np.ndarray) -> np.ndarray:
-    return x / np.linalg.norm(x, axis=1, keepdims=True)
 
 
 def _ints(text: str) -> list[int]:
@@ -46,14 +43,14 @@ def one_nlist(nlist: int, fills: list[int], efs: list[int | None], adds: int, rn
     lists = f"IVF{nlist}_HNSW32" if graph_kind else f"IVF{nlist}"
     index = faiss.index_factory(DIM, f"{lists},RaBitQ", faiss.METRIC_INNER_PRODUCT)
     ivf = faiss.extract_index_ivf(index)
-    centroids = _unit(rng.standard_normal((nlist, DIM), dtype=np.float32))
+    centroids = unit_rows(rng.standard_normal((nlist, DIM), dtype=np.float32))
     ivf.quantizer.add(centroids)
-    index.train(_unit(rng.standard_normal((20_000, DIM), dtype=np.float32)))
+    index.train(unit_rows(rng.standard_normal((20_000, DIM), dtype=np.float32)))
     index.set_direct_map_type(faiss.DirectMap.Hashtable)
     graph = faiss.downcast_index(ivf.quantizer) if graph_kind else None
     exact = faiss.IndexFlatIP(DIM)
     exact.add(centroids)
-    new = _unit(rng.standard_normal((adds, DIM), dtype=np.float32))
+    new = unit_rows(rng.standard_normal((adds, DIM), dtype=np.float32))
     _, nearest = exact.search(new, 1)
     new_ids = np.arange(10**12, 10**12 + adds, dtype=np.int64)
     rows, stored = [], 0
@@ -62,7 +59,7 @@ def one_nlist(nlist: int, fills: list[int], efs: list[int | None], adds: int, rn
             graph.hnsw.efSearch = 64
         for lo in range(stored, fill, 50_000):
             n = min(50_000, fill - lo)
-            index.add_with_ids(_unit(rng.standard_normal((n, DIM), dtype=np.float32)), np.arange(lo, lo + n))
+            index.add_with_ids(unit_rows(rng.standard_normal((n, DIM), dtype=np.float32)), np.arange(lo, lo + n))
         stored = fill
         for ef in efs:
             if graph is not None:
