@@ -10,7 +10,14 @@ way to say "no position", so its file holds the placed photos only (waypoints, b
 
 CSV cells are opened by spreadsheets, which run a cell starting with ``= + - @`` (or a tab or carriage
 return before one) as a formula; file names and cameras come from the user's files and EXIF, so such a
-text cell gets a leading ``'`` (OWASP's CSV-injection rule). Numbers are written as numbers."""
+text cell gets a leading ``'`` (OWASP's CSV-injection rule). Numbers are written as numbers. Rows end in CRLF
+(RFC 4180): Python's writer quotes a cell only for the characters of its line ending, so with a bare ``\n`` a
+file name holding a carriage return would split its row.
+
+File names are whatever the file system allows, so any text may hold characters a file cannot: a lone
+surrogate (how Python spells bytes that are not UTF-8) has no UTF-8 form, and XML 1.0 forbids most C0
+controls (ESC, NUL...) and U+FFFE/U+FFFF even as character references. Each becomes U+FFFD: lone surrogates
+in every export, the characters XML forbids in the GPX; JSON and CSV carry the controls as they are."""
 
 from __future__ import annotations
 
@@ -18,6 +25,7 @@ import csv
 import io
 import json
 import os
+import re
 from pathlib import Path
 
 import gpxpy.gpx
@@ -29,6 +37,23 @@ CSV_COLUMNS = (
     "file", "lat", "lon", "radius_m", "placed", "confident", "p", "basis", "decision", "reason_code", "reason",
     "taken", "camera", "note", "candidates",
 )  # fmt: skip
+
+
+#: Characters with no UTF-8 form: the halves of a surrogate pair, which a Python str can hold alone.
+LONE_SURROGATE = re.compile("[\ud800-\udfff]")
+#: Characters outside XML 1.0's Char production (#x9 | #xA | #xD | [#x20-#xD7FF] | [#xE000-#xFFFD] |
+#: [#x10000-#x10FFFF]): no XML file may hold them, escaped or not.
+XML_FORBIDDEN = re.compile("[^\t\n\r\x20-\ud7ff\ue000-\ufffd\U00010000-\U0010ffff]")
+
+
+def encodable(value: object) -> object:
+    """``value`` with its lone surrogates as U+FFFD, so that any export can be written as UTF-8."""
+    return LONE_SURROGATE.sub("\ufffd", value) if isinstance(value, str) else value
+
+
+def xml_text(value: str) -> str:
+    """``value`` with what XML 1.0 forbids as U+FFFD: one ESC in a file name would make the GPX unreadable."""
+    return XML_FORBIDDEN.sub("\ufffd", value)
 
 
 def rows(records: list[PhotoRecord], everything: bool) -> list[dict]:
@@ -103,7 +128,7 @@ def geojson(table: list[dict]) -> str:
 
 def csv_text(table: list[dict]) -> str:
     buf = io.StringIO()
-    w = csv.DictWriter(buf, fieldnames=CSV_COLUMNS, lineterminator="\n")
+    w = csv.DictWriter(buf, fieldnames=CSV_COLUMNS, lineterminator="\r\n")
     w.writeheader()
     for row in table:
         cands = "; ".join(f"{c['lat']:.7f} {c['lon']:.7f} {c['score']}" for c in row["candidates"])
@@ -113,17 +138,22 @@ def csv_text(table: list[dict]) -> str:
 
 def gpx_text(table: list[dict]) -> str:
     doc = gpxpy.gpx.GPX()
-    doc.creator = "geoloc library"
+    doc.creator = "geoloc library"  # every text below goes through xml_text: gpxpy escapes markup only
     for row in table:
         if not row["placed"]:
             continue
         desc = f"basis {row['basis']}" + (f", radius {row['radius_m']} m" if row["radius_m"] is not None else "")
         doc.waypoints.append(
             gpxpy.gpx.GPXWaypoint(
-                latitude=row["lat"], longitude=row["lon"], name=os.path.basename(row["file"]), description=desc
+                latitude=row["lat"],
+                longitude=row["lon"],
+                name=xml_text(os.path.basename(row["file"])),
+                description=xml_text(desc),
             )
         )
-    return doc.to_xml()
+    # A parser reads a raw carriage return as a newline (XML's end-of-line rule); as a reference it stays one.
+    # gpxpy writes none of its own, so every one left is in a name or a description.
+    return doc.to_xml().replace("\r", "&#13;")
 
 
 RENDER = {"geojson": geojson, "csv": csv_text, "gpx": gpx_text}
@@ -133,7 +163,8 @@ MEDIA_TYPES = {"geojson": "application/geo+json", "csv": "text/csv", "gpx": "app
 def render(records: list[PhotoRecord], fmt: str, everything: bool) -> str:
     if fmt not in RENDER:
         raise ValueError(f"format must be one of {', '.join(FORMATS)}, got {fmt!r}")
-    return RENDER[fmt](rows(records, everything))
+    table = [{k: encodable(v) for k, v in row.items()} for row in rows(records, everything)]
+    return RENDER[fmt](table)
 
 
 def write_export(records: list[PhotoRecord], fmt: str, everything: bool, out: Path) -> int:

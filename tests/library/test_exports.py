@@ -7,14 +7,16 @@ import csv
 import io
 import json
 import os
+import re
 import subprocess
 import sys
+import xml.etree.ElementTree as ET
 
 import gpxpy
 
-from app.library.exports import render
+from app.library.exports import CSV_COLUMNS, FORMATS, render, write_export
 from app.library.review import decide
-from app.storage.library import LOCATED, PROBLEM, LibraryJournal
+from app.storage.library import ACCEPTED, LOCATED, PROBLEM, LibraryJournal, PhotoRecord
 
 
 def _journal(tmp_path):
@@ -86,3 +88,46 @@ def test_exports_are_utf8_whatever_the_locale(tmp_path):
     p = subprocess.run([sys.executable, "-c", code, str(tmp_path)], capture_output=True, text=True, env=env)
     assert p.returncode == 0, p.stderr
     assert "café.jpg" in out.read_bytes().decode("utf-8")
+
+
+# Every character XML 1.0 forbids (C0 controls but tab, newline and carriage return; U+FFFE, U+FFFF; lone
+# surrogates, which a str can hold though no UTF-8 file can), plus a bare carriage return and a newline.
+FORBIDDEN = "".join(map(chr, [*range(0x00, 0x09), 0x0B, 0x0C, *range(0x0E, 0x20)])) + "\ufffe\uffff"
+SURROGATES = "\ud800\udfff"
+
+
+def _record(rid: int, path: str, decision: str | None) -> PhotoRecord:
+    result = {"file": path, "placed": True, "confident": True, "lat": 39.95, "lon": -75.19, "radius_m": 30.0,
+              "p": 0.9, "basis": "pixels\x1b", "camera": "cam\x07" + SURROGATES, "candidates": []}  # fmt: skip
+    return PhotoRecord(rid, "s", path, 1, 1, LOCATED, result, decision, 39.95 if decision else None,
+                       -75.19 if decision else None, None)  # fmt: skip
+
+
+def test_every_export_is_well_formed_whatever_characters_a_file_name_holds(tmp_path):
+    name = "a\x1bb" + FORBIDDEN + "\r\n\rc" + SURROGATES + "\U0001f600<&>é.jpg"
+    records = [_record(1, "/x/" + name, ACCEPTED), _record(2, "/x/plain.jpg", None)]
+    readable = re.sub("[\ud800-\udfff]", "\ufffd", name)  # what a UTF-8 file can hold of the name
+    for everything in (True, False):
+        gpx_xml = render(records, "gpx", everything)
+        root = ET.fromstring(gpx_xml.encode("utf-8"))  # a str with lone surrogates cannot even be encoded
+        names = [w.text for w in root.iter("{http://www.topografix.com/GPX/1/1}name")]
+        assert names == [re.sub("[\x00-\x08\x0b\x0c\x0e-\x1f\ufffe\uffff\ud800-\udfff]", "\ufffd", name)] + (
+            ["plain.jpg"] if everything else []
+        )
+        assert [w.name for w in gpxpy.parse(gpx_xml).waypoints] == names
+
+        doc = json.loads(render(records, "geojson", everything).encode("utf-8"))
+        assert doc["features"][0]["properties"]["file"] == "/x/" + readable
+
+        table = list(csv.reader(io.StringIO(render(records, "csv", everything).encode("utf-8").decode("utf-8"),
+                                            newline="")))  # fmt: skip
+        assert len(table) == 2 + everything and table[1][0] == "/x/" + readable, table
+        assert table[1][CSV_COLUMNS.index("camera")] == "cam\x07\ufffd\ufffd"
+
+    for fmt in FORMATS:  # the files as written hold the same
+        out = tmp_path / f"out.{fmt}"
+        assert write_export(records, fmt, True, out) == 2
+        out.read_bytes().decode("utf-8")
+    assert gpxpy.parse((tmp_path / "out.gpx").read_text(encoding="utf-8")).waypoints[0].name.startswith("a\ufffdb")
+    with (tmp_path / "out.csv").open(encoding="utf-8", newline="") as f:
+        assert next(r for r in csv.DictReader(f) if r["file"] != "/x/plain.jpg")["file"] == "/x/" + readable

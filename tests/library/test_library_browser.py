@@ -63,6 +63,54 @@ def server(tmp_path_factory, library_models, query_truth, penn_collection):
         s.stop()
 
 
+@pytest.fixture(scope="module")
+def rootless(tmp_path_factory, library_models):
+    """A server with no GEOLOC_LIBRARY_ROOT (the default): its API scans no folder. An empty data dir: the
+    page is all that is looked at."""
+    s = ServerProcess(tmp_path_factory.mktemp("no-library-root") / "data", library_models, DEFAULT_CONFIG,
+                      api_key=KEY, extra_env={"GEOLOC_ORT_THREADS": "1"})  # fmt: skip
+    try:
+        s.wait_ready()
+        yield s
+    finally:
+        s.stop()
+
+
+def test_a_server_that_scans_no_folder_says_so_and_offers_no_scan(browser, rootless):
+    page = open_page(browser, rootless, "desktop", None)
+    page.goto(rootless.url + "/library")
+    page.wait_for_function("() => !document.getElementById('scan-off').hidden")
+    assert not page.locator("#scan-btn").is_visible() or page.locator("#scan-btn").is_disabled()
+    note = page.inner_text("#scan-off")
+    assert "scans no folder" in note and "GEOLOC_LIBRARY_ROOT" in note, note
+    # Its API says the same (the page hides nothing the API would do).
+    refused = rootless.client.post("/library/scans", json={"folder": "x"}, headers={"X-API-Key": KEY})
+    assert refused.status_code == 422 and "GEOLOC_LIBRARY_ROOT" in refused.json()["message"]
+
+    # The header has every view, as the main page's has: Locate a photo, References, Library.
+    tabs = page.locator("header nav .tab")
+    assert tabs.all_inner_texts() == ["Locate a photo", "References", "Library"]
+    page.locator("header nav a.tab", has_text="References").click()
+    page.wait_for_function("() => document.getElementById('tab-refs')?.getAttribute('aria-selected') === 'true'")
+    assert page.url.startswith(rootless.url + "/") and page.locator("#view-refs").is_visible()
+    assert not page.locator("#view-locate").is_visible()
+    page.locator("header a.tab", has_text="Library").click()  # and back, as the main page links to it
+    page.wait_for_url(rootless.url + "/library")
+    page.locator("header nav a.tab", has_text="Locate a photo").click()
+    page.wait_for_function("() => document.getElementById('tab-locate')?.getAttribute('aria-selected') === 'true'")
+    assert page.locator("#view-locate").is_visible()
+    assert not page.errors and page.evaluate("window.__csp") == []
+
+
+def test_a_server_with_a_library_root_offers_the_scan(browser, server):
+    page = open_page(browser, server, "desktop", None)
+    page.goto(server.url + "/library")
+    assert page.locator("#scan-btn").is_visible() and page.locator("#scan-btn").is_enabled()
+    assert page.locator("#scan-off").count() == 0 or not page.locator("#scan-off").is_visible()
+    assert page.locator("header nav a.tab", has_text="References").get_attribute("href") == "/#references"
+    assert not page.errors and page.evaluate("window.__csp") == []
+
+
 def wait_scan(c, sid: str, timeout_s: float = 900) -> dict:
     """The scan's state once it is no longer running (the test fails if it never ends)."""
     deadline = time.monotonic() + timeout_s

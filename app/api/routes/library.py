@@ -3,7 +3,8 @@ undo, exports; and the Library page. Parse, call ``app.library``, shape.
 
 Every route but the page itself needs the key (``write_access``), reads included: a scan's results, its
 thumbnails and its exports show the server's files (names, photos, places), which ``read_access`` (open
-by default) would hand to anyone who can reach the port."""
+by default) would hand to anyone who can reach the port. The page tells no more than whether this server
+scans folders at all."""
 
 from __future__ import annotations
 
@@ -12,7 +13,7 @@ from pathlib import Path as FsPath
 from typing import Annotated, Literal
 
 from fastapi import APIRouter, Depends, Path, Query, Request
-from fastapi.responses import FileResponse, JSONResponse, Response
+from fastapi.responses import HTMLResponse, JSONResponse, Response
 from pydantic import BaseModel, Field
 
 from app.api import security
@@ -24,7 +25,7 @@ from app.library.jobs import FolderRefused, LibraryJobs, ScanBusy
 from app.library.review import DecisionError, decide
 from app.library.scan import ScanOptions
 from app.library.writeback import WriteBackError, undo, write_back
-from app.storage.library import LOCATED, PROBLEM, PhotoRecord
+from app.storage.library import LOCATED, PROBLEM, JournalError, PhotoRecord
 
 router = APIRouter()
 #: The Library view: its own page beside index.html, under the same Content-Security-Policy.
@@ -59,7 +60,10 @@ def jobs(request: Request, core: Core) -> LibraryJobs:
     state = request.app.state
     with _MAKING:
         if getattr(state, "library", None) is None:
-            state.library = LibraryJobs(core.store.data_dir, state.settings.library_root)
+            try:
+                state.library = LibraryJobs(core.store.data_dir, state.settings.library_root)
+            except JournalError as e:  # a journal of another layout, damaged, not SQLite: said, not a 500
+                raise ApiError(503, "not_ready", str(e)) from None
     return state.library
 
 
@@ -78,9 +82,18 @@ def _scan(lib: LibraryJobs, sid: str) -> dict:
     return got
 
 
+#: Where the page is told whether this server scans folders (see ``library_page``).
+SCANS_MARK = 'data-scans-folders="unknown"'
+
+
 @router.get("/library", include_in_schema=False)
-def library_page(request: Request) -> FileResponse:
-    return FileResponse(PAGE, headers=security.PAGE_HEADERS)
+def library_page(request: Request) -> HTMLResponse:
+    """The page, told whether this server scans folders: without GEOLOC_LIBRARY_ROOT every scan is refused,
+    so the page says why instead of offering one. A yes or no is all a caller without the key learns (never
+    the root: paths of the server are for key holders), and the page needs it before any key is typed."""
+    scans = "yes" if request.app.state.settings.library_root is not None else "no"
+    html = PAGE.read_text(encoding="utf-8").replace(SCANS_MARK, f'data-scans-folders="{scans}"', 1)
+    return HTMLResponse(html, headers=security.PAGE_HEADERS)
 
 
 @router.post(

@@ -134,6 +134,8 @@ function select(tab, focus = false) {
     $(v).hidden = !on;
   }
   if (focus) $(tab).focus();
+  // The address names the view shown (/#references), so that a reload or a link opens the same one.
+  history.replaceState(null, "", location.pathname + location.search + (tab === "tab-refs" ? "#references" : ""));
   if (tab === "tab-refs") loadRefs();
   setTimeout(() => [locateMap, refsMap].forEach((m) => m && m.map.invalidateSize()), 0);
 }
@@ -636,3 +638,6 @@ async function waitJob(id) {
     await new Promise((r) => setTimeout(r, 500));
   }
 }
+
+// The Library page links to the References view as /#references.
+if (location.hash === "#references") select("tab-refs");

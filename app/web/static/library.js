@@ -175,6 +175,15 @@ async function load() {
   if (scan.state === "running") setTimeout(() => load().catch((e) => showError(e.message)), 1000);
 }
 
+// A server with no GEOLOC_LIBRARY_ROOT scans no folder: its page (the /library route fills in
+// data-scans-folders) says so and offers no Scan that could only be refused. Served any other way
+// ("unknown"), the form stays and the API answers for itself.
+if (document.body.dataset.scansFolders === "no") {
+  $("scan-form").hidden = true;
+  $("scan-btn").disabled = true;
+  $("scan-off").hidden = false;
+}
+
 $("scan-form").addEventListener("submit", async (e) => {
   e.preventDefault();
   showError("");
