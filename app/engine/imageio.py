@@ -45,6 +45,10 @@ EXIF_IFD = 0x8769
 DATETIME_ORIGINAL = 0x9003
 OFFSET_TIME_ORIGINAL = 0x9011  # its zone, "+02:00" (EXIF 2.31)
 GPS_IMG_DIRECTION = 17
+GPS_PROCESSING_METHOD = 27
+#: What this service writes as EXIF/XMP GPSProcessingMethod beside a position it estimated from pixels: a
+#: photo carrying it holds a guess, never ground truth, wherever it is met again (another library, an ingest).
+ESTIMATE_MARK = "geoloc-estimate"
 
 
 @dataclass(frozen=True)
@@ -107,6 +111,8 @@ class LoadedImage:
     gps: tuple[float, float] | None
     captured_at: str | None
     heading: float | None = None  # EXIF GPSImgDirection in [0, 360), when the camera wrote one
+    #: True when the EXIF GPS carries ``ESTIMATE_MARK`` (then ``gps`` is None: a guess is not a position).
+    gps_estimated: bool = False
     #: True when a large non-JPEG was decoded at full size, then reduced (under FULL_DECODES); its full-size
     #: buffers are freed by the time load_image returns.
     full_decode: bool = False
@@ -186,6 +192,7 @@ def load_image(
         raise UnsupportedImageFormat("animated images are not supported; send a single photo")
     gps, captured_at = read_exif_gps(img)
     heading = read_exif_heading(img)
+    estimated = gps is None and gps_is_estimate(img)
     target = decode_target(w, h, decode_long_side or limits.decode_long_side, decode_short_side)
     full_decode = False
     try:
@@ -208,6 +215,7 @@ def load_image(
         gps=gps,
         captured_at=captured_at,
         heading=heading,
+        gps_estimated=estimated,
         full_decode=full_decode,
     )
 
@@ -256,9 +264,23 @@ def _dms_to_deg(dms, ref) -> float:
     return -deg if ref in ("S", "W", b"S", b"W") else deg
 
 
+def gps_is_estimate(img: Image.Image) -> bool:
+    """Whether the EXIF GPS block says its position was estimated by this service (``ESTIMATE_MARK`` in
+    GPSProcessingMethod, which EXIF stores behind an 8-byte character-code prefix)."""
+    try:
+        raw = img.getexif().get_ifd(GPS_IFD).get(GPS_PROCESSING_METHOD)
+    except Exception:
+        return False
+    if raw is None:
+        return False
+    text = raw.decode("latin-1") if isinstance(raw, bytes) else str(raw)
+    return ESTIMATE_MARK in text
+
+
 def read_exif_gps(img: Image.Image) -> tuple[tuple[float, float] | None, str | None]:
     """(lat, lon) from the EXIF GPS block, or None; and DateTimeOriginal if present, as EXIF writes it
-    ("2024:09:23 16:08:20"), followed by OffsetTimeOriginal ("+02:00") when the photo has one."""
+    ("2024:09:23 16:08:20"), followed by OffsetTimeOriginal ("+02:00") when the photo has one. A position
+    marked as this service's estimate (``gps_is_estimate``) is None: it is a guess, not a measurement."""
     try:
         exif = img.getexif()
     except Exception:  # a broken EXIF block must not make the photo unreadable
@@ -285,6 +307,8 @@ def read_exif_gps(img: Image.Image) -> tuple[tuple[float, float] | None, str | N
     if not (math.isfinite(lat) and math.isfinite(lon)) or abs(lat) > 90 or abs(lon) > 180:
         return None, captured_at
     if lat == 0.0 and lon == 0.0:  # "null island": cameras write zeros when they had no fix
+        return None, captured_at
+    if gps_is_estimate(img):
         return None, captured_at
     return (lat, lon), captured_at
 

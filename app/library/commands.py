@@ -37,7 +37,7 @@ def _journal(data_dir: Path):
 
     try:
         return LibraryJournal(data_dir)
-    except JournalError as e:  # a journal of the first layout: said in one line, not a traceback
+    except JournalError as e:  # a journal of another layout, damaged, not SQLite: one line, no traceback
         _fail(str(e))
 
 
@@ -75,7 +75,7 @@ def scan(
     # The folder (or manifest) is checked before the models load: a bad path costs milliseconds, not the
     # seconds of loading the network and the index.
     try:
-        files = library_files(folder.resolve())
+        files = library_files(folder.resolve(), Path(data_dir).resolve())
     except LibraryError as e:
         _fail(str(e))
     service = GeolocService.open(data_dir, models_dir, config, limits=_S.image_limits())

@@ -26,6 +26,7 @@ from app.library.scan import ScanOptions, scan_library
 from app.storage.library import LibraryJournal
 from app.usecases.service import GeolocService
 from app.usecases.thumbnails import render_thumbnail
+from app.user_files import FileTooLarge, is_within, read_regular
 
 log = logging.getLogger("geoloc.library")
 #: How long ``close`` waits for a scan thread to stop after the stop flag (it stops between two photos).
@@ -40,18 +41,13 @@ class ScanBusy(RuntimeError):
     """A scan, write or undo of this library is in progress."""
 
 
-def inside(root: Path, path: Path) -> bool:
-    """Whether ``path``, every link resolved, is ``root`` or lies under it (``root`` resolved already)."""
-    real = path.resolve()
-    return real == root or root in real.parents
-
-
 class LibraryJobs:
     """The server's library scans over one data dir. Made once per process (``open``), ``close``d at its
     shutdown: the stop flag ends the scan threads between two photos."""
 
     def __init__(self, data_dir: Path, root: Path | None):
         self.journal = LibraryJournal(data_dir)
+        self.data_dir = Path(data_dir).resolve()
         self.root = root.resolve() if root is not None else None
         self._threads: dict[str, threading.Thread] = {}
         self._locks: dict[str, threading.Lock] = {}
@@ -65,14 +61,21 @@ class LibraryJobs:
         """``text`` as a folder under the root (symlinks resolved first: a link cannot lead out of it)."""
         if self.root is None:
             raise FolderRefused("this server scans no folders: set GEOLOC_LIBRARY_ROOT to the folder it may read")
+        if "\x00" in text:
+            raise FolderRefused("the folder name contains a NUL character")
         path = Path(text)
-        path = (path if path.is_absolute() else self.root / path).resolve()
-        if path != self.root and self.root not in path.parents:
-            raise FolderRefused(f"the folder must lie under the library root {self.root}")
-        if not path.exists():
-            raise FolderRefused(f"{path} does not exist")
-        if not path.is_dir():  # a manifest's rows may name files anywhere: the API takes folders only
-            raise FolderRefused(f"{path} is not a folder (the API scans folders only; manifests: the CLI)")
+        try:
+            path = (path if path.is_absolute() else self.root / path).resolve()
+            if not is_within(path, self.root):
+                raise FolderRefused(f"the folder must lie under the library root {self.root}")
+            if not path.exists():
+                raise FolderRefused(f"{path} does not exist")
+            if not path.is_dir():  # a manifest's rows may name files anywhere: the API takes folders only
+                raise FolderRefused(f"{path} is not a folder (the API scans folders only; manifests: the CLI)")
+        except OSError as e:  # a name too long, a loop of links, a folder that cannot be read
+            raise FolderRefused(f"the folder cannot be used: {e.strerror or e}") from None
+        if is_within(path, self.data_dir):
+            raise FolderRefused("the folder lies inside the server's data dir: its files are the service's own")
         return path
 
     def _scan_lock(self, sid: str) -> threading.Lock:
@@ -129,17 +132,14 @@ class LibraryJobs:
         self.journal.close()
 
     def thumbnail(self, path: Path, px: int, limits: ImageLimits) -> bytes:
-        """The thumbnail of a journalled photo, read only when it is a regular file under the root (a link
-        put there since the scan is refused) and no larger than the server's upload limit."""
-        if path.is_symlink() or (self.root is not None and not inside(self.root, path)):
-            raise FileNotFoundError(f"{path.name} is no longer a file of the library")
-        if path.stat().st_size > limits.max_bytes:
-            raise GeolocError(f"{path.name} is larger than the server's image limit")
-        return thumbnail(path, px, limits)
-
-
-def thumbnail(path: Path, px: int, limits: ImageLimits | None = None) -> bytes:
-    """A JPEG of the photo's pixels only (no EXIF, XMP or comment), upright, at most ``px`` on a side:
-    decoded as a reference's thumbnail is (``app.usecases.thumbnails``: reduced, under the pixel budget; a
-    7000 x 7000 WebP decoded whole per request cost gigabytes, issue 30), under the server's limits."""
-    return render_thumbnail(path.read_bytes(), px, (limits or ImageLimits()).stored())
+        """A JPEG of a journalled photo's pixels only (no EXIF, XMP or comment), upright, at most ``px`` on a
+        side, decoded as a reference's thumbnail is (``app.usecases.thumbnails``: reduced, under the pixel
+        budget). Read only from a regular file under the root, never through a link (one put there since
+        the scan is refused), and no larger than the server's upload limit."""
+        try:
+            data = read_regular(path, self.root or path.parent.resolve(), limits.max_bytes)
+        except FileTooLarge:
+            raise GeolocError(f"{path.name} is larger than the server's image limit") from None
+        except OSError as e:
+            raise FileNotFoundError(f"{path.name} is no longer a file of the library: {e.strerror or e}") from None
+        return render_thumbnail(data, px, limits.stored())

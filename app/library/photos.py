@@ -14,9 +14,11 @@ from pathlib import Path
 
 from PIL import Image, UnidentifiedImageError
 
-from app.engine.imageio import read_exif_gps
+from app.engine.imageio import gps_is_estimate, read_exif_gps
+from app.user_files import opened
 
 MAKE, MODEL = 0x010F, 0x0110
+ESTIMATED_NOTE = "its GPS is this service's estimate (written back earlier), not a measurement: located again"
 
 
 @dataclass(frozen=True)
@@ -57,8 +59,11 @@ def parse_exif_time(text: str | None) -> datetime | None:
     return taken
 
 
-def read_meta(path: Path) -> PhotoMeta:
-    """The header of ``path``; never raises (a problem is reported in ``problem``).
+def read_meta(path: Path, within: Path | None = None) -> PhotoMeta:
+    """The header of ``path``; never raises (a problem is reported in ``problem``). With ``within`` (the
+    scanned folder, resolved) the file is read only if it is a regular file there, not a link
+    (``app.user_files``): the folder may have changed since it was listed. A pipe or device is a problem,
+    never waited on. GPS that this service wrote as its own estimate is no GPS: the photo is located again.
 
     A file name that is not UTF-8 (bytes from an old camera or another system's encoding) cannot be kept in
     the journal, nor in a GeoJSON or CSV: the file is a problem under a printable form of its name (the
@@ -70,22 +75,27 @@ def read_meta(path: Path) -> PhotoMeta:
         shown = name.encode("utf-8", "surrogateescape").decode("utf-8", "replace")
         return PhotoMeta(Path(shown), 0, 0, problem="the file name is not UTF-8: rename the file to scan it")
     try:
-        st = path.stat()
+        with opened(path, within) as (f, st):
+            return _header(path, f, st)
     except OSError as e:
         return PhotoMeta(path, 0, 0, problem=f"cannot read the file: {e.strerror or e}")
+
+
+def _header(path: Path, f, st: os.stat_result) -> PhotoMeta:
     try:
-        with Image.open(path) as img:
+        with Image.open(f) as img:
             broken = _broken_exif(img)
             if broken is not None:
                 note = f"EXIF unreadable ({broken}): located from its pixels alone, without the time prior"
                 return PhotoMeta(path, st.st_size, st.st_mtime_ns, note=note)
             gps, taken = read_exif_gps(img)
             camera = _camera(img)
+            note = ESTIMATED_NOTE if gps is None and gps_is_estimate(img) else None
     except UnidentifiedImageError:
         return PhotoMeta(path, st.st_size, st.st_mtime_ns, problem="not an image (no format Pillow reads)")
     except (OSError, ValueError, SyntaxError) as e:
         return PhotoMeta(path, st.st_size, st.st_mtime_ns, problem=f"unreadable: {e}")
-    return PhotoMeta(path, st.st_size, st.st_mtime_ns, gps, parse_exif_time(taken), camera)
+    return PhotoMeta(path, st.st_size, st.st_mtime_ns, gps, parse_exif_time(taken), camera, note=note)
 
 
 def _broken_exif(img: Image.Image) -> str | None:
@@ -123,8 +133,10 @@ def sidecar_path(photo: Path) -> Path:
     return photo.with_name(photo.name + ".xmp")
 
 
-def walk_photos(root: Path) -> list[Path]:
-    """The library's photos (the ingest folder rule: recursive, sorted, hidden files skipped).
+def walk_photos(root: Path, skip: Path | None = None) -> list[Path]:
+    """The library's photos (the ingest folder rule: recursive, sorted, hidden files skipped). ``skip``:
+    a folder never entered (the data dir, when it lies inside the library: its stored images and undo
+    backups are the service's own files, not photos to journal or write into).
 
     Symbolic links are skipped, files and folders alike: a link may lead out of the folder (or out of the
     server's library root), and reading, thumbnailing or writing through it would touch a file the user
@@ -133,7 +145,13 @@ def walk_photos(root: Path) -> list[Path]:
 
     out = []
     for folder, dirs, files in os.walk(root):  # followlinks=False: a linked folder is listed, never entered
-        dirs[:] = sorted(d for d in dirs if not d.startswith(".") and not os.path.islink(os.path.join(folder, d)))
+        dirs[:] = sorted(
+            d
+            for d in dirs
+            if not d.startswith(".")
+            and not os.path.islink(os.path.join(folder, d))
+            and not (skip is not None and Path(folder, d).resolve() == skip)
+        )
         out += [
             Path(folder) / n
             for n in sorted(files)

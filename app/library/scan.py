@@ -41,6 +41,7 @@ from app.library.timeprior import Anchor, time_prior
 from app.settings import usable_cpus
 from app.storage.library import LOCATED, PROBLEM, LibraryJournal
 from app.usecases.service import GeolocService
+from app.user_files import is_within, read_regular
 
 log = logging.getLogger("geoloc.library")
 T, R = TypeVar("T"), TypeVar("R")
@@ -109,7 +110,11 @@ def scan_library(
     set ends the run between two photos (state "interrupted"); ``files``: ``library_files(folder)`` when
     the caller already checked the folder."""
     folder = Path(folder).resolve()
-    paths, positions = files if files is not None else library_files(folder)
+    data_dir = Path(service.store.data_dir).resolve()
+    paths, positions = files if files is not None else library_files(folder, data_dir)
+    # A folder's files are read only where they are regular files inside it (never through a link): the
+    # folder may change between the listing and the reads. A manifest's rows may name files anywhere.
+    within = folder if positions is None else None
     workers = max(1, options.workers)
     make_bar = progress or (lambda total, desc: Progress(total, desc=desc))
     sid = journal.start_scan(folder, len(paths))
@@ -118,7 +123,8 @@ def scan_library(
     # rest of a large library on its way out: what is done is journalled, the next run does the rest.
     pool = ThreadPoolExecutor(max_workers=workers)
     try:
-        metas = list(bounded_map(pool, read_meta, paths, workers * WINDOW_PER_WORKER, stop))
+        read = lambda p: read_meta(p, within)  # noqa: E731
+        metas = list(bounded_map(pool, read, paths, workers * WINDOW_PER_WORKER, stop))
         if stop is not None and stop.is_set():
             journal.finish_scan(sid, "interrupted", "stopped (the server shut down): scan again to resume")
             return summary
@@ -126,7 +132,7 @@ def scan_library(
             metas = [replace(m, gps=positions.get(m.path)) for m in metas]
         refs, todo = _sort_out(metas, journal, sid, summary)
         if refs:
-            summary.added = _ingest(service, folder, refs, positions, workers, options.ray, say)
+            summary.added = _ingest(service, folder, within, refs, positions, workers, options.ray, say)
         if not todo:
             journal.finish_scan(sid, "done", None)
             return summary
@@ -139,7 +145,7 @@ def scan_library(
         anchors = [Anchor(m.gps[0], m.gps[1], m.taken, m.camera) for m in refs if m.taken and m.gps]
         bar = make_bar(len(todo), f"locate ({workers} threads)")
         try:
-            locate = lambda m: _locate(service, m, anchors, options)  # noqa: E731
+            locate = lambda m: _locate(service, m, anchors, options, within)  # noqa: E731
             for n, (meta, result) in enumerate(
                 bounded_map(pool, locate, todo, workers * WINDOW_PER_WORKER, stop), start=1
             ):
@@ -193,10 +199,11 @@ def _sort_out(
     metas: list[PhotoMeta], journal: LibraryJournal, sid: str, summary: ScanSummary
 ) -> tuple[list[PhotoMeta], list[PhotoMeta]]:
     """(the references, the photos to locate now); problem files journalled and counted, photos located by
-    an earlier run and unchanged since counted. A photo this library located stays one to review even once
-    GPS was written into it: never a reference."""
+    an earlier run and unchanged since counted. A photo that any library of this journal located stays one
+    to review even once GPS was written into it: never a reference (elsewhere, the mark written beside the
+    position says the same: ``app.engine.imageio.ESTIMATE_MARK``)."""
     known = journal.known(sid)
-    ours = {p for p, r in known.items() if r.kind == LOCATED}
+    ours = journal.located_paths()
     refs = [m for m in metas if m.gps is not None and m.problem is None and str(m.path) not in ours]
     todo: list[PhotoMeta] = []
     for m in metas:
@@ -213,14 +220,21 @@ def _sort_out(
     return refs, todo
 
 
-def library_files(path: Path) -> tuple[list[Path], dict[Path, tuple[float, float]] | None]:
+def library_files(
+    path: Path, data_dir: Path | None = None
+) -> tuple[list[Path], dict[Path, tuple[float, float]] | None]:
     """The library's photos, and where a manifest puts its references (None for a folder: EXIF GPS).
 
     A folder: every photo under it; those with EXIF GPS are the references. A manifest (a CSV with
     ``image,lat,lon,split``): its ``db`` rows are the references at the manifest's positions, its ``query``
-    rows are the photos to locate (whatever GPS their EXIF holds), ``train`` rows are left out."""
+    rows are the photos to locate (whatever GPS their EXIF holds), ``train`` rows are left out.
+
+    ``data_dir`` (resolved) is never part of a library: a folder inside it is refused, and a folder that
+    holds it is scanned without it (its stored images and undo backups would become photos to write)."""
+    if data_dir is not None and is_within(path.resolve(), data_dir):
+        raise LibraryError(f"{path} lies inside the data dir {data_dir}: the service's own files are no library")
     if path.is_dir():
-        paths = walk_photos(path)
+        paths = walk_photos(path, data_dir)
         if not paths:
             raise LibraryError(f"{path} holds no photos (.jpg .jpeg .png .webp .tif .tiff .heic ...)")
         return paths, None
@@ -231,15 +245,20 @@ def library_files(path: Path) -> tuple[list[Path], dict[Path, tuple[float, float
     except (ManifestError, UnicodeDecodeError, csv.Error) as e:
         raise LibraryError(f"{path} is not a manifest (image,lat,lon,split): {e}") from None
     positions = {r.image: (r.lat, r.lon) for r in rows if r.split == "db"}
+    if data_dir is not None:
+        positions = {p: v for p, v in positions.items() if not is_within(p.resolve(), data_dir)}
+        rows = [r for r in rows if not is_within(r.image.resolve(), data_dir)]
     queries = [r.image for r in rows if r.split == "query" and r.image not in positions]
     if not queries:
         raise LibraryError(f"{path} has no query rows: nothing to locate")
     return sorted(set(positions) | set(queries)), positions
 
 
-def _ingest(service: GeolocService, folder: Path, refs: list[PhotoMeta], positions, workers: int, ray, say) -> int:
+def _ingest(
+    service: GeolocService, folder: Path, within: Path | None, refs: list[PhotoMeta], positions, workers: int, ray, say
+) -> int:
     kind = "folder" if positions is None else "manifest"
-    source = PathsSource(kind, folder, paths=tuple(m.path for m in refs), positions=positions)
+    source = PathsSource(kind, folder, within=within, paths=tuple(m.path for m in refs), positions=positions)
     summary, _ = ingest(service, source, IngestOptions(workers=workers, ray=ray), say=say)
     say(
         f"collection: {summary.added} new references from {len(refs)} photos with GPS "
@@ -248,10 +267,10 @@ def _ingest(service: GeolocService, folder: Path, refs: list[PhotoMeta], positio
     return summary.added
 
 
-def _locate(service: GeolocService, meta: PhotoMeta, anchors: list[Anchor], options: ScanOptions):
+def _locate(service: GeolocService, meta: PhotoMeta, anchors: list[Anchor], options: ScanOptions, within: Path | None):
     """One photo's suggestion, or ``{"problem": ...}`` when it cannot be located (never raises)."""
     try:
-        data = meta.path.read_bytes()
+        data = read_regular(meta.path, within, service.limits.max_bytes)
         answer = service.locate(data, LocateOptions(top_k=10, rerank=options.rerank))
     except (OSError, GeolocError) as e:
         reason = f"cannot read the file: {e.strerror or e}" if isinstance(e, OSError) else str(e)

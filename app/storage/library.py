@@ -38,12 +38,19 @@ CREATE INDEX IF NOT EXISTS scans_folder ON scans(folder);
 CREATE INDEX IF NOT EXISTS photos_scan ON photos(scan, id);
 CREATE TABLE IF NOT EXISTS writes (
   id INTEGER PRIMARY KEY, scan TEXT NOT NULL, photo INTEGER NOT NULL, mode TEXT NOT NULL, target TEXT NOT NULL,
-  backup TEXT, after_sha TEXT, created REAL NOT NULL, undone REAL
+  backup TEXT, after_sha TEXT, created REAL NOT NULL, undone REAL, before_sha TEXT
 );
 """
-#: PRAGMA user_version of the schema above. 1 (the first merge of issue 36) keyed photos by path alone and
-#: kept no hash of a write's result; such a journal is refused with a message rather than misread.
-SCHEMA_VERSION = 2
+#: PRAGMA user_version of the schema above. 1 keyed photos by path alone and kept no hash of a write's
+#: result: such a journal is refused with a message rather than misread. 2 lacked ``writes.before_sha``,
+#: which is added in place. A newer version is a newer program's: refused, never downgraded.
+SCHEMA_VERSION = 3
+#: The columns each table must have: a file of another layout is refused, not misread.
+EXPECTED_COLUMNS = {
+    "scans": {"id", "folder", "state", "total", "done", "message", "updated"},
+    "photos": {"id", "scan", "path", "size", "mtime_ns", "kind", "result", "decision", "lat", "lon", "written"},
+    "writes": {"id", "scan", "photo", "mode", "target", "backup", "after_sha", "created", "undone"},
+}
 
 #: What a photo of the library is: located (it had no GPS), a reference (it had GPS), or a problem file.
 LOCATED, REFERENCE, PROBLEM = "located", "reference", "problem"
@@ -52,7 +59,7 @@ COLUMNS = "id, scan, path, size, mtime_ns, kind, result, decision, lat, lon, wri
 
 
 class JournalError(RuntimeError):
-    """The journal file is of an older, incompatible layout."""
+    """The journal file cannot be used: an older or newer layout, another program's file, not SQLite."""
 
 
 def new_scan_id() -> str:
@@ -88,15 +95,36 @@ class LibraryJournal:
         Path(data_dir).mkdir(parents=True, exist_ok=True)
         self.path = Path(data_dir) / "library.sqlite"
         self._db = sqlite3.connect(self.path, check_same_thread=False, timeout=30, isolation_level=None)
+        try:
+            self._open()
+        except sqlite3.DatabaseError as e:  # random bytes, a damaged file: said, never a traceback
+            self._db.close()
+            raise JournalError(f"{self.path} is not a library journal ({e}): move it aside and scan again") from None
+        except JournalError:
+            self._db.close()
+            raise
+        self._lock = threading.RLock()
+
+    def _open(self) -> None:
+        """Check the file's layout, bring a version-2 journal up to date, make a new one."""
         self._db.execute("PRAGMA journal_mode=WAL")
         version = self._db.execute("PRAGMA user_version").fetchone()[0]
-        old = self._db.execute("SELECT 1 FROM sqlite_master WHERE name='photos'").fetchone()
-        if old is not None and version < SCHEMA_VERSION:
-            self._db.close()
+        tables = {r[0] for r in self._db.execute("SELECT name FROM sqlite_master WHERE type='table'")}
+        if version > SCHEMA_VERSION:
+            raise JournalError(
+                f"{self.path} was written by a newer version (layout {version}, this one reads up to "
+                f"{SCHEMA_VERSION}): run that version, or move the file aside"
+            )
+        if "photos" in tables and version < 2:
             raise JournalError(f"{self.path} is an older library journal: move it aside and scan again")
+        for table in tables & set(EXPECTED_COLUMNS):
+            have = {r[1] for r in self._db.execute(f"PRAGMA table_info({table})")}
+            if not EXPECTED_COLUMNS[table] <= have:
+                raise JournalError(f"{self.path} is not a library journal of a known layout: move it aside")
+        if version == 2:
+            self._db.execute("ALTER TABLE writes ADD COLUMN before_sha TEXT")
         self._db.executescript(SCHEMA)
         self._db.execute(f"PRAGMA user_version={SCHEMA_VERSION}")
-        self._lock = threading.RLock()
 
     def close(self) -> None:
         self._db.close()
@@ -170,6 +198,13 @@ class LibraryJournal:
         """Every photo journalled for this library, by path."""
         return {r.path: r for r in self.photos(sid)}
 
+    def located_paths(self) -> set[str]:
+        """Every photo that a library of this journal located (whatever its scan): such a photo holds, at
+        most, a position this service guessed and the user accepted, never a measured one."""
+        with self._lock:
+            rows = self._db.execute("SELECT DISTINCT path FROM photos WHERE kind=?", (LOCATED,)).fetchall()
+        return {r[0] for r in rows}
+
     def record(self, sid: str, path: Path, size: int, mtime_ns: int, kind: str, result: dict) -> None:
         """A photo's (new) suggestion: a file that changed since its decision loses the decision."""
         with self._tx() as db:
@@ -217,31 +252,41 @@ class LibraryJournal:
             )
 
     # -- writes (for undo) ------------------------------------------------------------------------------
-    def add_write(self, sid: str, photo_id: int, mode: str, target: Path, backup: Path | None) -> int:
-        """Record a write before it is made (its backup exists already), so that a crash mid-write leaves
-        something for undo to find."""
+    def add_write(
+        self,
+        sid: str,
+        photo_id: int,
+        mode: str,
+        target: Path,
+        backup: Path | None,
+        before_sha: str | None,
+        after_sha: str,
+    ) -> int:
+        """Record a write before the target is replaced: its backup (None: the target is new), the SHA-256
+        of the target before (None: it did not exist) and of what the write is about to leave. So after a
+        crash at any point undo knows the file's state: as before (nothing to undo), as written (restore
+        it), or anything else (changed since, by the user or another tool: never overwritten)."""
         with self._tx() as db:
             cur = db.execute(
-                "INSERT INTO writes(scan, photo, mode, target, backup, created) VALUES (?,?,?,?,?,?)",
-                (sid, photo_id, mode, str(target), None if backup is None else str(backup), time.time()),
-            )
+                "INSERT INTO writes(scan, photo, mode, target, backup, before_sha, after_sha, created) "
+                "VALUES (?,?,?,?,?,?,?,?)",
+                (sid, photo_id, mode, str(target), None if backup is None else str(backup), before_sha, after_sha,
+                 time.time()),
+            )  # fmt: skip
             return int(cur.lastrowid)
-
-    def wrote(self, write_id: int, after_sha: str) -> None:
-        """The SHA-256 of the target as our write left it: undo restores only a file still in that state
-        (a later edit by the user or another tool is never overwritten)."""
-        with self._tx() as db:
-            db.execute("UPDATE writes SET after_sha=? WHERE id=?", (after_sha, write_id))
 
     def live_writes(self, sid: str, photo_id: int | None = None) -> list[dict]:
         """Writes not undone (of one photo, or all), newest first (undo walks back in time)."""
-        sql = "SELECT id, photo, mode, target, backup, after_sha FROM writes WHERE scan=? AND undone IS NULL"
+        sql = (
+            "SELECT id, photo, mode, target, backup, before_sha, after_sha FROM writes WHERE scan=? AND undone IS NULL"
+        )
         args: tuple = (sid,)
         if photo_id is not None:
             sql, args = sql + " AND photo=?", (sid, photo_id)
         with self._lock:
             rows = self._db.execute(sql + " ORDER BY id DESC", args).fetchall()
-        return [dict(zip(("id", "photo", "mode", "target", "backup", "after_sha"), r, strict=True)) for r in rows]
+        keys = ("id", "photo", "mode", "target", "backup", "before_sha", "after_sha")
+        return [dict(zip(keys, r, strict=True)) for r in rows]
 
     def mark_undone(self, write_id: int) -> None:
         with self._tx() as db:

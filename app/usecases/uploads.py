@@ -18,6 +18,11 @@ from app.text import CAPTURED_AT_MAX, LABEL_MAX, iso_captured_at, iso_or_as_stor
 
 def _position(u: Upload, img: LoadedImage, n: int) -> tuple[float, float]:
     if u.lat is None and u.lon is None:
+        if img.gps_estimated:
+            raise NoGpsInImage(
+                f"image {n}: its EXIF GPS was estimated by this service from the pixels, not measured: "
+                "give lat/lon to add it as a reference"
+            )
         if img.gps is None:
             raise NoGpsInImage(f"image {n}: no lat/lon given and no GPS position in its EXIF")
         return img.gps

@@ -56,7 +56,8 @@ def test_a_scan_never_follows_links(tmp_path):
 
 def _accepted(journal: LibraryJournal, sid: str, photo) -> int:
     result = {"file": str(photo), "placed": True, "confident": True, "lat": 39.9523, "lon": -75.1902}
-    journal.record(sid, photo, 1, 1, LOCATED, result)
+    st = photo.stat()  # as the scan saw it: a photo changed since is not written
+    journal.record(sid, photo, st.st_size, st.st_mtime_ns, LOCATED, result)
     rid = journal.known(sid)[str(photo)].id
     decide(journal, sid, rid, "accept")
     return rid

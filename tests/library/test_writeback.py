@@ -1,5 +1,6 @@
 """Write-back on its own (no model): an existing sidecar keeps its other tags and comes back byte for byte
-on undo; a photo named like an option is a file to exiftool ("--" before every path it is given); nothing
+on undo; a photo named like an option never reaches exiftool's command line (it edits copies in the data
+dir, each after "--"); nothing
 is written for a rejected photo; undo never overwrites a later edit and goes on past a file it cannot
 restore; a photo written and then rejected loses its written GPS at the next write."""
 
@@ -36,7 +37,8 @@ def test_existing_sidecar_dash_names_and_undo(tmp_path, monkeypatch):
     sid = j.start_scan(lib, 3)
     for name in names:
         result = {"file": str(lib / name), "placed": True, "confident": True, "lat": 39.9523, "lon": -75.1902}
-        j.record(sid, lib / name, 1, 1, LOCATED, result)
+        st = (lib / name).stat()  # as the scan saw it: a photo changed since is not written
+        j.record(sid, lib / name, st.st_size, st.st_mtime_ns, LOCATED, result)
     ids = {r.path.split("/")[-1]: r.id for r in j.photos(sid)}
     decide(j, sid, ids["-dash.jpg"], "accept")
     decide(j, sid, ids["tagged.jpg"], "move", 39.95, -75.19)
@@ -54,8 +56,9 @@ def test_existing_sidecar_dash_names_and_undo(tmp_path, monkeypatch):
         out = write_back(j, sid, tmp_path / "data")
     assert not out["failed"] and len(out["written"]) == 2, out
     assert len(calls) >= 4  # a write and a read-back per photo
-    for cmd in calls:  # every file exiftool is given comes after "--": "-dash.jpg" is never an option
-        files = [a for a in cmd if a.startswith(str(lib))]
+    for cmd in calls:  # every file exiftool is given comes after "--", and it edits copies in the data dir
+        files = [a for a in cmd if a.startswith(str(tmp_path))]
+        assert all(f.startswith(str(tmp_path / "data")) for f in files), cmd
         assert files and cmd.index("--") < min(cmd.index(f) for f in files), cmd
     tool = shutil.which("exiftool")
     assert read_gps(tool, lib / "-dash.jpg.xmp") == (39.9523, -75.1902)
@@ -79,7 +82,8 @@ def _library(tmp_path, names):
     sid = j.start_scan(lib, len(names))
     for name in names:
         result = {"file": str(lib / name), "placed": True, "confident": True, "lat": 39.9523, "lon": -75.1902}
-        j.record(sid, lib / name, 1, 1, LOCATED, result)
+        st = (lib / name).stat()  # as the scan saw it: a photo changed since is not written
+        j.record(sid, lib / name, st.st_size, st.st_mtime_ns, LOCATED, result)
     ids = {Path(r.path).name: r.id for r in j.photos(sid)}
     for name in names:
         decide(j, sid, ids[name], "accept")

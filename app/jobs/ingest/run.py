@@ -43,6 +43,7 @@ from app.storage.journal import FileKey, Journal
 from app.storage.store import NewReference
 from app.usecases.service import GeolocService
 from app.usecases.uploads import prepare_upload
+from app.user_files import FileTooLarge, NotARegularFile, read_regular
 
 #: How long this run's claim on a row lasts: the row is encoded within seconds of being claimed, so a
 #: claim that outlives this belongs to a run that died, and a worker may take the row over.
@@ -102,18 +103,22 @@ class SkipReport:
 def skip_reason(exc: BaseException) -> tuple[str, str]:
     """(category for the summary, full reason for the report) of a file that could not be accepted."""
     text = str(exc)
+    if isinstance(exc, NoGpsInImage) and "estimated" in text:
+        return "estimated GPS", "its EXIF GPS is this service's estimate, not a measured position"
     if isinstance(exc, NoGpsInImage):
         return "no GPS in EXIF", "no position given and no GPS position in its EXIF"
     if isinstance(exc, UnsupportedImageFormat) and ("HEIC" in text or "AVIF" in text):
         return "HEIC unsupported", HEIC_UNSUPPORTED
     if isinstance(exc, UnsupportedImageFormat):
         return "unsupported format", text
-    if isinstance(exc, ImageTooLarge):
+    if isinstance(exc, ImageTooLarge | FileTooLarge):
         return "too large", text
     if isinstance(exc, ImageTooSmall):
         return "too small", text
     if isinstance(exc, UnreadableImage):
         return ("not an image" if "are not a" in text or "empty" in text else "damaged or truncated"), text
+    if isinstance(exc, NotARegularFile):
+        return "not a regular file", f"not read: {exc.strerror or exc}"
     if isinstance(exc, OSError):
         return "cannot read the file", f"cannot read the file: {exc.strerror or exc}"
     return "bad metadata", text
@@ -207,7 +212,7 @@ class IngestRun:
         if key.size > limits.max_bytes:  # refused on its size alone: never read
             return "too large", f"the file has {key.size} bytes; the limit is {limits.max_bytes}"
         try:
-            data = item.path.read_bytes()
+            data = read_regular(item.path, self.source.within, limits.max_bytes)
             upload = Upload(data, item.path.name, item.lat, item.lon, item.heading, item.captured_at, item.label)
             return prepare_upload(upload, limits, source=self.source.kind, exif_heading=self.source.exif_heading)
         except (OSError, GeolocError) as e:

@@ -49,6 +49,8 @@ class Source:
     kind: str
     path: Path
     split: str | None = None
+    #: The folder every file must stay in, links not followed (a library scan's folder); None: any file.
+    within: Path | None = None
 
     @property
     def exif_heading(self) -> bool:
