@@ -32,12 +32,18 @@ class PeakRss:
         self._thread.start()
         return self
 
+    def _read(self) -> None:
+        try:
+            self.peak = max(self.peak, rss_bytes(self.pid))
+        except (OSError, RuntimeError):  # the process has ended (a command measured to its end)
+            self._stop.set()
+
     def _sample(self) -> None:
         while not self._stop.is_set():
-            self.peak = max(self.peak, rss_bytes(self.pid))
+            self._read()
             time.sleep(self.every_s)
 
     def __exit__(self, *exc) -> None:
         self._stop.set()
         self._thread.join()
-        self.peak = max(self.peak, rss_bytes(self.pid))
+        self._read()
