@@ -699,13 +699,15 @@ def backup(
     dest: Annotated[Path, typer.Argument(help="an empty or new folder")], data_dir: DataDir = _S.data_dir
 ) -> None:
     """Copy the data dir while it is in use: SQLite through its online backup API, then the images, their
-    stored local features and the newest index snapshot."""
+    stored local features, the photo library's journal and write-back copies and the newest index snapshot."""
     from app.usecases.operations import backup_data_dir
 
     summary = backup_data_dir(data_dir, dest)
+    library = summary["library"]
     typer.echo(
         f"backed up {summary['references']} references ({summary['images']} images, "
         + "".join(f"{n} stored features ({p}), " for p, n in summary["stored_features"].items())
+        + (f"the library journal and {library['backups']} write-back copies, " if library["journal"] else "")
         + f"snapshot {summary['snapshot_version']}) to {dest}"
         + (f"; {summary['missing_images']} images were missing" if summary["missing_images"] else "")
     )
@@ -722,7 +724,11 @@ def restore(
     from app.usecases.operations import restore_data_dir
 
     summary = restore_data_dir(source, data_dir)
-    typer.echo(f"restored {summary['references']} references into {data_dir}")
+    library = summary["restored_library"]
+    typer.echo(
+        f"restored {summary['references']} references into {data_dir}"
+        + (f", with the library journal and {library['backups']} write-back copies" if library["journal"] else "")
+    )
 
 
 @app.command()

@@ -6,9 +6,11 @@ found but never verified. This walks the references in id order, a page at a tim
 memory), and makes each missing file from the stored image with the same decode and extractor the encode
 path uses, so a back-filled file is the file ingestion would have written.
 
-Resumable by construction: a file that exists is done, so an interrupted run started again skips what the
-last one wrote and goes on. Safe beside a running service: files are written atomically, and a reference
-deleted meanwhile has its file removed again (its image's removal may have run before the file existed).
+Resumable by construction: a file that exists and reads back intact is done, so an interrupted run started
+again skips what the last one wrote and goes on. Intact, not only there: a damaged file (emptied, truncated,
+bit-flipped) exists too, and only a walk that reads it (its CRC) remakes it; one file is read at a time.
+Safe beside a running service: files are written atomically, and a reference deleted meanwhile has its
+file removed again (its image's removal may have run before the file existed).
 
 Two callers, one walk: ``geoloc features backfill`` (the operator's command) and the server, which starts it
 in the background when it opens a data dir whose configuration stores features and whose last walk did not
@@ -38,7 +40,7 @@ from app.engine.stored_features import encode
 from app.errors import OperationRefused
 from app.permissions import private_dir
 from app.storage.backend import StorageBackend
-from app.storage.feature_files import FeatureFiles, profile_root
+from app.storage.feature_files import FeatureFiles, damage, profile_root
 from app.storage.files import write_image_file
 from app.storage.store import ReferenceStore
 
@@ -53,8 +55,9 @@ class BackfillReport:
     profile: str
     total: int = 0  # indexed references when the walk started (the progress's denominator)
     seen: int = 0  # indexed references looked at
-    present: int = 0  # already had their file (done by ingestion or an earlier run)
+    present: int = 0  # already had an intact file (done by ingestion or an earlier run)
     written: int = 0
+    repaired: int = 0  # of ``written``: in place of a file that was there but failed its check (damaged)
     failed: int = 0  # image missing or undecodable: left without a file (``geoloc check`` names them)
     stopped: bool = False  # asked to stop before the end (the server stopping): the next walk resumes
     skipped: bool = False  # another process was walking this data dir (``wait=False``): left to it
@@ -133,10 +136,13 @@ def _walk(
             if ref.status != "indexed":
                 continue
             report.seen += 1
-            if files.exists(ref.sha256):
+            data = files.read(ref.sha256)
+            if data is not None and damage(data) is None:
                 report.present += 1
             else:
+                before = report.written
                 _make_one(store, pipeline, files, ref.id, ref.sha256, limits, report)
+                report.repaired += data is not None and report.written > before
             if report.seen % every == 0:
                 say(_progress(report))
         if page.next_after is None:
@@ -200,6 +206,7 @@ def _make_one(
 
 def _progress(r: BackfillReport) -> str:
     return (
-        f"features backfill ({r.profile}): {r.seen}/{r.total} indexed references, {r.written} written, "
-        f"{r.present} already there, {r.failed} failed"
+        f"features backfill ({r.profile}): {r.seen}/{r.total} indexed references, {r.written} written"
+        + (f" ({r.repaired} of them in place of a damaged file)" if r.repaired else "")
+        + f", {r.present} already there, {r.failed} failed"
     )

@@ -148,6 +148,16 @@ def fit_generation(
     return target, summary
 
 
+def _fitted_summary(pipeline: Pipeline, references: int) -> tuple[str, str]:
+    """The SVM bank's source and the calibration's note of a saved generation, as ``fit_generation`` says
+    them after fitting it: a re-run continuing an interrupted re-index reports the pipeline it switches
+    to, not the defaults of a fit it never ran."""
+    source = pipeline.manifest.get("svm_bank_source")
+    bank = "none" if pipeline.bank is None else str(source or "fitted")
+    needs = pipeline.calibration.confidence_note(references)
+    return bank, pipeline.calibration.note + (f"; {needs}" if needs else "")
+
+
 def _train_photos(manifest: Path | None) -> list[FitPhoto]:
     """The train rows of ``manifest`` (all its rows when it has none: a manifest of training photos only),
     as training photos that only the bank learns from."""
@@ -290,6 +300,8 @@ def refit(
     if pipeline.fingerprint != target.fingerprint:
         store.abandon_reindex()
         raise RefitError(f"{target.pipeline} is not the pipeline its re-index started with: run `geoloc refit --fresh`")
+    if summary.resumed:  # the fit ran in an earlier process: what it made is in the saved pipeline, not in hand
+        summary.bank, summary.calibration = _fitted_summary(pipeline, store.count("indexed"))
     engine = make_engine(_EngineHost(pipeline, limits), ray=ray, workers=options.workers)  # type: ignore[arg-type]
     try:
         while True:

@@ -33,6 +33,7 @@ import re
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 
+from app.engine.stored_features import StoredFeaturesError, decode
 from app.permissions import private_dir
 from app.storage.files import write_image_file
 
@@ -45,6 +46,17 @@ _SHA256 = re.compile(r"[0-9a-f]{64}")
 def profile_root(data_dir: Path, profile: str) -> Path:
     """Where a profile's files live in a data dir (one folder per profile: two extractors never mix)."""
     return Path(data_dir) / FEATURES / profile
+
+
+def damage(data: bytes) -> str | None:
+    """Why ``data`` is not a stored-features record this code reads (emptied, truncated, bit-flipped: its
+    header, sizes and CRC checked as a request's reader checks them), or None when it is one. A damaged
+    file exists, so asking only whether it exists would call it done and leave every request to meet it."""
+    try:
+        decode(data)
+    except StoredFeaturesError as e:
+        return str(e)
+    return None
 
 
 def delete_everywhere(data_dir: Path, sha: str) -> None:

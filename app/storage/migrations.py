@@ -182,12 +182,7 @@ def upgrade(database: Migratable, steps: tuple[Step, ...] = STEPS) -> list[int]:
         for sql in statements(VERSIONS_SCHEMA):
             db.execute(sql)
         current = int(db.execute("SELECT COALESCE(MAX(version), 0) FROM schema_versions").fetchone()[0])
-        latest = steps[-1].version if steps else 0
-        if current > latest:
-            raise SchemaTooNew(
-                f"{database.backend.describe()} is at schema version {current}, made by a newer version of geoloc "
-                f"(this one knows up to {latest}): run that version, or restore a backup made by this one"
-            )
+        refuse_too_new(database, current, steps)
         applied: list[int] = []
         for step in steps:
             if step.version <= current:
@@ -200,6 +195,18 @@ def upgrade(database: Migratable, steps: tuple[Step, ...] = STEPS) -> list[int]:
             )
             applied.append(step.version)
     return applied
+
+
+def refuse_too_new(database: Migratable, current: int, steps: tuple[Step, ...] = STEPS) -> None:
+    """``SchemaTooNew`` when ``current`` (the database's recorded version) is past the last step this code
+    knows. One rule for the writable open, which refuses to start, and for ``geoloc check``, which opens
+    read-only (no upgrade runs) and would otherwise call such a database sound."""
+    latest = steps[-1].version if steps else 0
+    if current > latest:
+        raise SchemaTooNew(
+            f"{database.backend.describe()} is at schema version {current}, made by a newer version of geoloc "
+            f"(this one knows up to {latest}): run that version, or restore a backup made by this one"
+        )
 
 
 def _check_order(steps: tuple[Step, ...]) -> None:

@@ -11,7 +11,9 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import sqlite3
 import time
+from contextlib import closing
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -22,8 +24,9 @@ from app.engine.configs import DEFAULT_CONFIG
 from app.errors import OperationRefused
 from app.permissions import private_dir, private_tree
 from app.storage.backend import StorageBackend
-from app.storage.feature_files import FEATURES, FeatureFiles, profile_root
+from app.storage.feature_files import FEATURES, FeatureFiles, damage, profile_root
 from app.storage.files import IMAGES
+from app.storage.migrations import SchemaTooNew, refuse_too_new, schema_version
 from app.storage.orphans import MIN_AGE_S, retry_removals, sweep
 from app.storage.settings import storage_backend
 from app.storage.snapshots import (
@@ -40,6 +43,10 @@ from app.usecases.collection import pipeline_source
 BACKUP_MANIFEST = "backup.json"
 KEY_NOTE = f"this backup holds the API key ({KEY_FILE}, mode 0600): keep it as private as the key itself"
 PIPELINES = "pipelines"  # the data dir's re-fitted pipelines, one folder per generation
+#: The photo library's journal (``app.storage.library``) and the copies its write-back keeps of what it
+#: overwrote (``app.library.writeback``): without them a restored data dir cannot undo a write.
+LIBRARY_JOURNAL = "library.sqlite"
+LIBRARY_BACKUPS = "library-backups"
 
 
 @dataclass
@@ -66,6 +73,12 @@ def check_data_dir(data_dir: Path, models_dir: Path, config: str | None) -> Chec
             "(a copy without it?); copy the data dir with `geoloc backup`"
         )
         return r
+    try:  # a read-only open runs no upgrade, so it never meets the refusal a writable open (the server) does
+        refuse_too_new(store.database, schema_version(store.database))
+    except SchemaTooNew as e:
+        r.problems.append(f"{e} (the server refuses to open it; the rest is not checked)")
+        store.close()
+        return r
     counts = {s: store.count(s) for s in ("indexed", "pending", "failed")}
     r.lines.append(f"rows: {counts['indexed']} indexed, {counts['pending']} pending, {counts['failed']} failed")
     quarantined = store.quarantined()
@@ -76,7 +89,7 @@ def check_data_dir(data_dir: Path, models_dir: Path, config: str | None) -> Chec
         )
     rows = store.stored_rows()
     named = {row.image for row in rows}
-    on_disk = {p.name for p in store.images_dir.iterdir() if not p.name.startswith(".")}
+    on_disk, foreign = _listing(store.images_dir)
     missing = [row.id for row in rows if row.image not in on_disk]
     orphans = sorted(on_disk - named)
     r.lines.append(f"images: {len(on_disk)} files, {len(missing)} missing, {len(orphans)} not named by any row")
@@ -84,6 +97,11 @@ def check_data_dir(data_dir: Path, models_dir: Path, config: str | None) -> Chec
         r.problems.append(f"references whose image file is missing: {_sample(missing)}")
     if orphans:
         r.problems.append(f"image files no row names: {_sample(orphans)} (`geoloc check --repair` removes them)")
+    if foreign:
+        r.problems.append(
+            f"entries of {store.images_dir} that are not image files (folders, links): {_sample(foreign)}; "
+            "`geoloc check --repair` leaves them: move them out by hand"
+        )
     _check_leftovers(store, data_dir, r)
     name = store.get_meta("config") or config or DEFAULT_CONFIG
     pipeline = pipeline_source(data_dir, models_dir, store.get_meta("pipeline"), name).load()
@@ -132,18 +150,55 @@ def check_data_dir(data_dir: Path, models_dir: Path, config: str | None) -> Chec
 def _check_stored_features(store: ReferenceStore, profile: str | None, rows, r: CheckReport) -> None:
     """With a configuration that stores local features: the indexed references whose file is missing (they
     are found, but never verified: a data dir ingested before the configuration stored them, or a crash
-    between the file and its row). One listing of the profile's folders, as the images are listed."""
+    between the file and its row) and those whose file is damaged (emptied, truncated, bit-flipped: every
+    request that meets one logs a warning and goes unverified). Each indexed reference's file is read and
+    its CRC checked, one file at a time, folder by folder (nothing kept but the names): at 10^6 references
+    that reads the whole profile's folder, which is this offline command's job, never a request's."""
     if profile is None:
         return
     files = FeatureFiles(profile_root(store.data_dir, profile))
-    stored = set(files.names())
-    indexed = [row for row in rows if row.status == "indexed"]
-    missing = [row.id for row in indexed if row.image.split(".", 1)[0] not in stored]
-    r.lines.append(f"stored features ({profile}): {len(stored)} files, {len(missing)} indexed references without one")
+    indexed = {row.image.split(".", 1)[0]: row.id for row in rows if row.status == "indexed"}
+    stored: set[str] = set()
+    damaged: list[str] = []
+    for sha in files.names():
+        stored.add(sha)
+        if sha not in indexed:
+            continue  # no request reads it (a pending row's file is written again when it is encoded)
+        data = files.read(sha)
+        why = None if data is None else damage(data)  # None: removed meanwhile, with its row
+        if why is not None:
+            damaged.append(f"{indexed[sha]} ({files.path(sha).relative_to(store.data_dir)}: {why})")
+    missing = [ref_id for sha, ref_id in indexed.items() if sha not in stored]
+    r.lines.append(
+        f"stored features ({profile}): {len(stored)} files, {len(missing)} indexed references without one, "
+        f"{len(damaged)} damaged"
+    )
     if missing:
         r.problems.append(
             f"references whose stored features file is missing (found, never verified): {_sample(missing)}"
         )
+    if damaged:
+        r.problems.append(
+            f"references whose stored features file is damaged (never verified; `geoloc features backfill` "
+            f"remakes them): {_sample(damaged)}"
+        )
+
+
+def _listing(images_dir: Path) -> tuple[set[str], list[str]]:
+    """The images folder's regular files (what rows name and what ``--repair`` may remove: the sweep
+    unlinks regular files only) and, apart, its other entries (folders, links, ...), which no row names and
+    the sweep never touches. Names starting with a dot (thumbnails, temporary files) are neither."""
+    files: set[str] = set()
+    foreign: list[str] = []
+    with os.scandir(images_dir) as it:
+        for e in it:
+            if e.name.startswith("."):
+                continue
+            if e.is_file(follow_symlinks=False):
+                files.add(e.name)
+            else:
+                foreign.append(e.name)
+    return files, sorted(foreign)
 
 
 def _check_leftovers(store: ReferenceStore, data_dir: Path, r: CheckReport) -> None:
@@ -182,7 +237,8 @@ def repair_data_dir(data_dir: Path, min_age_s: float = MIN_AGE_S) -> list[str]:
 def backup_data_dir(data_dir: Path, dest: Path) -> dict:
     """The storage backend's dump (SQLite's backup API, PostgreSQL's ``pg_dump``: one state while others
     keep writing). Then the images the copied rows name (from the shared images folder on PostgreSQL), their
-    stored local features, the data dir's re-fitted pipelines, its newest snapshot and its API key file."""
+    stored local features, the data dir's re-fitted pipelines, the photo library's journal and write-back
+    copies, its newest snapshot and its API key file."""
     if dest.exists() and any(dest.iterdir()):
         raise OperationRefused(f"{dest} is not empty: back up into a new or empty folder")
     private_dir(dest, parents=True)
@@ -201,6 +257,7 @@ def backup_data_dir(data_dir: Path, dest: Path) -> dict:
     stored_features = _copy_stored_features(data_dir, dest, names)
     if (data_dir / PIPELINES).is_dir():  # re-fitted pipelines (`geoloc refit`): the codes need theirs
         shutil.copytree(data_dir / PIPELINES, dest / PIPELINES, ignore=shutil.ignore_patterns(".*"))
+    library = _copy_library(data_dir, dest)
     version = None
     try:
         for path in snapshot_files(snapshots):
@@ -214,6 +271,7 @@ def backup_data_dir(data_dir: Path, dest: Path) -> dict:
         "images": copied,
         "missing_images": missing,
         "stored_features": stored_features,
+        "library": library,
         "snapshot_version": version,
         "api_key": holds_key,
         **({"note": KEY_NOTE} if holds_key else {}),
@@ -251,9 +309,10 @@ def restore_data_dir(source: Path, data_dir: Path) -> dict:
         shutil.copy2(path, snapshots / path.name)
     if (source / MANIFEST).exists():
         shutil.copy2(source / MANIFEST, snapshots / MANIFEST)
+    library = _restore_library(source, data_dir)
     _copy_key(source, data_dir)
     private_tree(data_dir)  # PostgreSQL's shared images folder keeps the mode its operator gave it
-    return json.loads((source / BACKUP_MANIFEST).read_text())
+    return {**json.loads((source / BACKUP_MANIFEST).read_text()), "restored_library": library}
 
 
 def _copy_stored_features(data_dir: Path, dest: Path, names: list[str]) -> dict[str, int]:
@@ -277,6 +336,62 @@ def _copy_stored_features(data_dir: Path, dest: Path, names: list[str]) -> dict[
             into.write(sha, data)
             copied[root.name] += 1
     return copied
+
+
+def _copy_library(data_dir: Path, dest: Path) -> dict[str, int]:
+    """The photo library's journal, through SQLite's backup API (it is in WAL mode and a scan or a review
+    may be writing it: a file copy could miss the -wal's pages or tear), then every write-back copy.
+    In that order: a write copies its backup before it records the row naming it, so every backup a
+    copied row names is copied too. Returns the files copied (``journal``: 0 or 1, ``backups``)."""
+    copied = {"journal": 0, "backups": 0}
+    journal = data_dir / LIBRARY_JOURNAL
+    if journal.is_file():  # connecting to a missing file would create it
+        try:
+            with (
+                closing(sqlite3.connect(journal, timeout=30)) as src,
+                closing(sqlite3.connect(dest / LIBRARY_JOURNAL)) as dst,
+            ):
+                src.backup(dst)
+        except sqlite3.DatabaseError:  # not SQLite (damaged): its bytes as they are; the journal refuses it itself
+            (dest / LIBRARY_JOURNAL).unlink(missing_ok=True)
+            shutil.copy2(journal, dest / LIBRARY_JOURNAL)
+        copied["journal"] = 1
+    backups = data_dir / LIBRARY_BACKUPS
+    if backups.is_dir():
+        private_dir(dest / LIBRARY_BACKUPS)
+        for path in sorted(backups.iterdir()):
+            if path.is_file() and not path.is_symlink():
+                shutil.copy2(path, dest / LIBRARY_BACKUPS / path.name)
+                copied["backups"] += 1
+    return copied
+
+
+def _restore_library(source: Path, data_dir: Path) -> dict[str, int]:
+    """Put the library's journal and write-back copies back. The journal names each copy by its absolute
+    path in the data dir it was made in; restored elsewhere those paths lead to the old data dir (gone, or
+    another collection's), so they are rewritten to the same file names in this data dir's copies: undo
+    then puts back the photos' original bytes. Returns the files restored and the paths rewritten."""
+    done = {"journal": 0, "backups": 0, "paths_rewritten": 0}
+    if (source / LIBRARY_BACKUPS).is_dir():
+        private_dir(data_dir / LIBRARY_BACKUPS)
+        for path in sorted((source / LIBRARY_BACKUPS).iterdir()):
+            if path.is_file() and not path.is_symlink():
+                shutil.copy2(path, data_dir / LIBRARY_BACKUPS / path.name)
+                done["backups"] += 1
+    if not (source / LIBRARY_JOURNAL).is_file():
+        return done
+    shutil.copy2(source / LIBRARY_JOURNAL, data_dir / LIBRARY_JOURNAL)
+    done["journal"] = 1
+    into = (data_dir / LIBRARY_BACKUPS).resolve()
+    try:
+        with closing(sqlite3.connect(data_dir / LIBRARY_JOURNAL, timeout=30)) as db, db:
+            rows = db.execute("SELECT id, backup FROM writes WHERE backup IS NOT NULL").fetchall()
+            moved = [(str(into / Path(old).name), i) for i, old in rows if str(into / Path(old).name) != old]
+            db.executemany("UPDATE writes SET backup=? WHERE id=?", moved)
+    except sqlite3.DatabaseError:  # a damaged journal, restored as it was: opening it says what is wrong
+        return done
+    done["paths_rewritten"] = len(moved)
+    return done
 
 
 def _store_dirs(data_dir: Path, backend: StorageBackend) -> tuple[Path, Path]:
