@@ -26,7 +26,7 @@ models_app = typer.Typer(no_args_is_help=True, help="Build model artifacts.")
 app.add_typer(models_app, name="models")
 features_app = typer.Typer(no_args_is_help=True, help="Stored local features (verification from stored files).")
 app.add_typer(features_app, name="features")
-app.add_typer(library_app, name="library")  # issue 36: scan, review, write back, export
+app.add_typer(library_app, name="library")  # scan, review, write back, export
 
 _S = Settings()
 DataDir = Annotated[Path, typer.Option("--data-dir", help="FAISS files, SQLite metadata, stored images")]
@@ -634,6 +634,7 @@ def worker_cmd(
             retry_seconds=_S.worker_retry_seconds,
             max_attempts=_S.encode_attempts,
             sizing=_S.index_sizing(),
+            backend=_S.backend(data_dir),
         )
     except WriterBusy as e:
         _fail(str(e), code=4)
@@ -661,9 +662,9 @@ def check(
     from app.usecases.operations import check_data_dir, repair_data_dir
 
     if repair:
-        for line in repair_data_dir(data_dir, min_age):
+        for line in repair_data_dir(data_dir, _S.backend(data_dir), min_age):
             typer.echo(f"repair: {line}")
-    report = check_data_dir(data_dir, models_dir, config)
+    report = check_data_dir(data_dir, models_dir, config, _S.backend(data_dir))
     for line in report.lines:
         typer.echo(line)
     if report.problems:
@@ -702,7 +703,7 @@ def backup(
     stored local features, the photo library's journal and write-back copies and the newest index snapshot."""
     from app.usecases.operations import backup_data_dir
 
-    summary = backup_data_dir(data_dir, dest)
+    summary = backup_data_dir(data_dir, dest, _S.backend(data_dir))
     library = summary["library"]
     typer.echo(
         f"backed up {summary['references']} references ({summary['images']} images, "
@@ -723,7 +724,7 @@ def restore(
     """Restore a backup into an empty or new data dir (stop the services using it first)."""
     from app.usecases.operations import restore_data_dir
 
-    summary = restore_data_dir(source, data_dir)
+    summary = restore_data_dir(source, data_dir, _S.backend(data_dir))
     library = summary["restored_library"]
     typer.echo(
         f"restored {summary['references']} references into {data_dir}"
@@ -801,7 +802,7 @@ def refit(
         calibration_sample=calibration_sample,
         calibrate_rerank=calibrate_rerank,
     )
-    s = run_refit(data_dir, models_dir, options, ray=ray, limits=_S.image_limits())
+    s = run_refit(data_dir, models_dir, options, ray=ray, limits=_S.image_limits(), backend=_S.backend(data_dir))
     secs = ", ".join(f"{k} {v:.1f} s" for k, v in s.seconds.items())
     typer.echo(
         f"switched {data_dir} to generation {s.generation} ({s.config}, pipeline {data_dir / s.pipeline}"

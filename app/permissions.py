@@ -41,7 +41,7 @@ def create_private_file(path: Path) -> None:
 def private_tree(root: Path) -> None:
     """Make ``root`` and every folder under it 0700 and every file 0600 (links are left alone). For what a
     backup or a restore writes: ``shutil`` and SQLite's backup create files with the umask's mode (0644 under
-    the usual 022), and a backup holds every photo, position and the API key (issue 30)."""
+    the usual 022), and a backup holds every photo, position and the API key."""
     os.chmod(root, PRIVATE_DIR)
     for folder, dirs, files in os.walk(root):
         for name in dirs:

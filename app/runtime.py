@@ -3,9 +3,9 @@
 glibc's malloc hands buffers above a *dynamic* threshold straight to mmap and gives them back on free,
 so each SIFT pyramid can pay fresh page faults until the threshold happens to adapt, which depends on
 what the process did before. Measured on 1600 px penn photos, one thread (as ``geoloc eval``/``ingest``
-and the benchmark's floor run): RootSIFT 70-87 ms in a fresh process, 45-50 ms with a fixed 64 MB mmap
-threshold. In a thread pool with decoding in between (the server) both settings measured 53 ms: no gain,
-no loss. The cost is at most 128 MB of freed memory kept for reuse. ``GEOLOC_MALLOC_TUNING=0`` turns it
+and the benchmark's floor run), RootSIFT in a fresh process is markedly faster with a fixed 64 MB mmap
+threshold; in a thread pool with decoding in between (the server) both settings measured the same: no
+gain, no loss. The cost is at most 128 MB of freed memory kept for reuse. ``GEOLOC_MALLOC_TUNING=0`` turns it
 off; other C libraries are left alone.
 
 Every setting here is a ``Settings`` field (``malloc_tuning``, ``malloc_trim``, ``blas_threads``) that the
@@ -59,8 +59,8 @@ def release_free_memory() -> bool:
     """Hand the allocator's free memory back to the kernel (glibc ``malloc_trim(0)``, all arenas).
 
     Why: with the thresholds above, a 49 MP decode's buffers come from the per-thread arenas, and glibc
-    keeps what they free (up to the 128 MB trim threshold each) after the request: eight concurrent 49 MP
-    uploads left RSS 1.9 GB above idle for good (issue 18). Called after large decodes only; it costs a
+    keeps what they free (up to the 128 MB trim threshold each) after the request, so a few concurrent large
+    uploads left RSS far above idle for good (bench/locate_memory.py). Called after large decodes only; it costs a
     walk over the arenas (milliseconds). False where the C library has no malloc_trim, or where the
     process's settings turned it off (``GEOLOC_MALLOC_TRIM=0``, ``configure_allocator``)."""
     global _libc_trim
@@ -88,8 +88,8 @@ def serving_blas_threads(threads: int = SERVING_BLAS_THREADS) -> int | None:
     Why: a query's BLAS work is one vector through the PCA-whitening (a few ms), yet after each parallel
     call OpenBLAS's worker threads spin, busy, for about 2^28 cycles before they sleep, and that spinning
     falls on the next query's SIFT and CNN. Measured on 2 cores (``lite2-hybrid-384``, 1600 px photos, the
-    service in-process): 234 ms of CPU and 118 ms of wall time per /locate with the default threads, 110 ms
-    and 70 ms with one. A fit has its own fixed count (``fit_threads``)."""
+    service in-process), one thread cuts both the CPU and the wall time of a /locate markedly (docs/BENCHMARKS.md,
+    "A faster default"). A fit has its own fixed count (``fit_threads``)."""
     import numpy  # noqa: F401  (threadpoolctl limits the BLAS libraries already loaded: numpy's)
     from threadpoolctl import threadpool_info, threadpool_limits
 
@@ -120,12 +120,12 @@ def fit_threads():
     ``FIT_THREADS`` threads, whatever the machine: the fit's k-means, PCA-whitening, ITQ, SVM bank and
     calibration run inside it.
 
-    Why one thread, on every machine (issue 34): a parallel reduction sums in an order set by the thread
+    Why one thread, on every machine: a parallel reduction sums in an order set by the thread
     count, so the same manifest fitted with 1 and with 2 BLAS threads gave another PCA (another float in the
     last place is enough to move a k-means assignment, a threshold, a ranked id), and the README's demo
     figures differed from one machine to the next. It is also faster where cores are busy: OpenMP's threads
     spin at every one of mini-batch k-means's small parallel steps, and on 2 loaded cores a fit's k-means
-    took minutes with 2 threads (18.8 s against 6.8 s with one on 40,000 descriptors, the same centres).
+    took several times as long with 2 threads as with one (the same centres).
     Feature extraction (onnxruntime, OpenCV) keeps its own threads: it is per image, and gives the same
     features with any count (tests/test_fit_reproducible.py)."""
     from threadpoolctl import threadpool_limits

@@ -43,7 +43,7 @@ class Settings(StorageSettings):
         "fitted on them and they are ingested, at the server's first start (app/jobs/first_start.py)",
     )
     library_root: Path | None = Field(
-        None, description="the folder whose sub-folders POST /library/scans may read (unset: none; issue 36)"
+        None, description="the folder whose sub-folders POST /library/scans may read (unset: none)"
     )
     api_key: str | None = Field(
         None, description="the key writes need in X-API-Key; unset: DATA_DIR/api_key, made at the first start"

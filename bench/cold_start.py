@@ -55,6 +55,7 @@ import numpy as np
 
 from app.engine.configs import DEFAULT_CONFIG
 from app.engine.pipeline import load_pipeline
+from app.storage.settings import StorageSettings
 from app.storage.store import ReferenceStore
 from bench.common import is_photo, machine, penn_rows
 from bench.pg_catchup import FLOAT_DIM, _seed_rows
@@ -76,7 +77,7 @@ def seed_data_dir(data: Path, refs: int, images: int, models: Path, config: str,
     """``refs`` indexed references in ``data`` (and in GEOLOC_DATABASE_URL's database when set); seconds."""
     t0 = time.perf_counter()
     seed(data, min(images, refs), models, config)
-    store = ReferenceStore(data)
+    store = ReferenceStore(data, backend=StorageSettings().backend(data))
     rng = np.random.default_rng(1)
     for start in range(min(images, refs), refs, batch):
         _seed_rows(store, rng, start, min(batch, refs - start))

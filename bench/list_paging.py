@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from app.storage.settings import StorageSettings
 from app.storage.store import ReferenceStore
 from tools.postgres_server import PostgresServer
 
@@ -73,7 +74,7 @@ def measure(store: ReferenceStore, refs: int, reps: int) -> dict[str, float]:
 
 
 def _one_engine(data: Path, refs: int, reps: int) -> dict:
-    store = ReferenceStore(data)
+    store = ReferenceStore(data, backend=StorageSettings().backend(data))
     try:
         seed_s = _seed(store, refs)
         print(f"[{store.engine}] {refs:,d} rows written in {seed_s:.0f} s", flush=True)

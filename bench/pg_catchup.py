@@ -39,6 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from app.storage.postgres import _bind, translate
+from app.storage.settings import StorageSettings
 from app.storage.store import NewReference, ReferenceStore
 from bench.scale_codes import unit_rows
 from tools.postgres_server import PostgresServer
@@ -97,7 +98,7 @@ def _seed_rows(store: ReferenceStore, rng: np.random.Generator, start: int, n: i
 
 def _seed(data: Path, refs: int, add_rows: int, batch: int, seed_batch: int) -> tuple[ReferenceStore, float, float]:
     """The store with ``refs`` references; returns it, the ``add_many`` rate (rows/s) and the seed's time."""
-    store = ReferenceStore(data)
+    store = ReferenceStore(data, backend=StorageSettings().backend(data))
     rng = np.random.default_rng(0)
     t0 = time.perf_counter()
     added = min(add_rows, refs)
@@ -139,7 +140,7 @@ def _cold_start(data: Path) -> dict:
 
 def _cold_read(data: Path) -> None:
     """``--cold-read DIR``: the child process of ``_cold_start``; prints one line of JSON."""
-    store = ReferenceStore(data, read_only=True)
+    store = ReferenceStore(data, read_only=True, backend=StorageSettings().backend(data))
     base = _rss_mb()
     t0 = time.perf_counter()
     with store.code_stream() as stream:
@@ -221,7 +222,7 @@ def _one_engine(name: str, data: Path, args) -> dict:
     print(f"{name}: {args.refs} references stored in {seed_s:.0f} s", flush=True)
     cold = _cold_start(data)
     assert cold["n"] == args.refs, cold
-    reader = ReferenceStore(data)
+    reader = ReferenceStore(data, backend=StorageSettings().backend(data))
     catch = _catch_up_ms(store, reader, args.changes)
     out = {
         "engine": name,

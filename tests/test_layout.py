@@ -113,3 +113,29 @@ def sql_outside_storage() -> list[str]:
 
 def test_sql_lives_in_storage_only():
     assert sql_outside_storage() == []
+
+
+ISSUE_NUMBER = r"(?i)\bissues? #?[0-9]"
+
+
+def lines_citing_issue_numbers() -> list[str]:
+    """``file:line`` of every line of app/ (vendored third-party code aside) that names an issue by number:
+    the code says why, and the history of a change lives in the tracker and the commits."""
+    import re
+
+    vendor = APP / "web" / "static" / "vendor"
+    found = []
+    for path in sorted(APP.rglob("*.py")):
+        if path.is_relative_to(vendor):
+            continue
+        for number, line in enumerate(path.read_text().splitlines(), start=1):
+            if re.search(ISSUE_NUMBER, line):
+                found.append(f"{path.relative_to(APP.parent)}:{number}")
+    return found
+
+
+def test_the_code_never_cites_issue_numbers():
+    """Comments and docstrings say why, not which issue asked for it (docs/RESULTS.md and docs/BENCHMARKS.md
+    hold the measured figures and name their commands)."""
+    found = lines_citing_issue_numbers()
+    assert found == [], "issue numbers cited at:\n" + "\n".join(found)

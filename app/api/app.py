@@ -27,7 +27,7 @@ from app.storage.shared_images import ImagesNotShared, check_images_shared
 from app.usecases.service import GeolocService
 
 log = logging.getLogger("geoloc.api")
-#: The page (issue: drop a photo, see where it was taken). Leaflet and Swagger UI are copied into vendor/ by
+#: The page (drop a photo, see where it was taken). Leaflet and Swagger UI are copied into vendor/ by
 #: `make setup` from the npm registry, never loaded from a CDN.
 WEB_DIR = Path(__file__).resolve().parents[1] / "web" / "static"
 #: The back-fill thread's niceness (0-19; higher yields more): requests first, the back-fill with what is left.
@@ -49,7 +49,7 @@ def _run_writer(app: FastAPI, service: GeolocService) -> None:
     def started(worker: IngestWorker) -> None:
         state.worker = worker  # /ready says in-process once everything runs
 
-    writer = Writer(s.data_dir, s.worker_batch, on_batch=count, logger=log, max_attempts=s.encode_attempts)
+    writer = Writer(s.backend(s.data_dir), s.worker_batch, on_batch=count, logger=log, max_attempts=s.encode_attempts)
     state.writer = writer
     if not writer.start(service, retry_seconds=s.worker_retry_seconds, on_started=started):
         log.warning(
@@ -73,7 +73,16 @@ def _first_start(app: FastAPI) -> None:
         state.load_error = line
 
     workers = min(4, usable_cpus())  # extraction threads; each holds one decoded photo
-    run_first_start(s.data_dir, s.models_dir, s.config, s.initial_photos, say, s.image_limits(), workers=workers)
+    run_first_start(
+        s.data_dir,
+        s.models_dir,
+        s.config,
+        s.initial_photos,
+        say,
+        s.image_limits(),
+        workers=workers,
+        backend=s.backend(s.data_dir),
+    )
 
 
 def _backfill(app: FastAPI, stop: threading.Event) -> None:
@@ -175,7 +184,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         loader.join(timeout=60)
         if app.state.backfill_thread is not None:  # stops between two references
             app.state.backfill_thread.join(timeout=60)
-        if getattr(app.state, "library", None) is not None:  # issue 36: its scans stop between two photos
+        if getattr(app.state, "library", None) is not None:  # its scans stop between two photos
             app.state.library.close()
         if app.state.listener is not None:
             app.state.listener.stop()

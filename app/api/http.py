@@ -1,7 +1,7 @@
 """uvicorn's HTTP/1.1 protocols with a bound on how long a request's line and headers may take to arrive.
 
 Why: uvicorn bounds an idle keep-alive connection (``timeout_keep_alive``) but not a request whose headers
-never finish: 200 sockets that sent half a header line were held until the client went away (issue 30), a
+never finish: sockets that sent half a header line were held until the client went away, a
 slow-loris that needs no key. Here a connection must deliver each request's line and headers within
 ``GEOLOC_HEADER_TIMEOUT_SECONDS`` of the moment the server waits for them (the connection opened, or the
 previous request was read and answered); it is closed otherwise. A request being answered is never cut:

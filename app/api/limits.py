@@ -2,7 +2,7 @@
 
 FastAPI parses a multipart form (spooling its files to temporary files) before any dependency runs, so a
 size check in a route, or the key check of ``write_access``, comes after the whole body has been read: a
-300 MB body with no key used to get its 401 after 224 MB had been spooled. This pure ASGI middleware runs
+large body with no key used to get its 401 only after most of it had been spooled. This pure ASGI middleware runs
 first: it finds the route, runs the route's own access dependencies (app/api/deps.py) on the headers,
 refuses a declared ``Content-Length`` over the route's limit, and counts the bytes as the app reads them,
 answering 413 the moment they pass the limit. A refusal with body bytes still unread closes the

@@ -41,8 +41,8 @@ DOCS_HEADERS = {"Content-Security-Policy": "frame-ancestors 'none'", **_NOT_FRAM
 class HtmlPolicy:
     """Every HTML answer gets the page's policy unless it set its own (``/docs``), and every answer the
     framing and sniffing rules. Why a middleware and not headers per route: ``/static/index.html`` served the
-    working page (where the key is typed) through StaticFiles with none of them, so it could be framed
-    (issue 30); any route or mount that serves HTML now gets them."""
+    working page (where the key is typed) through StaticFiles with none of them, so it could be framed;
+    any route or mount that serves HTML now gets them."""
 
     def __init__(self, app: ASGIApp):
         self.app = app

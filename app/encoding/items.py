@@ -68,8 +68,8 @@ def encode_data(
 ) -> Encoded:
     """Image bytes to codes; a bad image is a permanent failure of that row, never an exception. So is any
     other failure while encoding it (a library's assertion on an odd image, a bug): it fails that row alone,
-    with its reason, and the rest of its batch goes on (issue 30: one row's ``cv2.error`` failed its whole
-    batch, which was retried whole, for ever)."""
+    with its reason, and the rest of its batch goes on (one row's ``cv2.error`` would otherwise fail its
+    whole batch, which would be retried whole, for ever)."""
     try:
         img = pipeline.decode(data, limits.stored())
         codes = pipeline.encode_image(img.rgb)
@@ -97,8 +97,8 @@ def _stored_features(pipeline: Pipeline, img: LoadedImage) -> bytes | None:
 
 def _thumbnail(img: LoadedImage, size: int | None) -> bytes | None:
     """The thumbnail from the encoder's own decode, when that decode holds enough pixels for it (a photo
-    is decoded at the pipeline's scale: 384 px or more for the default). Why here: a 49 MP WebP decoded
-    again for its thumbnail cost 0.75 GB and 2 s a request (issue 30); the encoder has the pixels already."""
+    is decoded at the pipeline's scale: 384 px or more for the default). Why here: a large WebP decoded
+    again for its thumbnail costs a second full decode a request; the encoder has the pixels already."""
     if not size or max(img.rgb.shape[:2]) < min(size, max(img.original_size)):
         return None
     return thumbnail_of(img.rgb, size)

@@ -1,9 +1,9 @@
 """Know when it does not know: each candidate's ``p_within_25m`` and the confidence rule, fitted on the
 user's own collection.
 
-Why on the collection itself: a mapping fitted on penn-campus-gps gave 0.83-0.89 to every query of a user's
-21-photo collection, wrong ones included, and 0.27 to the median photo of a place the collection does not
-hold. So ``geoloc fit`` and ``geoloc refit`` locate a seeded sample of the references against the others
+Why on the collection itself: a mapping fitted on penn-campus-gps gave nearly the same high probability to every
+query of a small user collection, wrong ones included, and a sizeable one to photos of places the collection
+does not hold. So ``geoloc fit`` and ``geoloc refit`` locate a seeded sample of the references against the others
 (``app.usecases.fitting.calibrate_collection``): once with the reference's own capture left out (the place is
 present, when another capture shows it) and once with every reference within ``absent_radius_m`` removed
 (the place is absent). A logistic regression on the evidence (``app.engine.evidence``) of those answers'
@@ -61,10 +61,10 @@ CONSERVATIVE_SHARE = 0.8
 SAME_COLLECTION_SHARE = 0.5
 #: About how many references (photos and crops, several per place) a collection needs before its own
 #: calibration finds a level at which answers are confident: measured on penn-campus-gps by refitting
-#: subsets of whole captures (``python -m bench.calibration_size``, docs/RESULTS.md): none of 7 refits of
-#: 22-123 references found one, 1 of 4 of 160-243, both of 320 and 389.
+#: subsets of whole captures (``python -m bench.calibration_size``, docs/RESULTS.md): refits of a hundred
+#: or so references found none, refits of a few hundred did.
 CONFIDENT_FROM_REFERENCES = 300
-#: The share of confident answers whose truth lies within the stated radius (issue 32): what the answer states.
+#: The share of confident answers whose truth lies within the stated radius: what the answer states.
 RADIUS_RATE = 0.9
 #: The fewest sampled answers a bin of evidence strength holds (fewer merge into a neighbour): with 30, the
 #: conformal quantile at 90 % is the 28th smallest error, and the bin's coverage lies between 90 % and 93 %
@@ -161,8 +161,8 @@ class Calibration:
         fitted on (``present`` of them); else the conservative rule, saying why.
 
         Why: a data dir that reads the models dir's pipeline (any ``geoloc ingest --data-dir D``) used to be
-        judged by the demo collection's figures: 20 penn photos read "not in this collection (best 4 %)"
-        for a candidate 0 m from the truth. A collection is judged by its own calibration or by none."""
+        judged by the demo collection's figures: penn photos read "not in this collection" for a
+        candidate at the very spot they were taken. A collection is judged by its own calibration or by none."""
         if not self.calibrated:
             return self
         if not self.references:
@@ -271,11 +271,11 @@ class Calibration:
         never below ``RADIUS_FLOOR_M`` nor below ``constant_m`` (the constant rule's radius for this answer,
         ``fuse_position``'s); (None, None) without a fitted radius (the constant rule alone then).
 
-        Why never below the constant rule: the calibration's sample is easier than real queries (on
-        penn-campus-gps 5 folds its Brier is 0.05 against 0.115 on the held-out queries; it locates the
-        collection's own references under an SVM bank trained on them), so its conformal radii alone held
-        for 72 % of confident answers, not 90 % (docs/RESULTS.md, issue 32 item 4). The larger of the two
-        held for 98 %; the conformal radius widens an answer whose bin's errors are larger than the rule's."""
+        Why never below the constant rule: the calibration's sample is easier than real queries (its Brier
+        score is well below the held-out queries'; it locates the collection's own references under an SVM
+        bank trained on them), so its conformal radii alone held for clearly fewer confident answers than the
+        ``RADIUS_RATE`` stated (docs/RESULTS.md). The larger of the two held for more than it; the conformal
+        radius widens an answer whose bin's errors are larger than the rule's."""
         r = self.radius
         if not r:
             return None, None
@@ -391,10 +391,10 @@ def max_p(captures: float, z: float = CEILING_Z) -> float:
     """The highest probability a calibration that located ``captures`` captures (place present) states: the
     lower end of the one-sided Wilson interval (``z``) had every one of them been right, n / (n + z^2).
 
-    Why: the logistic regression extrapolates from few captures with the confidence of many: a 60-reference
-    collection (11 captures) stated 0.965 for an answer 289 m off. A probability cannot say more than the
-    collection's own sample could show, and a small sample shows less: 0.87 from 11 captures, 0.976 from
-    the 68 of penn-campus-gps (whose confident threshold, 0.81-0.92, lies below)."""
+    Why: the logistic regression extrapolates from few captures with the confidence of many: a small
+    collection stated a near-certain probability for an answer hundreds of metres off. A probability cannot
+    say more than the collection's own sample could show, and a small sample shows less: 0.87 from 11
+    captures, 0.976 from the 68 of penn-campus-gps (whose confident threshold lies below)."""
     return float(captures / (captures + z * z)) if captures > 0 else 0.0
 
 

@@ -68,8 +68,8 @@ class PipelineConfig(BaseModel):
     binary_index: str = "flat"
     shortlist: int = 100  # two-stage: binary shortlist size before the float re-rank
     #: Where both kinds are ``flat``, a large collection switches to the compressed kinds (ivf-rabitq for
-    #: floats, binary-ivf for bits) once it holds ``Settings.index_switch_at`` references (issue 35;
-    #: ``Collection``). False: the named kinds serve at every size. A configuration that names another kind
+    #: floats, binary-ivf for bits) once it holds ``Settings.index_switch_at`` references
+    #: (``Collection``). False: the named kinds serve at every size. A configuration that names another kind
     #: keeps it whatever this says.
     index_by_size: bool = True
     #: ``geoloc fit`` trains an SVM bank (from the collection, METHOD.md "SVM bank") and queries aggregate
@@ -179,7 +179,7 @@ CONFIGS: dict[str, PipelineConfig] = {
         PipelineConfig(
             name="hybrid",
             description="Feature-level hybrid (RootSIFT + fire9 sampled at each keypoint) MBVLAD, joined with "
-            "fire9 GeM, PCA-whitened floats (the default until issue 21)",
+            "fire9 GeM, PCA-whitened floats (the former default)",
             **_HYBRID,
         ),
         PipelineConfig(
@@ -327,7 +327,7 @@ for _config in [
 ]:
     CONFIGS[_config.name] = _config
 
-# Issue 35: the same pipelines over the index kinds for 10^6-10^7 references (IVF with an exact quantizer:
+# The same pipelines over the index kinds for 10^6-10^7 references (IVF with an exact quantizer:
 # RaBitQ codes re-ranked exactly from the float codes; binary IVF for Hamming codes). The codes, and so the
 # fitted pipelines, are those of the configurations they derive from; only the index differs.
 for _base, _kinds in [
@@ -345,9 +345,9 @@ for _base, _kinds in [
     )
     CONFIGS[_config.name] = _config
 
-# The default since issue 21: it wins R@1 (0.360 against hybrid's 0.320), R@5 (0.593 against 0.549) and
-# confident-and-right answers (10.7 % of queries against 9.7 %) on penn-campus-gps, 5 folds, in 0.78x hybrid's
-# /locate time (docs/RESULTS.md, "A faster default"). Data dirs built before keep the configuration they record.
+# The default: it beats hybrid at R@1, R@5 and confident-and-right answers on penn-campus-gps (5 folds), in
+# less /locate time than hybrid (docs/RESULTS.md, "A faster default"). Data dirs built before keep the
+# configuration they record.
 DEFAULT_CONFIG = "lite2-hybrid-384"
 
 

@@ -26,7 +26,7 @@ def gem_pool(fire9: np.ndarray, p: float = 3.0) -> np.ndarray:
     """Generalised-mean pooling of an (H, W, C) ReLU map, L2-normalised: the global CNN descriptor."""
     x = np.maximum(fire9.reshape(-1, fire9.shape[-1]), np.float32(1e-6), dtype=np.float32)
     # The default p = 3 as two float32 products summed in float64: np.power over a float64 copy of a
-    # 720-channel map took 6 ms of each query, this 1 ms, and the descriptor moves by float32 rounding only.
+    # 720-channel map cost several times as much per query, and the descriptor moves by float32 rounding only.
     powered = x * x * x if p == 3 else np.power(x.astype(np.float64), p)
     g = np.power(powered.sum(axis=0, dtype=np.float64) / len(x), 1.0 / p)
     return (g / max(np.linalg.norm(g), 1e-12)).astype(np.float32)

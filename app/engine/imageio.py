@@ -9,7 +9,7 @@ them.
 PNG, WebP and TIFF have no reduced decoding: a 49 MP one must be decoded whole (147 MB as RGB, from a PNG
 of a few tens of KB). It is reduced (a box filter, like the JPEG path's DCT scaling) straight after the
 decode, before any other copy is made, and such full decodes share a process-wide pixel budget, so eight
-concurrent uploads cannot hold eight of them at once (issue 18: 8 x 49 MP PNGs took RSS up by 2.7 GB).
+concurrent uploads cannot hold eight of them at once.
 """
 
 from __future__ import annotations
@@ -37,7 +37,7 @@ except ImportError:  # pragma: no cover - depends on the environment
 #: The most a network's input may be long, in multiples of its short side: a panorama wider than 4:1 is
 #: scaled so that its long side is 4 x the short side asked for (its short side is then smaller than asked;
 #: ``app.engine.dense.resize_short_side``). Photos of 4:3, 16:9 and 3:1 are scaled as before; what one image
-#: asks of a network is bounded (issue 30: a 49000 x 32 strip was scaled to 514,500 x 336).
+#: asks of a network is bounded (unbounded, a 49000 x 32 strip would be scaled to 514,500 x 336).
 MAX_INPUT_ASPECT = 4
 
 GPS_IFD = 0x8825
@@ -59,7 +59,7 @@ class ImageLimits:
     max_pixels: int = 50_000_000
     min_side: int = 32
     #: The most the long side may be of the short side. A strip of 49000 x 32 pixels (a 5 KB PNG) describes
-    #: no place, and a network that scales its short side up would be asked for 173 MP of work (issue 30).
+    #: no place, and a network that scales its short side up would be asked for 173 MP of work.
     #: Phone panoramas are up to about 6:1; 360-degree ones 2:1.
     max_aspect: float = 10.0
     #: Decode-time downscale target: the long side after decoding is at least this and at most ~2x it.
@@ -185,9 +185,9 @@ def load_image(
             f"the image is {w} x {h}: one side is {max(w, h) / min(w, h):.0f} times the other, the limit is "
             f"{limits.max_aspect:g}; crop it to the part that shows the place"
         )
-    # ``is_animated``, never ``n_frames``: counting a TIFF's frames walks its whole IFD chain (250,000 IFDs
-    # of one shared strip took 244 s); whether a second frame exists is known from the first IFD. A TIFF or
-    # MPO is read as its first frame, the photo.
+    # ``is_animated``, never ``n_frames``: counting a TIFF's frames walks its whole IFD chain (a crafted file of
+    # a few hundred thousand IFDs sharing one strip took minutes); whether a second frame exists is known from
+    # the first IFD. A TIFF or MPO is read as its first frame, the photo.
     if img.format not in ("MPO", "TIFF") and getattr(img, "is_animated", False):
         raise UnsupportedImageFormat("animated images are not supported; send a single photo")
     gps, captured_at = read_exif_gps(img)

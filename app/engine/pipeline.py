@@ -36,10 +36,10 @@ from app.engine.svm_bank import SvmBank
 from app.engine.vlad import Codebook, vlad
 
 PIPELINE_MANIFEST = "pipeline.json"
-#: A decode keeps at least this many times the sides a pipeline's branches read (issue 33). At 1 (decoding
+#: A decode keeps at least this many times the sides a pipeline's branches read. At 1 (decoding
 #: at the branches' scale, JPEG DCT scaling to between 1x and 2x), a 1600 px JPEG was read at 800 px, the same
 #: pixels as a PNG at 533 px (box reduce by 3) and its 12 MP original at 504 (DCT 1/8): three pictures for
-#: one photo, and hybrid R@1 on whole photos fell from 0.45 to 0.325. At 2 a 1600 px photo is decoded whole
+#: one photo, and hybrid R@1 on whole photos fell (docs/RESULTS.md). At 2 a 1600 px photo is decoded whole
 #: whatever its container, a 12 MP one at 1/4 (JPEG) or by a box of 4 (PNG), and the branches' area filters
 #: do the rest.
 DECODE_OVERSAMPLE = 2
@@ -83,8 +83,8 @@ class _Timer:
 
 
 #: Runs the global model of a hybrid while the caller's thread extracts local features: OpenCV's SIFT and
-#: onnxruntime release the GIL and neither keeps two cores busy alone, so the two branches overlap (a 1600 px
-#: photo's extraction took 0.75x the time on this 2-core machine; bench/locate_normalised.py). Shared by
+#: onnxruntime release the GIL and neither keeps two cores busy alone, so the two branches overlap (a photo's
+#: extraction takes less time on two cores; bench/locate_normalised.py). Shared by
 #: every pipeline in the process, bounded, so concurrent requests queue here instead of adding threads.
 #: Made per process: a forked child would inherit an executor whose threads it does not have.
 _BRANCHES: tuple[int, ThreadPoolExecutor] | None = None
@@ -102,7 +102,7 @@ def _branches() -> ThreadPoolExecutor:
 def _settle(job: Future | None) -> None:
     """Cancel a branch's job that has not started, or wait for one that has (its outcome is not wanted).
     Why wait: a thread cannot be stopped, and a job left running after its request failed held memory that
-    no extraction slot accounted for (issue 30: the CNN branch of a failed request grew to 19 GB)."""
+    no extraction slot accounted for."""
     if job is not None and not job.cancel():
         wait([job])
 
@@ -209,7 +209,7 @@ class Pipeline:
         ``DECODE_OVERSAMPLE`` times the sides ``decode_sides`` reads): the one decode of queries, references,
         fitting and evaluation, so all see the same pixels. Each branch then resizes with its own area
         filter from at least twice its size, so the container's reduction (JPEG's DCT scaling, PNG's box
-        reduce, or none) no longer decides which pixels a branch sees (issue 33)."""
+        reduce, or none) no longer decides which pixels a branch sees."""
         long_side, short_side = self.decode_sides
         return load_image(
             data,
@@ -231,7 +231,7 @@ class Pipeline:
                 with _Timer(t, "local_features"):
                     lf = self._local(rgb)
             except BaseException:
-                _settle(cnn)  # no work of this request may outlive its answer (issue 30)
+                _settle(cnn)  # no work of this request may outlive its answer
                 raise
             local, xy, orb_raw = lf.descriptors, lf.xy, lf.raw
         if self.global_model is not None:

@@ -44,12 +44,11 @@ class StoredProfile:
     stop_margin: float | None = 0.5
     #: Inliers up to this count nothing in the fused score (``matchers.fusion.fused_score``'s ``floor``), and the
     #: adaptive stop reads the same score. The floor is the chance level of the candidates retrieval confuses,
-    #: not of random pairs: XFeat pairs over 150 m apart had 0 inliers median, 12 at p90 on penn-photos-40, but
-    #: the WRONG (beyond 25 m) candidates among the verified top 10 of penn-campus-gps's 5 folds had 18 median,
-    #: 40 at p90 and 48 at p95 (a shared facade verifies from 30-45 m). At the old floor 12 verification lost
-    #: R@1 (0.360 against 0.372 unverified); at that p95 (47-48 when chosen per fold on the other four folds)
-    #: it gives 0.385 (``bench.fusion_replay``, then a 5-fold run; docs/RESULTS.md, "Verified confidence from
-    #: stored features").
+    #: not of random pairs: XFeat pairs far apart have few inliers (their p90 was the old floor, 12), but the
+    #: WRONG (beyond 25 m) candidates among the verified top 10 of penn-campus-gps's 5 folds have many more (a
+    #: shared facade verifies from across a street); the floor is their p95. At the old floor verification lost
+    #: R@1 against no verification; at this one it gains (``bench.fusion_replay``, then a 5-fold run;
+    #: docs/RESULTS.md, "Verified confidence from stored features").
     fusion_floor: int = 48
 
 

@@ -1,4 +1,4 @@
-"""How well a confidence score ranks the answers (issue 32, item 3): ours against published training-free
+"""How well a confidence score ranks the answers: ours against published training-free
 baselines, on the same queries.
 
 Per query whose place the collection holds, the label is "the answer's first candidate lies within the

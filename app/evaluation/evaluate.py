@@ -70,7 +70,7 @@ class BankSummary(BaseModel):
 
 
 class AnswerQuality(BaseModel):
-    """How far the answers can be trusted (issue 20): confident answers' precision (estimate within the
+    """How far the answers can be trusted: confident answers' precision (estimate within the
     radius) and coverage, and the Brier score and reliability of ``p_within_25m`` over the first candidates;
     ``absent``: the same queries with every reference within ``absent_radius_m`` of them removed."""
 
@@ -80,7 +80,7 @@ class AnswerQuality(BaseModel):
     #: mostly the same facade photographed from across a street or quad, 29-47 m away).
     precision_at_2x_radius: float | None = None
     #: Of the confident answers: the truth within the stated radius, overall and in the quartile with the
-    #: weakest evidence; the median radius stated; the rate stated (issue 32; None: the constant rule's radii).
+    #: weakest evidence; the median radius stated; the rate stated (None: the constant rule's radii).
     radius_coverage: float | None = None
     radius_coverage_weakest_quartile: float | None = None
     median_radius_m: float | None = None

@@ -32,7 +32,8 @@ from app.engine.progress import Progress
 from app.errors import FitRefused, ServiceError
 from app.jobs.ingest.sources import Source, SourceItem, open_source
 from app.permissions import private_dir
-from app.storage.database import DB_NAME
+from app.storage.backend import StorageBackend
+from app.storage.sqlite import SqliteBackend
 from app.storage.store import ReferenceStore
 from app.usecases.extraction import Counter
 from app.usecases.fitting import FitProgress
@@ -53,11 +54,13 @@ class FirstStartError(ServiceError):
     code = "not_ready"
 
 
-def needed(data_dir: Path) -> bool:
-    """Whether the data dir still needs its first start: nothing stored yet, or a first start not finished."""
-    if not (Path(data_dir) / DB_NAME).exists():
+def needed(data_dir: Path, backend: StorageBackend | None = None) -> bool:
+    """Whether the data dir still needs its first start: nothing stored yet, or a first start not finished.
+    ``backend``: the process's (``Settings.backend``; None: SQLite in ``data_dir``)."""
+    backend = backend or SqliteBackend(data_dir)
+    if not backend.exists():
         return True
-    store = ReferenceStore(data_dir)
+    store = ReferenceStore(data_dir, backend=backend)
     try:
         state = store.get_meta(STATE_KEY)
         if state == "done":
@@ -78,6 +81,7 @@ def run_first_start(
     limits: ImageLimits | None = None,
     workers: int = 1,
     seed: int = 0,
+    backend: StorageBackend | None = None,
 ) -> bool:
     """Fit and ingest when the data dir needs it (``needed``); ``say`` gets each progress line (the loader
     shows the latest on /ready and logs it). Returns whether anything was done.
@@ -85,13 +89,14 @@ def run_first_start(
     Two servers started on one empty volume (a scaled api) would both fit and the second would replace the
     first one's saved generation under codes already made with it: the first start holds a lock of its own
     (not the worker's, which its ingest step takes), and a process that waited for it looks again."""
-    if not needed(data_dir):
+    backend = backend or SqliteBackend(data_dir)
+    if not needed(data_dir, backend):
         return False
     private_dir(Path(data_dir), parents=True)
     with _FirstStartLock(Path(data_dir) / "first_start.lock", say):
-        if not needed(data_dir):  # another process did it while this one waited
+        if not needed(data_dir, backend):  # another process did it while this one waited
             return False
-        return _run_first_start(data_dir, models_dir, config, photos, say, limits, workers, seed)
+        return _run_first_start(data_dir, models_dir, config, photos, say, limits, workers, seed, backend)
 
 
 class _FirstStartLock:
@@ -123,6 +128,7 @@ def _run_first_start(
     limits: ImageLimits | None,
     workers: int,
     seed: int,
+    backend: StorageBackend,
 ) -> bool:
     limits = limits or ImageLimits()
     t0 = time.perf_counter()
@@ -130,7 +136,7 @@ def _run_first_start(
         source = open_source(Path(photos))
     except ValueError as e:  # SourceError: missing folder, unreadable CSV
         raise FirstStartError(f"GEOLOC_INITIAL_PHOTOS: {e}") from None
-    store = ReferenceStore(data_dir)
+    store = ReferenceStore(data_dir, backend=backend)
     try:
         if store.get_meta(STATE_KEY) is None:
             store.set_meta(STATE_KEY, "started")  # from here on, a restart continues this first start
@@ -138,8 +144,8 @@ def _run_first_start(
             _fit(store, models_dir, config, source, say, limits, workers, seed)
     finally:
         store.close()
-    added = _ingest(data_dir, models_dir, config, source, say, limits, workers)
-    store = ReferenceStore(data_dir)
+    added = _ingest(data_dir, models_dir, config, source, say, limits, workers, backend)
+    store = ReferenceStore(data_dir, backend=backend)
     try:
         store.set_meta(STATE_KEY, "done")
     finally:
@@ -261,6 +267,7 @@ def _ingest(
     say: Callable[[str], None],
     limits: ImageLimits,
     workers: int,
+    backend: StorageBackend,
 ) -> int:
     from app.jobs.ingest.run import IngestOptions, ingest
     from app.usecases.service import GeolocService
@@ -269,7 +276,7 @@ def _ingest(
     log.info("first start: ingesting the %d photos from %s", total, source.path)
     what = f"ingesting the photos: step 3 of {STEPS}"
     say(f"first start: {what} (0/{total} photos)")
-    service = GeolocService.open(data_dir, models_dir, config, limits=limits)
+    service = GeolocService.open(data_dir, models_dir, config, limits=limits, backend=backend)
     try:
         summary, _ = ingest(
             service, source, IngestOptions(workers=workers), say=log.info, progress=_Reported(total, say, what)

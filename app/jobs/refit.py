@@ -33,8 +33,10 @@ from app.engine.imageio import ImageLimits
 from app.engine.pipeline import Pipeline, PipelineSource
 from app.errors import FitRefused, RefitError, StorageUnavailable
 from app.jobs.writer import write_snapshot_if_free
+from app.storage.backend import StorageBackend
 from app.storage.feature_files import FeatureFiles, profile_root
 from app.storage.generations import ReindexTarget
+from app.storage.sqlite import SqliteBackend
 from app.storage.store import ReferenceStore
 from app.usecases.collection import Collection, pipeline_source
 from app.usecases.fitting import FitOptions, FitPhoto, bank_source, capture_group, check_bank_kind, fit_pipeline
@@ -284,10 +286,13 @@ def refit(
     ray: str | None = None,
     limits: ImageLimits | None = None,
     progress: bool = True,
+    backend: StorageBackend | None = None,
 ) -> RefitSummary:
-    """The whole use case: fit (or continue an interrupted re-index), re-encode, switch, snapshot."""
+    """The whole use case: fit (or continue an interrupted re-index), re-encode, switch, snapshot.
+    ``backend``: the process's (``Settings.backend``; None: SQLite in ``data_dir``)."""
     limits = limits or ImageLimits()
-    store = ReferenceStore(data_dir)
+    backend = backend or SqliteBackend(data_dir)
+    store = ReferenceStore(data_dir, backend=backend)
     target = None if options.fresh else resumable_target(store, models_dir, options.config)
     if target is not None:
         summary = RefitSummary(target.generation, target.pipeline, target.config, resumed=True)
@@ -326,6 +331,6 @@ def refit(
     summary.seconds["copy"] = time.perf_counter() - t1
     # With no server or worker holding the writer role, nothing writes snapshots here now: write the new
     # generation's one.
-    write_snapshot_if_free(data_dir, lambda: Collection.open(data_dir, models_dir, target.config))
+    write_snapshot_if_free(backend, lambda: Collection.open(data_dir, models_dir, target.config, backend=backend))
     store.close()
     return summary

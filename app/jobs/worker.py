@@ -13,20 +13,19 @@ from __future__ import annotations
 import logging
 import threading
 from collections.abc import Callable
-from pathlib import Path
 
-from app.storage.backend import WriterLock
+from app.storage.backend import StorageBackend, WriterLock
 from app.storage.errors import is_storage_error
-from app.storage.settings import storage_backend
 from app.usecases.service import GeolocService
 
 log = logging.getLogger("geoloc.worker")
 
 
-def writer_lock(data_dir: Path) -> WriterLock:
+def writer_lock(backend: StorageBackend) -> WriterLock:
     """The lock that makes one process the writer: the storage backend's (the data dir's lock file on
-    SQLite, the database's advisory lock on PostgreSQL)."""
-    return storage_backend(data_dir).writer_lock()
+    SQLite, the database's advisory lock on PostgreSQL): the backend the process made from its Settings, so
+    that the lock is where the rows are."""
+    return backend.writer_lock()
 
 
 class IngestWorker:

@@ -21,7 +21,9 @@ from collections.abc import Callable
 from pathlib import Path
 
 from app.jobs.worker import IngestWorker, writer_lock
+from app.storage.backend import StorageBackend
 from app.storage.orphans import Janitor
+from app.storage.sqlite import SqliteBackend
 from app.usecases.collection import Collection, IndexSizing, SnapshotWriter
 from app.usecases.service import GeolocService
 
@@ -38,14 +40,14 @@ class Writer:
 
     def __init__(
         self,
-        data_dir: Path,
+        backend: StorageBackend,
         batch: int = 8,
         workers: int = 1,
         on_batch: Callable[[int, int], None] | None = None,
         logger: logging.Logger = log,
         max_attempts: int = 3,
     ):
-        self.lock = writer_lock(data_dir)
+        self.lock = writer_lock(backend)
         self.batch = batch
         self.max_attempts = max_attempts  # GEOLOC_ENCODE_ATTEMPTS: see IngestWorker
         self.workers = workers
@@ -287,10 +289,10 @@ class Writer:
                 self.lock.release()
 
 
-def write_snapshot_if_free(data_dir: Path, open_collection: Callable[[], Collection]) -> bool:
+def write_snapshot_if_free(backend: StorageBackend, open_collection: Callable[[], Collection]) -> bool:
     """Write one snapshot from ``open_collection()`` when no server or worker holds the role (nothing writes
     snapshots here then); False, and nothing opened, when one does."""
-    writer = Writer(data_dir)
+    writer = Writer(backend)
     if not writer.acquire():
         return False
     try:
@@ -309,18 +311,21 @@ def run_worker(
     retry_seconds: float | None = None,
     max_attempts: int = 3,
     sizing: IndexSizing | None = None,
+    backend: StorageBackend | None = None,
 ) -> None:
     """``geoloc worker``: take the lock (``WriterBusy`` when another process holds it; nothing is opened),
     open the service, call ``on_ready`` and run the role in this (the main) thread until SIGTERM or Ctrl-C;
     a clean stop writes the last snapshot. ``retry_seconds``: on PostgreSQL, how often the lock's session
     is checked (and, once lost, the lock retried): see ``Writer.run``. ``sizing``: the process's
-    ``Settings.index_sizing``, so the worker switches index kinds at the same size as the server."""
+    ``Settings.index_sizing``, so the worker switches index kinds at the same size as the server;
+    ``backend``: the process's (``Settings.backend``; None: SQLite in ``data_dir``)."""
     import signal
 
-    writer = Writer(data_dir, batch, max_attempts=max_attempts)
+    backend = backend or SqliteBackend(data_dir)
+    writer = Writer(backend, batch, max_attempts=max_attempts)
     if not writer.acquire():
         raise WriterBusy(f"another worker already holds {writer.lock.where}")
-    service = GeolocService.open(data_dir, models_dir, config, sizing=sizing)
+    service = GeolocService.open(data_dir, models_dir, config, sizing=sizing, backend=backend)
     signal.signal(signal.SIGTERM, lambda *_: writer.request_stop())
     on_ready(service)
     writer.run(service, retry_seconds)

@@ -1,4 +1,4 @@
-"""A photo library geolocated against itself (issue 36): the folder's photos with GPS become (or join) the
+"""A photo library geolocated against itself: the folder's photos with GPS become (or join) the
 collection, its photos without GPS are located in bulk (``scan``), reviewed (``LibraryJournal`` decisions),
 written back only once accepted (``writeback``, with exiftool) and exported for GIS (``exports``).
 

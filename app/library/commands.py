@@ -78,7 +78,7 @@ def scan(
         files = library_files(folder.resolve(), Path(data_dir).resolve())
     except LibraryError as e:
         _fail(str(e))
-    service = GeolocService.open(data_dir, models_dir, config, limits=_S.image_limits())
+    service = GeolocService.open(data_dir, models_dir, config, limits=_S.image_limits(), backend=_S.backend(data_dir))
     journal = _journal(data_dir)
     try:
         options = ScanOptions(workers=workers, time_prior=time_prior, rerank=rerank, ray=ray)

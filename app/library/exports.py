@@ -1,4 +1,4 @@
-"""Exports for GIS (issue 36, point 5): GeoJSON (RFC 7946), CSV and GPX.
+"""Exports for GIS: GeoJSON (RFC 7946), CSV and GPX.
 
 ``accepted`` (the default of `geoloc library export`): the positions the user accepted or moved, nothing
 else. ``suggestions`` (what a scan writes, or ``--all``): every located photo, placed or not, with its radius,

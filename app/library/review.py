@@ -1,4 +1,4 @@
-"""A decision per photo (issue 36, point 3): accept the suggestion, move the pin (accept another position)
+"""A decision per photo: accept the suggestion, move the pin (accept another position)
 or reject. Nothing is written here: ``app.library.writeback`` writes only what was accepted."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""The library run (issue 36, point 1): `geoloc library scan DIR`, POST /library/scans and the page call
+"""The library run: `geoloc library scan DIR`, POST /library/scans and the page call
 ``scan_library``.
 
 0. The library is a folder (its photos with EXIF GPS are the references) or a manifest (its ``db`` rows

@@ -1,4 +1,4 @@
-"""The time prior (issue 36, point 2): a photo taken minutes before or after geotagged photos of the same
+"""The time prior: a photo taken minutes before or after geotagged photos of the same
 camera was most likely taken near them; people walk at about 1.4 m/s.
 
 Why this shape: the prior never overrides the pixels. It is a disc (a centre and a radius growing with the

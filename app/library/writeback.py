@@ -44,7 +44,7 @@ from PIL import Image
 
 from app.engine.imageio import ESTIMATE_MARK
 from app.library.photos import sidecar_path
-from app.storage.library import LibraryJournal
+from app.storage.library import BACKUPS_DIR, STAGING_DIR, LibraryJournal
 from app.user_files import is_within, real_path
 
 SIDECAR, IN_FILE = "sidecar", "exif"
@@ -180,13 +180,13 @@ def _write_one(
 
 
 def _staging(data_dir: Path) -> Path:
-    path = Path(data_dir) / "library-staging"
+    path = Path(data_dir) / STAGING_DIR
     path.mkdir(mode=0o700, exist_ok=True)
     return path
 
 
 def _backups(data_dir: Path) -> Path:
-    path = Path(data_dir) / "library-backups"
+    path = Path(data_dir) / BACKUPS_DIR
     path.mkdir(mode=0o700, exist_ok=True)
     return path
 

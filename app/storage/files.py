@@ -43,7 +43,7 @@ def write_image_file(path: Path, data: bytes, sync: bool) -> None:
 
 def syncfs(folder: Path) -> None:
     """Flush every dirty page of the file system holding ``folder`` in one call (Linux ``syncfs``): a bulk
-    batch of thousands of small files costs one flush instead of one per file (14 ms each on a busy disk)."""
+    batch of thousands of small files costs one flush instead of one per file."""
     import ctypes
 
     fd = os.open(folder, os.O_RDONLY | os.O_DIRECTORY)

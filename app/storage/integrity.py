@@ -2,7 +2,7 @@
 
 Why: a ``-wal`` deleted (or the database replaced) under a live server left it acknowledging writes into a
 file no other process could see; every checkpoint failed with "disk I/O error" in the log only, /ready said
-200, and after a kill -9 the 10 uploads accepted since were gone and their ids handed out again (issue 30).
+200, and after a kill -9 the uploads accepted since were gone and their ids handed out again.
 The store now records which files it opened, checks them (two ``stat`` calls) before each write
 transaction, and once they differ, or a checkpoint fails with an I/O error, it refuses every write for the
 rest of the process's life (``StorageUnavailable``, a 503) and /ready says why.

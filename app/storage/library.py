@@ -16,13 +16,17 @@ from __future__ import annotations
 
 import json
 import secrets
+import shutil
 import sqlite3
 import threading
 import time
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import closing, contextmanager
 from dataclasses import dataclass
 from pathlib import Path
+
+#: The journal's file and the folders of write-back copies and staged writes, in the data dir.
+JOURNAL_FILE, BACKUPS_DIR, STAGING_DIR = "library.sqlite", "library-backups", "library-staging"
 
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS scans (
@@ -93,7 +97,7 @@ class LibraryJournal:
 
     def __init__(self, data_dir: Path):
         Path(data_dir).mkdir(parents=True, exist_ok=True)
-        self.path = Path(data_dir) / "library.sqlite"
+        self.path = Path(data_dir) / JOURNAL_FILE
         self._db = sqlite3.connect(self.path, check_same_thread=False, timeout=30, isolation_level=None)
         try:
             self._open()
@@ -291,6 +295,32 @@ class LibraryJournal:
     def mark_undone(self, write_id: int) -> None:
         with self._tx() as db:
             db.execute("UPDATE writes SET undone=? WHERE id=?", (time.time(), write_id))
+
+
+def copy_journal(journal: Path, dest: Path) -> None:
+    """A consistent copy of the journal file at ``dest``, through SQLite's backup API (it is in WAL mode and
+    a scan or a review may be writing it: a file copy could miss the -wal's pages or tear). A file that is
+    not SQLite (damaged) is copied byte for byte: opening it says what is wrong, as it does here."""
+    try:
+        with closing(sqlite3.connect(journal, timeout=30)) as src, closing(sqlite3.connect(dest)) as dst:
+            src.backup(dst)
+    except sqlite3.DatabaseError:
+        Path(dest).unlink(missing_ok=True)
+        shutil.copy2(journal, dest)
+
+
+def rebase_backups(journal: Path, backups: Path) -> int:
+    """Point every write's backup at the file of the same name in ``backups`` (a journal restored into
+    another data dir names the copies of the one it was made in); returns how many rows changed, 0 for a
+    file that is not a journal (restored as it was: opening it says what is wrong)."""
+    try:
+        with closing(sqlite3.connect(journal, timeout=30)) as db, db:
+            rows = db.execute("SELECT id, backup FROM writes WHERE backup IS NOT NULL").fetchall()
+            moved = [(str(backups / Path(old).name), i) for i, old in rows if str(backups / Path(old).name) != old]
+            db.executemany("UPDATE writes SET backup=? WHERE id=?", moved)
+    except sqlite3.DatabaseError:
+        return 0
+    return len(moved)
 
 
 def _record(row) -> PhotoRecord:

@@ -422,7 +422,7 @@ class PostgresBackend(StorageBackend):
     backup_name = DUMP_NAME
 
     def __init__(self, url: str, data_dir: Path, images_dir: Path | None = None, snapshots_dir: Path | None = None):
-        import psycopg  # the optional driver, imported only when used (150 ms)
+        import psycopg  # the optional driver, imported only when used (its import is slow)
 
         if not is_postgres_url(url):
             raise ValueError(f"the database URL must be a postgresql:// URL (or unset for SQLite), not {url!r}")
@@ -468,8 +468,8 @@ class PostgresBackend(StorageBackend):
     def after_bulk_insert(self, db, created: int, high_water: int) -> None:
         """Refresh the planner's statistics after a bulk insert that grew the table by a tenth or more. Why:
         before autovacuum's first ANALYZE (up to a minute) the planner took a freshly seeded table for a tiny
-        one, and a replica's catch-up read (one change) hashed every row: 18 ms at 5,000 rows instead of
-        0.05 ms. Growth by tenths means a handful of ANALYZEs over a whole seed."""
+        one, and a replica's catch-up read (one change) hashed every row instead of probing
+        the index. Growth by tenths means a handful of ANALYZEs over a whole seed."""
         if created >= 1000 and created * 10 >= high_water:
             with storage_guard("analysing the database"):
                 db.execute("ANALYZE refs, changes")
@@ -479,10 +479,9 @@ class PostgresBackend(StorageBackend):
         db.notify()
 
     def stream_rows(self, db, sql: str, chunk: int) -> Iterator[list[tuple]]:
-        """Through a server-side cursor (a client-side one holds the whole result in libpq's buffer first: 3.1
-        GB of peak at 10^6 codes), in the binary format: BYTEA codes travel as stored instead of as hex text,
-        half the bytes and no decoding (a cold read of 10^5 codes: 0.85 s in text, 0.44 s in binary;
-        docs/BENCHMARKS.md)."""
+        """Through a server-side cursor (a client-side one holds the whole result in libpq's buffer first:
+        gigabytes of peak at 10^6 codes), in the binary format: BYTEA codes travel as stored instead of as hex text,
+        half the bytes and no decoding (docs/BENCHMARKS.md)."""
         with storage_guard("reading the codes"), db.raw.cursor("geoloc_bulk", binary=True) as cursor:
             cursor.itersize = chunk
             cursor.execute(translate(sql)[0])

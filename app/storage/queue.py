@@ -62,7 +62,7 @@ class Queue(Part):
     ``claims`` (pending rows a bulk run (``geoloc ingest``) encodes itself: a worker skips them until the
     lease ends, so the rows of a run that crashed go back to the queue by themselves) and
     ``encode_attempts`` (counted and committed before each attempt: a row whose encoding takes the process
-    down can never report its own failure, and was retried forever on every host in turn, issue 30)."""
+    down can never report its own failure, and was retried forever on every host in turn)."""
 
     def __init__(self, database: Database, changes: ChangeLog):
         super().__init__(database)

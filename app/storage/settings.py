@@ -2,7 +2,9 @@
 
 Why here and not only in ``app.settings``: ``Settings`` extends ``StorageSettings``, so each variable is
 declared and read in one place, while the storage (which the rest of the app imports) never imports the
-app's settings, and a store opened without settings (a tool, a test) reads the same variables the same way.
+app's settings. The environment is read once, where a process starts (``Settings()`` at each entry point);
+below it a backend is passed down, never looked up again: a process built from ``Settings(database_url=...)``
+must not take SQLite's writer lock because no variable says PostgreSQL.
 """
 
 from __future__ import annotations
@@ -55,9 +57,3 @@ class StorageSettings(BaseSettings):
         from app.storage.sqlite import SqliteBackend
 
         return SqliteBackend(data_dir)
-
-
-def storage_backend(data_dir: Path, settings: StorageSettings | None = None) -> StorageBackend:
-    """``settings``' backend for ``data_dir``; a caller handed no settings gets the process's (the
-    environment, read by ``StorageSettings``)."""
-    return (settings or StorageSettings()).backend(data_dir)

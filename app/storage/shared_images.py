@@ -3,8 +3,8 @@ refuses to serve when it does not.
 
 Why: the rows are shared through the database, the image files are not. Two servers with their own data
 dirs on one database, the shared path left out, accepted uploads on the host without the writer role and
-the writer never found their files: 4 of 4 uploads never indexed on either host, and nothing said why
-(issue 34). So the first host to serve records an id in the database and in a marker file in its images
+the writer never found their files: those uploads were never indexed on either host, and nothing said
+why. So the first host to serve records an id in the database and in a marker file in its images
 folder; a host whose images folder holds another id, or none, is not reading the same folder.
 """
 

@@ -48,7 +48,7 @@ from app.storage.identity import Identity
 from app.storage.maintenance import Maintenance
 from app.storage.queue import Queue
 from app.storage.removals import Removals
-from app.storage.settings import storage_backend
+from app.storage.sqlite import SqliteBackend
 
 if TYPE_CHECKING:
     from app.engine.pipeline import Pipeline
@@ -151,10 +151,11 @@ def _forward(part: str, method: Callable) -> Callable:
 
 class ReferenceStore:
     """One data directory (or database) bound to one fitted pipeline (its fingerprint is recorded on first
-    use). ``backend``: made from the process's settings when not given (``app.storage.settings``)."""
+    use). ``backend``: the one the process made from its settings (``Settings.backend``); None: the embedded
+    default, SQLite in ``data_dir`` (never the environment: that is read once, at the entry point)."""
 
     def __init__(self, data_dir: Path, read_only: bool = False, backend: StorageBackend | None = None):
-        self.database = Database(backend or storage_backend(data_dir), read_only)
+        self.database = Database(backend or SqliteBackend(data_dir), read_only)
         self.changes = ChangeLog(self.database)
         self.queue = Queue(self.database, self.changes)
         self.generations = Generations(self.database)
@@ -442,7 +443,7 @@ class ReferenceStore:
     ) -> KeysetPage:
         """A page by id (keyset): the rows just after ``after`` or just before ``before``, in id order. It
         reads ``limit`` + 1 rows by the primary key plus one probe for a row on the other side, so a page
-        deep in 10^6 references costs what the first does (OFFSET 999,000 took 357 ms on SQLite). With a
+        deep in 10^6 references costs what the first does (an OFFSET walks every row it skips). With a
         bbox that holds few rows the reads walk the id order past the rows outside it, up to all of them."""
         where, args = _bbox_where(bbox)
         join = "AND" if where else "WHERE"

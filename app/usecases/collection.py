@@ -5,7 +5,7 @@ Why it is built this way (cost per change independent of the collection's size):
   trusted, a full rebuild from the codes in SQLite) and then only *caught up*: before each search the
   process compares the log's last version with the one it holds (one indexed SQL read) and applies exactly
   the changes in between, adds in place and deletions as tombstones.
-- The index's kind follows the collection's size (``IndexSizing``, issue 35): exact (flat) while small, the
+- The index's kind follows the collection's size (``IndexSizing``): exact (flat) while small, the
   compressed kinds (``ivf-rabitq`` / ``binary-ivf``) once it reaches ``switch_at`` references. The switch is
   made as a new generation is loaded: trained on a sample of the collection's own codes and filled from the
   store in the background while the exact index serves, then swapped in under the lock after replaying
@@ -61,18 +61,17 @@ DEFAULT_SWITCH_AT = 200_000
 
 @dataclass(frozen=True)
 class IndexSizing:
-    """When the exact index gives way to the compressed kinds (issue 35, item 2): at ``switch_at`` live
+    """When the exact index gives way to the compressed kinds: at ``switch_at`` live
     references (0: never), for a configuration whose kinds are exact and that lets the size choose
     (``PipelineConfig.index_by_size``). The switch goes one way: a collection that shrinks again keeps the
     compressed kind (no back-and-forth around the threshold, and no second training).
 
-    Why 200,000 by default (docs/BENCHMARKS.md, one FAISS thread): the exact float search costs 5.1 ms at
-    10^5 references and 52 ms at 10^6, growing with the size, against a /locate of about 56 ms at 10^4
-    (issue 35); the issue allows /locate at size 1.2x that at 10^4, about 11 ms of search, which the exact
-    search reaches near 2 x 10^5 references (and 200 MB of index at 1,032 B each). Below it the exact
-    search costs no accuracy and no training; above it the compressed kind searches in about 1 ms and holds
-    114 B per reference in RAM (``ivf-rabitq``; its float codes for the re-rank are read by ``pread`` from
-    the snapshot file, spilled to a temporary file until the first one)."""
+    Why 200,000 by default (docs/BENCHMARKS.md, one FAISS thread): the exact float search's time grows in
+    proportion to the size, and /locate may take at most 1.2x its time at 10^4 references; the exact search
+    uses up that margin near 2 x 10^5 references (and 200 MB of index at 1,032 B each). Below it the exact
+    search costs no accuracy and no training; above it the compressed kind searches in a small fraction of
+    that time and holds 114 B per reference in RAM (``ivf-rabitq``; its float codes for the re-rank are read
+    by ``pread`` from the snapshot file, spilled to a temporary file until the first one)."""
 
     switch_at: int = DEFAULT_SWITCH_AT
     #: After a failed switch, the next try waits this long (a training that fails fails again at once).

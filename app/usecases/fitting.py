@@ -97,8 +97,8 @@ def capture_group(lat: float, lon: float) -> str:
 
     Why not the capture time as well: a photo's crops carry no EXIF time, so a crop and the photo it was cut
     from were two captures, and ``geoloc refit``'s calibration located each against the other (0 m off): a
-    60-reference collection's rule stated a 2.5 m radius and ``p_within_25m`` 0.965 for an answer 289 m
-    off (docs/RESULTS.md, issue 32). Two photos taken at one spot, to 0.1 m, count as one capture."""
+    small collection's rule then stated a radius of metres and a near-certain ``p_within_25m`` for answers
+    far off (docs/RESULTS.md). Two photos taken at one spot, to 0.1 m, count as one capture."""
     return f"@{lat:.6f},{lon:.6f}"
 
 
@@ -329,8 +329,8 @@ def _extracted(pipe: Pipeline, photos: Sequence[FitPhoto], options: FitOptions, 
 # -- calibration on the collection itself -------------------------------------------------------------------
 #: Of the references located to calibrate (``CALIBRATION_SAMPLE``), how many are located once more with
 #: verification (``--calibrate-rerank``) for the rule that judges verified answers: each costs its own photo's
-#: matcher features and up to 20 verified pairs (the candidates' features are computed once per reference),
-#: about 0.2 s with RootSIFT on 2 cores.
+#: matcher features and up to 20 verified pairs (the candidates' features are computed once per reference):
+#: the sample bounds that cost.
 VERIFY_CALIBRATION_SAMPLE = 300
 #: At most this many references' matcher features are kept while calibrating (RootSIFT's 1,500 keypoints
 #: take about 0.8 MB each, so about 320 MB), the oldest dropped first: a large collection's candidates then
@@ -446,8 +446,8 @@ def calibrate_collection(
 
     Why a second, auxiliary fit: a reference that was in the sample the codebook and the PCA-whitening were
     fitted on scores lower against the other references than any new photo does (full whitening spreads its
-    own sample apart: 0.556 against 0.628 on penn-campus-gps), so a rule learned from references located
-    against each other under ``pipe`` did not hold for real queries (held-out Brier 0.352, never confident).
+    own sample apart), so a rule learned from references located against each other under ``pipe`` did not
+    hold for real queries (on held-out queries it was never confident).
     So a held-out set of captures (``calibration_holdout``) is left out of an auxiliary fit of the same
     configuration on the rest (plus ``extra``, the other photos ``pipe`` was fitted on), sharing ``pipe``'s
     SVM bank; every reference is encoded by it, and each held-out reference is located through

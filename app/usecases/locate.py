@@ -163,8 +163,8 @@ def verify_candidate_pairs(
     """``verify_candidates`` with the whole outcome per pair (matches, both models' inliers), for the
     evaluation's analysis; None where the pair could not be verified.
 
-    The query's features are computed once; each candidate's are recomputed from its stored image (about
-    0.1 s each, most of what verification costs). Storing the strongest 480 keypoints at ingest (62 KB per
+    The query's features are computed once; each candidate's are recomputed from its stored image (most
+    of what verification costs). Storing the strongest 480 keypoints at ingest (62 KB per
     reference; all 1,500 would take 193 KB) verified as well on penn and is the measured next step; this
     is the one place that would read them (docs/RESULTS.md, "Verification that works").
 

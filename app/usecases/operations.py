@@ -11,9 +11,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
-import sqlite3
 import time
-from contextlib import closing
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -26,9 +24,9 @@ from app.permissions import private_dir, private_tree
 from app.storage.backend import StorageBackend
 from app.storage.feature_files import FEATURES, FeatureFiles, damage, profile_root
 from app.storage.files import IMAGES
+from app.storage.library import BACKUPS_DIR, JOURNAL_FILE, copy_journal, rebase_backups
 from app.storage.migrations import SchemaTooNew, refuse_too_new, schema_version
 from app.storage.orphans import MIN_AGE_S, retry_removals, sweep
-from app.storage.settings import storage_backend
 from app.storage.snapshots import (
     MANIFEST,
     SnapshotInvalid,
@@ -45,8 +43,6 @@ KEY_NOTE = f"this backup holds the API key ({KEY_FILE}, mode 0600): keep it as p
 PIPELINES = "pipelines"  # the data dir's re-fitted pipelines, one folder per generation
 #: The photo library's journal (``app.storage.library``) and the copies its write-back keeps of what it
 #: overwrote (``app.library.writeback``): without them a restored data dir cannot undo a write.
-LIBRARY_JOURNAL = "library.sqlite"
-LIBRARY_BACKUPS = "library-backups"
 
 
 @dataclass
@@ -60,9 +56,10 @@ def _sample(ids, n: int = 10) -> str:
     return ", ".join(str(i) for i in ids[:n]) + (f" (and {len(ids) - n} more)" if len(ids) > n else "")
 
 
-def check_data_dir(data_dir: Path, models_dir: Path, config: str | None) -> CheckReport:
+def check_data_dir(data_dir: Path, models_dir: Path, config: str | None, backend: StorageBackend) -> CheckReport:
+    """Whether the rows, image files, codes, index snapshot and stored features of ``backend`` (the process's,
+    from its Settings) agree; each disagreement is a line of ``problems``."""
     r = CheckReport()
-    backend = storage_backend(data_dir)
     if not backend.exists():
         r.problems.append(f"{backend.describe()} does not exist")
         return r
@@ -216,11 +213,10 @@ def _check_leftovers(store: ReferenceStore, data_dir: Path, r: CheckReport) -> N
         r.problems.append(f"stale temporary files: {_sample(stale)} (`geoloc check --repair` removes them)")
 
 
-def repair_data_dir(data_dir: Path, min_age_s: float = MIN_AGE_S) -> list[str]:
+def repair_data_dir(data_dir: Path, backend: StorageBackend, min_age_s: float = MIN_AGE_S) -> list[str]:
     """Remove what no longer belongs to anything: queued removals retried, image files no row names and
     temporary files, both older than ``min_age_s`` (younger ones may be uploads in flight). Safe while the
     services run: every unlink is re-checked under the database's write lock. Returns what it did."""
-    backend = storage_backend(data_dir)
     if not backend.exists():
         raise OperationRefused(f"{backend.describe()} does not exist: nothing to repair")
     store = ReferenceStore(data_dir, backend=backend)
@@ -234,7 +230,7 @@ def repair_data_dir(data_dir: Path, min_age_s: float = MIN_AGE_S) -> list[str]:
         store.close()
 
 
-def backup_data_dir(data_dir: Path, dest: Path) -> dict:
+def backup_data_dir(data_dir: Path, dest: Path, backend: StorageBackend) -> dict:
     """The storage backend's dump (SQLite's backup API, PostgreSQL's ``pg_dump``: one state while others
     keep writing). Then the images the copied rows name (from the shared images folder on PostgreSQL), their
     stored local features, the data dir's re-fitted pipelines, the photo library's journal and write-back
@@ -244,7 +240,6 @@ def backup_data_dir(data_dir: Path, dest: Path) -> dict:
     private_dir(dest, parents=True)
     os.chmod(dest, 0o700)  # from the start (an existing empty folder too): nothing under it is reachable meanwhile
     (dest / IMAGES).mkdir(parents=True, exist_ok=True)
-    backend = storage_backend(data_dir)
     names = backend.dump(dest)  # one state, while others keep writing
     images, snapshots = backend.images_dir, backend.snapshots_dir
     copied = missing = 0
@@ -284,10 +279,9 @@ def backup_data_dir(data_dir: Path, dest: Path) -> dict:
     return summary
 
 
-def restore_data_dir(source: Path, data_dir: Path) -> dict:
+def restore_data_dir(source: Path, data_dir: Path, backend: StorageBackend) -> dict:
     """Into an empty data dir (and, on PostgreSQL, an empty database: ``pg_restore``, the images into the
     shared images folder). A backup restores on the engine it was made on."""
-    backend = storage_backend(data_dir)
     if not (source / BACKUP_MANIFEST).exists() or not (source / backend.backup_name).exists():
         raise OperationRefused(
             f"{source} is not a backup written by `geoloc backup` on this storage backend ({backend.name}: "
@@ -344,24 +338,16 @@ def _copy_library(data_dir: Path, dest: Path) -> dict[str, int]:
     In that order: a write copies its backup before it records the row naming it, so every backup a
     copied row names is copied too. Returns the files copied (``journal``: 0 or 1, ``backups``)."""
     copied = {"journal": 0, "backups": 0}
-    journal = data_dir / LIBRARY_JOURNAL
+    journal = data_dir / JOURNAL_FILE
     if journal.is_file():  # connecting to a missing file would create it
-        try:
-            with (
-                closing(sqlite3.connect(journal, timeout=30)) as src,
-                closing(sqlite3.connect(dest / LIBRARY_JOURNAL)) as dst,
-            ):
-                src.backup(dst)
-        except sqlite3.DatabaseError:  # not SQLite (damaged): its bytes as they are; the journal refuses it itself
-            (dest / LIBRARY_JOURNAL).unlink(missing_ok=True)
-            shutil.copy2(journal, dest / LIBRARY_JOURNAL)
+        copy_journal(journal, dest / JOURNAL_FILE)
         copied["journal"] = 1
-    backups = data_dir / LIBRARY_BACKUPS
+    backups = data_dir / BACKUPS_DIR
     if backups.is_dir():
-        private_dir(dest / LIBRARY_BACKUPS)
+        private_dir(dest / BACKUPS_DIR)
         for path in sorted(backups.iterdir()):
             if path.is_file() and not path.is_symlink():
-                shutil.copy2(path, dest / LIBRARY_BACKUPS / path.name)
+                shutil.copy2(path, dest / BACKUPS_DIR / path.name)
                 copied["backups"] += 1
     return copied
 
@@ -372,25 +358,17 @@ def _restore_library(source: Path, data_dir: Path) -> dict[str, int]:
     another collection's), so they are rewritten to the same file names in this data dir's copies: undo
     then puts back the photos' original bytes. Returns the files restored and the paths rewritten."""
     done = {"journal": 0, "backups": 0, "paths_rewritten": 0}
-    if (source / LIBRARY_BACKUPS).is_dir():
-        private_dir(data_dir / LIBRARY_BACKUPS)
-        for path in sorted((source / LIBRARY_BACKUPS).iterdir()):
+    if (source / BACKUPS_DIR).is_dir():
+        private_dir(data_dir / BACKUPS_DIR)
+        for path in sorted((source / BACKUPS_DIR).iterdir()):
             if path.is_file() and not path.is_symlink():
-                shutil.copy2(path, data_dir / LIBRARY_BACKUPS / path.name)
+                shutil.copy2(path, data_dir / BACKUPS_DIR / path.name)
                 done["backups"] += 1
-    if not (source / LIBRARY_JOURNAL).is_file():
+    if not (source / JOURNAL_FILE).is_file():
         return done
-    shutil.copy2(source / LIBRARY_JOURNAL, data_dir / LIBRARY_JOURNAL)
+    shutil.copy2(source / JOURNAL_FILE, data_dir / JOURNAL_FILE)
     done["journal"] = 1
-    into = (data_dir / LIBRARY_BACKUPS).resolve()
-    try:
-        with closing(sqlite3.connect(data_dir / LIBRARY_JOURNAL, timeout=30)) as db, db:
-            rows = db.execute("SELECT id, backup FROM writes WHERE backup IS NOT NULL").fetchall()
-            moved = [(str(into / Path(old).name), i) for i, old in rows if str(into / Path(old).name) != old]
-            db.executemany("UPDATE writes SET backup=? WHERE id=?", moved)
-    except sqlite3.DatabaseError:  # a damaged journal, restored as it was: opening it says what is wrong
-        return done
-    done["paths_rewritten"] = len(moved)
+    done["paths_rewritten"] = rebase_backups(data_dir / JOURNAL_FILE, (data_dir / BACKUPS_DIR).resolve())
     return done
 
 

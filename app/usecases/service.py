@@ -31,17 +31,16 @@ from app.storage.store import KeysetPage, NewReference, Reference, ReferenceStor
 from app.usecases.collection import Collection, IndexSizing, SnapshotPolicy
 from app.usecases.locate import StoredReferenceFeatures, StoreReferences, locate_features
 from app.usecases.thumbnails import THUMBNAIL_PX, keep_thumbnail, thumbnail
-from app.usecases.uploads import _differences, prepare_upload
+from app.usecases.uploads import metadata_differences, prepare_upload
 
 log = logging.getLogger("geoloc.core")
 
 
 def extraction_slots(concurrency: int) -> AbstractContextManager:
     """How many locates may decode and extract at once (0: no limit). Each holds a decoded photo and its
-    feature maps meanwhile; the limit bounds that memory. One per usable CPU by default (issue 18: with no
-    limit, 8 concurrent 49 MP uploads took RSS up by 2.7 GB; bench/locate_memory.py). Throughput pays a
-    little: on 2 cores, 8 concurrent clients of 1600 px photos (bench/load.py, 4 x 30 s) got 14.7 requests/s
-    without a limit and 12.6 with one per core."""
+    feature maps meanwhile; the limit bounds that memory. One per usable CPU by default: with no
+    limit, concurrent uploads of large photos each hold a full decode at once (bench/locate_memory.py).
+    Throughput pays a little (bench/load.py; docs/BENCHMARKS.md)."""
     return threading.BoundedSemaphore(concurrency) if concurrency else nullcontext()
 
 
@@ -109,7 +108,7 @@ class GeolocService:
     def release_memory(self, img: LoadedImage) -> None:
         """After a large upload (decoded at reduced scale, a PNG at full size first), hand the buffers it
         freed back to the kernel: glibc keeps them in per-thread arenas, and with the server's thread pool
-        8 concurrent 49 MP uploads left RSS 1.5 GB above idle for good (bench/locate_memory.py)."""
+        concurrent large uploads left RSS far above idle for good (bench/locate_memory.py)."""
         if max(img.original_size) > 2 * self.limits.decode_long_side:
             release_free_memory()
 
@@ -152,7 +151,7 @@ class GeolocService:
         t0 = time.perf_counter()
         self.collection.check_mode(options.mode)
         # Everything the request does holds its slot: verification (``rerank``) decodes and extracts each
-        # candidate's photo, and outside the slot 16 such requests at once held 1.7 GB (issue 30).
+        # candidate's photo, and outside the slot any number of such requests would hold their photos at once.
         with self.extract_slots:
             t_slot = time.perf_counter()
             data = image() if callable(image) else image
@@ -194,7 +193,7 @@ class GeolocService:
         notes = []
         for n, ref_id in dups:
             upload = asked[n] if asked is not None else None
-            diff = _differences(prepared[n], stored[ref_id], upload) if ref_id in stored else []
+            diff = metadata_differences(prepared[n], stored[ref_id], upload) if ref_id in stored else []
             if diff:
                 notes.append(
                     f"image {n} is already stored as reference {ref_id}; its stored metadata was kept: "

@@ -5,8 +5,8 @@ the first request (a reference encoded before, or decoded smaller than the thumb
 (``load_image``: reduced right after the decode, full-size decodes sharing the process's pixel budget).
 
 Why: the thumbnail route is public, and it decoded the stored image on every request. Pillow scales a JPEG
-while decoding it, but a 7000 x 7000 WebP was decoded whole each time: one request cost +0.94 GB, eight at
-once passed 6 GB (issue 30). The JPEG is kept beside the images (``app.storage.files.THUMBNAILS``) and removed
+while decoding it, but a large WebP was decoded whole each time, so a few such requests at once held
+gigabytes. The JPEG is kept beside the images (``app.storage.files.THUMBNAILS``) and removed
 with its image.
 """
 

@@ -114,7 +114,7 @@ def prepare_upload(
     )
 
 
-def _differences(new: NewReference, old: Reference, asked: Upload | None) -> list[str]:
+def metadata_differences(new: NewReference, old: Reference, asked: Upload | None) -> list[str]:
     """What the upload asked for (explicitly: not a label made from the file name) that differs."""
     out = []
     if abs(new.lat - old.lat) > 1e-7 or abs(new.lon - old.lon) > 1e-7:

@@ -15,6 +15,7 @@ from PIL import Image
 
 from app.engine.dense import resize_short_side
 from app.storage.queue import QUARANTINED
+from app.storage.settings import StorageSettings
 from app.storage.store import NewReference, ReferenceStore
 from tests.api.conftest import CONFIG, Server, wait_job
 from tests.conftest import PENN
@@ -82,8 +83,9 @@ def test_a_tiff_with_a_long_frame_chain_is_read_as_its_first_frame(tmp_path, fit
 
 
 def _add_pending(data: Path, images: list[tuple[bytes, str]]) -> tuple[list[int], str]:
-    """Rows stored pending by the store itself, as an older version accepted them (no check at accept)."""
-    store = ReferenceStore(data)
+    """Rows stored pending by the store itself, as an older version accepted them (no check at accept), on
+    the backend the test's environment names (a test is a process's entry point: it reads the settings)."""
+    store = ReferenceStore(data, backend=StorageSettings().backend(data))
     try:
         items, job = store.add_many(
             [

@@ -19,6 +19,7 @@ import httpx
 import pytest
 
 from app.apikey import key_path, read_key
+from app.evaluation.datasets import read_manifest
 from tests.api.conftest import CONFIG, Server, wait_job
 from tests.conftest import PENN
 
@@ -371,3 +372,56 @@ def test_a_host_without_the_shared_images_folder_refuses_to_serve(tmp_path, fitt
             assert a.client.get("/ready").status_code == 200
         finally:
             b.stop()
+
+
+def test_an_app_built_from_settings_keeps_its_lock_and_rows_on_postgres(
+    tmp_path, fitted_models, hosts_env, mini_manifest, monkeypatch
+):
+    """Settings are read once, where a process starts, and passed down: an app built from
+    ``Settings(database_url=...)`` with no GEOLOC_* variable takes PostgreSQL's writer role and writes its
+    rows there, never SQLite's lock file in its data dir."""
+    import threading
+
+    import psycopg
+    import uvicorn
+
+    from app.api.app import create_app
+    from app.settings import Settings
+    from tools.server_process import free_port
+
+    for name in list(os.environ):
+        if name.startswith("GEOLOC_"):
+            monkeypatch.delenv(name)
+    url = hosts_env["GEOLOC_DATABASE_URL"]
+    data = tmp_path / "data"
+    settings = Settings(
+        data_dir=data, models_dir=fitted_models, config=CONFIG, database_url=url, api_key="settings-key",
+        images_dir=Path(hosts_env["GEOLOC_IMAGES_DIR"]), snapshots_dir=Path(hosts_env["GEOLOC_SNAPSHOTS_DIR"]),
+        ort_threads=1,
+    )  # fmt: skip
+    port = free_port()
+    server = uvicorn.Server(uvicorn.Config(create_app(settings), host="127.0.0.1", port=port, log_level="warning"))
+    thread = threading.Thread(target=server.run, daemon=True)
+    thread.start()
+    try:
+        client = httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=60, headers={"X-API-Key": "settings-key"})
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline:
+            try:
+                if client.get("/ready").status_code == 200:
+                    break
+            except httpx.TransportError:
+                pass
+            time.sleep(0.2)
+        photo = next(r.image for r in read_manifest(mini_manifest) if r.split == "query")
+        r = client.post("/references", files=[("image", (photo.name, photo.read_bytes(), "image/jpeg"))],
+                        data={"metadata": json.dumps([{"lat": 39.95, "lon": -75.19}])})  # fmt: skip
+        assert r.status_code == 202, r.text
+        assert wait_job(client, r.json()["job_id"])["status"] == "done"
+        assert _writer_sessions(url), "the writer role is not PostgreSQL's advisory lock"
+        with psycopg.connect(url) as con:
+            assert con.execute("SELECT COUNT(*) FROM refs").fetchone()[0] == 31
+        assert not (data / "references.sqlite").exists() and not (data / "worker.lock").exists()
+    finally:
+        server.should_exit = True
+        thread.join(60)

@@ -21,6 +21,7 @@ import pytest
 
 from app.evaluation.datasets import read_manifest
 from app.storage.migrations import STEPS
+from app.storage.settings import StorageSettings
 from app.storage.store import ReferenceStore
 from tests.api.conftest import CONFIG, Server
 from tests.conftest import REPO
@@ -102,7 +103,7 @@ def test_a_data_dir_made_by_main_is_migrated_at_start_and_serves_every_reference
     with sqlite3.connect(data / "references.sqlite") as con:  # made before migrations: no version recorded
         assert not con.execute("SELECT 1 FROM sqlite_master WHERE name='schema_versions'").fetchone()
     _serves_every_reference(data, old_models, _db_photos(mini_manifest), env)
-    store = ReferenceStore(data, read_only=True)
+    store = ReferenceStore(data, read_only=True, backend=StorageSettings().backend(data))
     try:
         assert _recorded(store) == [(s.version, s.name) for s in STEPS] and store.count() == 30
     finally:
@@ -122,7 +123,7 @@ def test_a_postgres_database_made_by_main_is_migrated_at_start_and_serves_every_
         assert con.execute("SELECT COUNT(*) FROM refs").fetchone()[0] == 30
     _serves_every_reference(data, old_models, _db_photos(mini_manifest), env)
     monkeypatch.setenv("GEOLOC_DATABASE_URL", env["GEOLOC_DATABASE_URL"])
-    store = ReferenceStore(data, read_only=True)
+    store = ReferenceStore(data, read_only=True, backend=StorageSettings().backend(data))
     try:
         assert _recorded(store) == [(s.version, s.name) for s in STEPS] and store.count() == 30
     finally:

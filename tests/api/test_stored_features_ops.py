@@ -66,6 +66,7 @@ def _cli(*args: str) -> str:
 
 def test_backup_and_restore_carry_the_stored_features(sv_collection, tmp_path):
     from app.domain import LocateOptions
+    from app.storage.sqlite import SqliteBackend
     from app.usecases.operations import check_data_dir
     from app.usecases.service import GeolocService
 
@@ -80,7 +81,8 @@ def test_backup_and_restore_carry_the_stored_features(sv_collection, tmp_path):
     restored = tmp_path / "restored"
     _cli("restore", str(dest), "--data-dir", str(restored))
     assert _stored(restored) == original
-    assert not any("stored features" in p for p in check_data_dir(restored, models, CONFIG).problems)
+    report = check_data_dir(restored, models, CONFIG, SqliteBackend(restored))
+    assert not any("stored features" in p for p in report.problems)
 
     # Verified at once from the restored files: a reference's own photo first, with many inliers.
     service = GeolocService.open(restored, models, CONFIG)

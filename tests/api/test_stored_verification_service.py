@@ -42,6 +42,7 @@ def test_stored_features_written_verified_and_removed(sv_models, mini_manifest, 
     from app.domain import LocateOptions, Upload
     from app.jobs.worker import IngestWorker
     from app.storage.feature_files import FeatureFiles, profile_root
+    from app.storage.sqlite import SqliteBackend
     from app.usecases.operations import check_data_dir
     from app.usecases.service import GeolocService
 
@@ -106,10 +107,11 @@ def test_stored_features_written_verified_and_removed(sv_models, mini_manifest, 
     by_id = {c.reference_id: c for c in answer.candidates}
     assert gone in by_id and by_id[gone].inliers is None
     service.collection.write_snapshot()
-    report = check_data_dir(data, sv_models, CONFIG)
+    report = check_data_dir(data, sv_models, CONFIG, SqliteBackend(data))
     assert any("stored features file is missing" in p and str(gone) in p for p in report.problems), report.problems
     files.write(gone_sha, saved)
-    assert not any("stored features" in p for p in check_data_dir(data, sv_models, CONFIG).problems)
+    report = check_data_dir(data, sv_models, CONFIG, SqliteBackend(data))
+    assert not any("stored features" in p for p in report.problems)
 
     # A data dir whose references lack their files gets them back (the same bytes ingestion wrote), with
     # progress; a second run finds them all there (a file that exists is the resume marker).

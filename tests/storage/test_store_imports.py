@@ -14,8 +14,9 @@ import pytest
 
 from app.errors import ENGINE_CODES, code_of
 from app.storage.postgres import PostgresBackend
-from app.storage.settings import StorageSettings, storage_backend
+from app.storage.settings import StorageSettings
 from app.storage.sqlite import SqliteBackend
+from app.storage.store import ReferenceStore
 
 ROOT = Path(__file__).resolve().parents[2]
 HEAVY = ("faiss", "onnxruntime", "cv2", "sklearn")
@@ -44,14 +45,21 @@ def test_every_engine_error_named_for_a_code_is_a_class_that_maps_to_it():
 
 def test_the_backend_is_chosen_by_the_settings(tmp_path, monkeypatch):
     monkeypatch.delenv("GEOLOC_DATABASE_URL", raising=False)
-    assert isinstance(storage_backend(tmp_path), SqliteBackend)
-    assert storage_backend(tmp_path).images_dir == tmp_path / "images"
+    assert isinstance(StorageSettings().backend(tmp_path), SqliteBackend)
+    assert StorageSettings().backend(tmp_path).images_dir == tmp_path / "images"
     settings = StorageSettings(database_url="postgresql://u@h:5432/d", images_dir=tmp_path / "shared")
-    pg = storage_backend(tmp_path, settings)
+    pg = settings.backend(tmp_path)
     assert isinstance(pg, PostgresBackend)
     assert (pg.images_dir, pg.snapshots_dir) == (tmp_path / "shared", tmp_path)
     monkeypatch.setenv("GEOLOC_DATABASE_URL", " ")  # blank: unset, as always
-    assert isinstance(storage_backend(tmp_path), SqliteBackend)
+    assert isinstance(StorageSettings().backend(tmp_path), SqliteBackend)
     monkeypatch.setenv("GEOLOC_DATABASE_URL", "mysql://h/d")
     with pytest.raises(ValueError, match="postgresql://"):
-        storage_backend(tmp_path)
+        StorageSettings().backend(tmp_path)
+    # Below the entry point nothing reads the environment: a store given no backend is SQLite in its dir.
+    monkeypatch.setenv("GEOLOC_DATABASE_URL", "postgresql://u@h:5432/d")
+    store = ReferenceStore(tmp_path)
+    try:
+        assert isinstance(store.backend, SqliteBackend)
+    finally:
+        store.close()

@@ -11,6 +11,7 @@ import pytest
 
 from app.jobs.worker import writer_lock
 from app.storage.postgres import ChangeListener, DatabaseWriterLock
+from app.storage.settings import StorageSettings
 from app.storage.store import NewReference, ReferenceStore
 
 
@@ -21,8 +22,7 @@ def _item(rng, encoded: bool) -> NewReference:
 
 def test_a_committed_index_change_wakes_the_listener(tmp_path, postgres_server, monkeypatch):
     url = postgres_server.create_database()
-    monkeypatch.setenv("GEOLOC_DATABASE_URL", url)
-    store = ReferenceStore(tmp_path)
+    store = ReferenceStore(tmp_path, backend=StorageSettings(database_url=url).backend(tmp_path))
     woke = threading.Event()
     listener = ChangeListener(url, woke.set).start()
     try:
@@ -40,7 +40,8 @@ def test_a_committed_index_change_wakes_the_listener(tmp_path, postgres_server, 
 
 def test_the_writer_role_is_one_advisory_lock_released_with_its_session(tmp_path, postgres_server, monkeypatch):
     monkeypatch.setenv("GEOLOC_DATABASE_URL", postgres_server.create_database())
-    first, second = writer_lock(tmp_path / "a"), writer_lock(tmp_path / "b")  # two hosts' data dirs
+    url = postgres_server.create_database()  # two hosts' data dirs, one database
+    first, second = (writer_lock(StorageSettings(database_url=url).backend(tmp_path / d)) for d in "ab")
     assert isinstance(first, DatabaseWriterLock)
     assert first.acquire() and not second.acquire() and first.alive()
     first._conn.close()  # the holder's session ends (its process died): the lock goes with it
@@ -57,8 +58,8 @@ def test_a_database_server_that_goes_away_is_a_storage_error_and_comes_back(tmp_
 
     server = PostgresServer().start()  # a server of this test's own: it is stopped and started again
     try:
-        monkeypatch.setenv("GEOLOC_DATABASE_URL", server.create_database())
-        store = ReferenceStore(tmp_path)
+        url = server.create_database()
+        store = ReferenceStore(tmp_path, backend=StorageSettings(database_url=url).backend(tmp_path))
         rng = np.random.default_rng(2)
         store.add_many([_item(rng, encoded=True)])
         server.stop_server()

@@ -174,7 +174,7 @@ def write(sid: ScanId, body: WriteIn, lib: Jobs) -> dict:
     _scan(lib, sid)
     try:
         with lib.exclusive(sid):
-            return write_back(lib.journal, sid, lib.journal.path.parent, body.in_file, body.dry_run, lib.root)
+            return write_back(lib.journal, sid, lib.data_dir, body.in_file, body.dry_run, lib.root)
     except (WriteBackError, ScanBusy) as e:
         raise ApiError(503, "not_ready", str(e)) from None
 

@@ -18,8 +18,8 @@ import numpy as np
 from app.engine.index.base import IndexNotTrained, StagedDump
 
 #: FAISS's OpenMP threads when nothing says otherwise. One query at a time is the service's load: more
-#: threads would only fight onnxruntime's and OpenBLAS's for the cores (measured: a 0.05 ms flat search took
-#: 3-7 ms after the CNN ran). ``Settings.faiss_threads`` sets it for a process (``set_search_threads``).
+#: threads would only fight onnxruntime's and OpenBLAS's for the cores (measured: a flat search right after the
+#: CNN ran took many times as long as alone). ``Settings.faiss_threads`` sets it for a process (``set_search_threads``).
 DEFAULT_SEARCH_THREADS = 1
 
 faiss.omp_set_num_threads(DEFAULT_SEARCH_THREADS)

@@ -8,10 +8,11 @@ codes. So ``dump`` writes them into the index's own file, after FAISS's part, so
 keeps that file open: the ids (8 bytes per reference) and a live mask are the only part in RAM.
 
 Why rows are read with ``os.pread`` and not through a memory map (measured, docs/BENCHMARKS.md): the kernel
-maps large page-cache folios, so each code a mapped re-rank read made about a megabyte of the file resident
-in the process (RssFile 564 MB after 3 /locates at 10^6 references; ``madvise(MADV_RANDOM)`` did not help).
-A ``pread`` copies the ~100 rows a query asks for and leaves the file's pages in the OS's cache (shared,
-evictable), counted in no process. Runs of nearby rows are read in one call (a snapshot's sorted copy).
+maps large page-cache folios, so each code a mapped re-rank read made far more of the file than its row
+resident in the process (RssFile grew by hundreds of MB within a few /locates at 10^6 references;
+``madvise(MADV_RANDOM)`` did not help). A ``pread`` copies the ~100 rows a query asks for and leaves the
+file's pages in the OS's cache (shared, evictable), counted in no process. Runs of nearby rows are read in one
+call (a snapshot's sorted copy).
 
 Live changes: codes added since the file was written go to a spill file (an unlinked temporary file in the
 folder ``use_spill_dir`` names: the service names its data dir; else the system's ``TMPDIR``), not to the

@@ -36,7 +36,7 @@ def usable_nlist(wanted: int | None, n_train: int) -> int:
 #: From this many lists on, the coarse centroids come from FAISS's two-level k-means. One k-means over
 #: ``nlist`` centroids costs n_train x nlist distances per iteration, and both grow with the collection: 64
 #: points per list at 16,384 lists is 1M x 16,384 x 25 iterations, hours on one core (the switch's training
-#: at 4,096 lists took 440 s of one thread). Two levels (sqrt(nlist) clusters, then each split into its share
+#: at 4,096 lists already took minutes of one thread). Two levels (sqrt(nlist) clusters, then each split into its share
 #: of the lists) cost about 2 sqrt(nlist) distances per point; ``bench.index_scale --kmeans`` measures both.
 TWO_LEVEL_FROM = 1024
 #: Full k-means iterations after the two levels (FAISS's one-level training runs 25).

@@ -95,7 +95,7 @@ class ReferenceIndex:
         """Each part's serving kind."""
         return {name: idx.kind for name, idx in self.parts().items()}
 
-    # -- the kind by size (issue 35) ------------------------------------------------------------------
+    # -- the kind by size ----------------------------------------------------------------------------
     @property
     def switches_by_size(self) -> bool:
         """Whether this index may be replaced by ``compressed`` once the collection is large: the

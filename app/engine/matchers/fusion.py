@@ -25,7 +25,7 @@ def fused_score(
     ``global_score + weight * (1 - exp(-max(inliers - floor, 0) / scale))``.
 
     Why not raw inlier counts: on penn, raw F inlier counts separate right from wrong candidates no better
-    than the global score (AUC 0.678 against 0.691; the fused score 0.723) because repetitive facades and
+    than the global score (the fused score does better; docs/RESULTS.md) because repetitive facades and
     chance give wrong candidates inliers too; the global score keeps its say, and a few dozen inliers are
     worth almost as much as hundreds, so one huge but wrong match cannot dominate. Why a floor: chance
     inliers would otherwise reshuffle unrelated candidates. Unverified pairs (0 inliers) keep their global

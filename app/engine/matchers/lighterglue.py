@@ -1,8 +1,8 @@
 """The ``xfeat-lighterglue`` matcher: XFeat keypoints matched by LighterGlue (``app.engine.models.lighterglue``),
 then the H-or-F geometry.
 
-Why a learned matcher: counting inliers of nearest-neighbour matches cannot tell lookalike buildings apart
-(issue 20); LightGlue decides matchability from both images' keypoints in context, so wrong pairs get few,
+Why a learned matcher: counting inliers of nearest-neighbour matches cannot tell lookalike buildings apart;
+LightGlue decides matchability from both images' keypoints in context, so wrong pairs get few,
 unconfident matches. Per pair it reports what a confidence rule can use (``Verification``): tentative
 matches, inliers of the chosen geometry, and the mean confidence of the matches.
 """

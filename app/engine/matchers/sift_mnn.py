@@ -18,7 +18,7 @@ from app.engine.matchers.geometry import verify
 from app.engine.registry import Kind, Plugin, register
 
 #: Verification resolution and keypoint cap: 800 px and 1,500 RootSIFT keypoints. Reference features are
-#: recomputed from the stored image (about 0.1 s per full photo); all 1,500 would take 193 KB stored, three
+#: recomputed from the stored image (a decode and a RootSIFT each); all 1,500 would take 193 KB stored, three
 #: times the 64 KB a reference may take (docs/RESULTS.md, "Verification that works").
 VERIFY_LONG_SIDE = 800
 VERIFY_MAX_KEYPOINTS = 1500

@@ -2,7 +2,7 @@
 out (the ``xfeat-lighterglue`` matcher, ``app.engine.matchers.lighterglue``, runs it).
 
 Why a learned matcher: counting inliers of nearest-neighbour matches cannot tell lookalike buildings
-apart (issue 20); LightGlue decides matchability from both images' keypoints in context, so wrong pairs
+apart; LightGlue decides matchability from both images' keypoints in context, so wrong pairs
 get few, unconfident matches. The graph is ours (``app.engine.convert.lighterglue_onnx``); around it,
 numpy: keypoints normalised as upstream (``normalize_keypoints``), pairs padded into batches with masks
 (``BATCH`` pairs per run), mutual-best filtering of the log assignment (``filter_matches``, upstream's),
@@ -35,8 +35,8 @@ MATCH_THRESHOLD = 0.1
 LONG_SIDE = 640
 MAX_KEYPOINTS = 512
 #: Pairs per network run. The graph takes any batch (padding + masks), but on 2 CPU cores one pair per run
-#: measured faster than the K = 10 candidates of a query in one run (321 against 711 ms per pair,
-#: ``bench.matcher_speed``, docs/BENCHMARKS.md): ten 512 x 512 attention maps do not stay in cache, and
+#: measured faster than the K = 10 candidates of a query in one run (``bench.matcher_speed``,
+#: docs/BENCHMARKS.md): ten 512 x 512 attention maps do not stay in cache, and
 #: a run's overhead is small next to its arithmetic. A GPU deployment would batch.
 BATCH = 1
 

@@ -39,7 +39,7 @@ KEEP_FRACTIONS = (0.3, 0.5, 0.7, 0.85)  # candidate operating points for the thr
 MAX_COLLECTION_PHOTOS = 600
 #: The collection rule's operating points, chosen on its held-out references. "Keep all" is not among
 #: them: the served bank always filters, and whether it should filter at all was decided by the five-fold
-#: measurement in docs/RESULTS.md (R@1 within 0.02 of no bank), not by a hundred held-out references.
+#: measurement in docs/RESULTS.md (R@1 close to no bank's), not by a hundred held-out references.
 COLLECTION_KEEP_FRACTIONS: tuple[float, ...] | None = KEEP_FRACTIONS
 
 

@@ -240,7 +240,7 @@ def ingest(
     holds the writer role, ``app.jobs.writer``), the rows earlier runs left pending (crashed, or storage
     retries) and a final snapshot. Returns the run's summary and how many of those rows it encoded.
     ``progress``: where the run counts its photos (default: a bar, or a log line per thousand)."""
-    writer = Writer(service.store.data_dir, options.batch, workers=options.workers)
+    writer = Writer(service.store.backend, options.batch, workers=options.workers)
     writer.attach(service)
     if not writer.acquire():
         say("a server's worker runs on this data dir: this run encodes its own rows, the server follows")

@@ -1,7 +1,7 @@
 """A binary IVF (Hamming) for the binary configurations at 10^6-10^7 references.
 
 Why: the binary configurations keep Hamming search (32 bytes per reference at 256 bits), but an exhaustive
-Hamming scan still grows with the collection (2.4 ms at 10^6, about 24 ms at 10^7 on one thread). An
+Hamming scan still grows with the collection (ten times the references, ten times the time). An
 inverted file over binary centroids scans ``nprobe`` lists only. The codes are stored whole (32 bytes is
 already small), so the only approximation is which lists are scanned. Live changes as in ``ivf-rabitq``
 (``IvfListsIndex``: hashtable direct map, removal in place).

@@ -1,17 +1,17 @@
 """A compressed IVF for 10^6-10^7 float references: exact coarse quantizer, RaBitQ codes, exact re-rank.
 
-Why: an exact search over 256-d float codes costs 52 ms at 10^6 references and about 0.5 s at 10^7 on one
-thread, and keeps 1 KB per reference in RAM. Following FAISS's guidance for that size, the lists hold
-compressed codes (RaBitQ by default: one bit per dimension plus two floats; ``codec`` takes any FAISS
-factory code, "PQ32", "SQ4", ... for the bench), and a shortlist of ``shortlist`` ids is re-scored exactly
-from the float codes (``FloatCodeTable``: read by ``pread`` from the index's own file, so the float
-codes are neither a second copy in RAM nor resident in the process). Fast-scan codes are not offered: FAISS
-1.15 cannot remove from their block-packed lists with a hashtable direct map, and the service deletes live.
+Why: an exact search over 256-d float codes grows with the collection (docs/BENCHMARKS.md), and keeps 1 KB per
+reference in RAM. Following FAISS's guidance for that size, the lists hold compressed codes (RaBitQ by
+default: one bit per dimension plus two floats; ``codec`` takes any FAISS factory code, "PQ32", "SQ4", ... for
+the bench), and a shortlist of ``shortlist`` ids is re-scored exactly from the float codes
+(``FloatCodeTable``: read by ``pread`` from the index's own file, so the float codes are neither a second copy
+in RAM nor resident in the process). Fast-scan codes are not offered: FAISS 1.15 cannot remove from their
+block-packed lists with a hashtable direct map, and the service deletes live.
 
-The coarse quantizer is exact (a flat scan of the ``nlist`` centroids, 0.02 ms at 1,024 lists, 0.65 ms at
-16,384), not an HNSW graph: our codes are nearly isotropic (about 210 effective dimensions of 256), and there
-an HNSW over 4,096 centroids searched at efSearch 64 returned the exact nearest list for only 93 % of codes
-(``bench.quantizer_assign``); on a real server at 10^6 references 2 of 5 uploaded photos were then not found
+The coarse quantizer is exact (a flat scan of the ``nlist`` centroids, cheap at these list counts), not an
+HNSW graph: our codes are nearly isotropic (most of the 256 dimensions carry variance), and there an HNSW
+over 4,096 centroids searched at efSearch 64 missed the exact nearest list for a share of codes
+(``bench.quantizer_assign``); on a real server at 10^6 references some uploaded photos were then not found
 by their own /locate, their list being among the query's nearest yet not among the 64 the graph returned
 (docs/BENCHMARKS.md). ``quantizer="hnsw"`` keeps the graph for the bench. An index written with the graph
 (before the exact quantizer) is served with an exact one over the same centroids when it is loaded: the
@@ -109,7 +109,7 @@ class IvfCompressedIndex(IvfListsIndex):
         index = faiss.index_factory(self.dim, f"{lists},{self.codec}", faiss.METRIC_INNER_PRODUCT)
         if isinstance(index, faiss.IndexIVFPQ):
             # The factory turns on polysemous training (minutes, never used here); 64 points per PQ centroid
-            # converge for 8-d sub-vectors (the PQ's k-means was 216 of 264 s at nlist 1,024 with 256).
+            # converge for 8-d sub-vectors (with 256, the PQ's k-means was most of the training's time).
             index.do_polysemous_training = False
             index.pq.cp.max_points_per_centroid = 64
         sample = training_sample(x, nlist)
