@@ -681,13 +681,13 @@ def features_backfill(
     models_dir: ModelsDir = _S.models_dir,
     config: ConfigOpt = _S.config,
 ) -> None:
-    """Make the stored local features the data dir's indexed references lack (resumable: a file that exists
-    is done; progress printed). Safe beside a running service."""
+    """Make the stored local features the data dir's indexed references lack, or hold damaged (resumable: a
+    sound file is done; progress printed). Safe beside a running service."""
     from app.errors import OperationRefused
     from app.jobs.backfill_features import backfill_stored_features
 
     try:
-        report = backfill_stored_features(data_dir, models_dir, config, say=typer.echo)
+        report = backfill_stored_features(data_dir, models_dir, config, say=typer.echo, backend=_S.backend(data_dir))
     except OperationRefused as e:
         _fail(str(e))
     if report.failed:

@@ -39,6 +39,8 @@ ELSEWHERE = {
     "geoloc fit --manifest M --config hybrid": "tests/test_cli.py (fit, with and without the SVM bank)",
     "geoloc eval --manifest M --config C": "tests/test_cli.py (test_eval_writes_the_report)",
     "geoloc refit": "tests/api/test_refit.py",
+    "geoloc features backfill": "tests/api/test_stored_features_ops.py, tests/api/test_hardening_round4_ops.py "
+    "(a configuration that stores features)",
     "geoloc serve": "every tests/service server (tools/server_process.py runs `geoloc serve`)",
     "geoloc worker | check | backup DEST | restore SRC": "a synopsis of the lines of 'The data dir', run here",
     "geoloc ingest SOURCE": "a synopsis: its forms (a folder, a CSV, --manifest) are run here",
