@@ -141,7 +141,8 @@ def datasets(
     seed: int = 0,
 ) -> None:
     """Write manifests for the sets in ../shared/data that have positions."""
-    from app.evaluation.datasets import read_manifest, write_shared_manifests
+    from app.evaluation.datasets import write_shared_manifests
+    from app.manifests import read_manifest
 
     for path in write_shared_manifests(shared, out, seed):
         rows = read_manifest(path)
@@ -181,7 +182,7 @@ def fit(
     from app.engine.configs import get_config
     from app.engine.pipeline import Pipeline, pipeline_dir
     from app.errors import FitRefused
-    from app.evaluation.datasets import read_manifest
+    from app.manifests import read_manifest
     from app.usecases.fitting import FitOptions, FitPhoto, FitProgress, bank_source, check_bank_kind, fit_pipeline
 
     cfg = get_config(config)
@@ -351,7 +352,7 @@ def locate(
     --brief what it means in words."""
     from app.api.schemas import LocateOut
     from app.domain import LocateOptions
-    from app.usecases.collection import IndexSizing
+    from app.policies import IndexSizing
     from app.usecases.service import GeolocService
 
     data = image.read_bytes()  # a missing photo is said before the model loads
@@ -832,8 +833,8 @@ def _failure(exc: BaseException) -> tuple[int, str]:
     """The exit code and the one line for a failure no command handled (``EXIT_CODES``)."""
     from app.apikey import ApiKeyError
     from app.errors import code_of
-    from app.evaluation.datasets import ManifestError
     from app.jobs.ingest.sources import SourceError
+    from app.manifests import ManifestError
     from app.storage.errors import is_storage_error
 
     if isinstance(exc, GeolocError):

@@ -9,6 +9,7 @@ from pydantic import Field
 from pydantic_settings import SettingsConfigDict
 
 from app.engine.configs import DEFAULT_CONFIG
+from app.policies import IndexSizing, SnapshotPolicy
 from app.storage.settings import StorageSettings
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
@@ -127,14 +128,10 @@ class Settings(StorageSettings):
         1, ge=1, description="BLAS threads of a serving process (serve, worker): more only spin between queries"
     )
 
-    def snapshot_policy(self):
-        from app.usecases.collection import SnapshotPolicy
-
+    def snapshot_policy(self) -> SnapshotPolicy:
         return SnapshotPolicy(self.snapshot_every_changes, self.snapshot_every_seconds)
 
-    def index_sizing(self):
-        from app.usecases.collection import IndexSizing
-
+    def index_sizing(self) -> IndexSizing:
         return IndexSizing(self.index_switch_at)
 
     def image_limits(self):

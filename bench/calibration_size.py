@@ -20,8 +20,8 @@ import numpy as np
 
 from app.engine.configs import DEFAULT_CONFIG, get_config
 from app.engine.pipeline import Pipeline
-from app.evaluation.datasets import read_manifest
 from app.evaluation.evaluate import extract_cached
+from app.manifests import read_manifest
 from app.settings import REPO_ROOT
 from app.usecases.fitting import FitOptions, FitPhoto, bank_source, fit_pipeline
 

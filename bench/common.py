@@ -17,7 +17,7 @@ import httpx
 import numpy as np
 from prometheus_client.parser import text_string_to_metric_families
 
-from app.evaluation.datasets import Row, read_manifest
+from app.manifests import Row, read_manifest
 from app.runtime import configure_allocator
 from app.settings import Settings
 from tools.server_process import wait_job

@@ -32,7 +32,7 @@ import numpy as np
 from app.domain import LocateOptions
 from app.engine.configs import DEFAULT_CONFIG
 from app.engine.geo import haversine_m
-from app.evaluation.datasets import read_manifest
+from app.manifests import read_manifest
 from app.usecases.service import GeolocService
 
 REPO = Path(__file__).resolve().parents[1]

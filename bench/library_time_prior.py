@@ -17,7 +17,7 @@ import tempfile
 from pathlib import Path
 
 from app.engine.geo import haversine_m
-from app.evaluation.datasets import read_manifest
+from app.manifests import read_manifest
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -17,7 +17,7 @@ from app.engine.configs import PipelineConfig
 from app.engine.geo import haversine_m
 from app.engine.imageio import ImageLimits, load_image
 from app.engine.registry import Kind, create
-from app.evaluation.datasets import Row
+from app.manifests import Row
 from app.settings import Settings
 from bench.common import is_photo, median_ms, percentiles, post_references
 

@@ -16,8 +16,8 @@ import time
 from pathlib import Path
 
 from app.engine.configs import CONFIGS, get_config
-from app.evaluation.datasets import read_manifest
 from app.evaluation.evaluate import evaluate, format_summary, write_report
+from app.manifests import read_manifest
 from app.runtime import configure_allocator
 from app.settings import Settings
 

@@ -44,7 +44,7 @@ def encode_penn(manifest: Path, models_dir: Path, config: str) -> PennCodes:
     """Encode the manifest's db rows as references and its query rows as queries (the SVM bank's selection
     for queries, as evaluation and /locate do), with the fitted pipeline. Slow (minutes): cache the result."""
     from app.engine.pipeline import load_pipeline
-    from app.evaluation.datasets import read_manifest
+    from app.manifests import read_manifest
 
     pipe = load_pipeline(models_dir, config)
     rows = read_manifest(manifest)

@@ -45,8 +45,8 @@ from app.engine.matchers.sift_mnn import PixelFeatures
 from app.engine.pipeline import Pipeline, load_pipeline
 from app.engine.registry import Kind, create
 from app.engine.stored_verification import Settings, verify_stored
-from app.evaluation.datasets import read_manifest
 from app.evaluation.evaluate import RowReferences
+from app.manifests import read_manifest
 from app.usecases.locate import verify_candidate_pairs
 from bench.common import REPO, machine, write_section
 

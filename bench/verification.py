@@ -27,7 +27,7 @@ import numpy as np
 
 from app.engine.imageio import load_image
 from app.engine.matchers import fusion, geometry, sift_mnn
-from app.evaluation.datasets import read_manifest
+from app.manifests import read_manifest
 
 WEIGHTS = (0.05, 0.1, 0.2, 0.3, 0.5, 1.0)
 SCALES = (10.0, 20.0, 30.0, 50.0, 100.0)

@@ -45,8 +45,8 @@ from app.engine.imageio import load_image
 from app.engine.registry import Kind, create
 from app.engine.stored_profiles import StoredExtractor, get_profile
 from app.engine.stored_verification import verify_stored
-from app.evaluation.datasets import Row, read_manifest
 from app.evaluation.evaluate import assign_folds
+from app.manifests import Row, read_manifest
 
 #: The prefix of a judge that is a stored-features profile (``app.engine.stored_profiles``), not a matcher.
 STORED = "stored:"

@@ -54,7 +54,7 @@ def penn_photo(name: str) -> Path:
 def mini_manifest(tmp_path_factory, penn_index) -> Path:
     """A small real manifest from penn-campus-gps: 10 captures as db, 3 as queries, 3 as train.
     Captures are picked in a fixed order so the test data never changes."""
-    from app.evaluation.datasets import Row, write_manifest
+    from app.manifests import Row, write_manifest
 
     captures = [r for r in penn_index if r["photo"]][:16]
     rows = []

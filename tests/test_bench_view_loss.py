@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from app.evaluation.datasets import Row
+from app.manifests import Row
 from bench.view_loss import query_databases
 
 

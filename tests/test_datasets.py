@@ -2,7 +2,8 @@
 
 import pytest
 
-from app.evaluation.datasets import ManifestError, penn_campus_rows, read_manifest, write_manifest
+from app.evaluation.datasets import penn_campus_rows
+from app.manifests import ManifestError, read_manifest, write_manifest
 from tests.conftest import PENN
 
 

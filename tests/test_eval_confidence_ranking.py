@@ -14,8 +14,8 @@ from sklearn.metrics import average_precision_score
 from app.engine.configs import get_config
 from app.engine.geo import haversine_m
 from app.evaluation.confidence_ranking import SCORES, precision_at_coverage, sue_spread
-from app.evaluation.datasets import read_manifest
 from app.evaluation.evaluate import evaluate, format_summary, stored_cached
+from app.manifests import read_manifest
 
 CONFIG = "lite2-hybrid-384-sv"
 

@@ -23,7 +23,7 @@ THREADS_ENV = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "GE
 
 def _manifest(tmp_path: Path, penn_index: list[dict]) -> tuple[Path, Path]:
     """40 captures (a photo and two crops each) as db rows, and the next capture's photo as a query."""
-    from app.evaluation.datasets import Row, write_manifest
+    from app.manifests import Row, write_manifest
 
     captures = [r for r in penn_index if r["photo"]]
     rows = []
@@ -56,7 +56,7 @@ def test_a_fit_with_1_and_with_2_threads_gives_the_same_pipeline(tmp_path, model
     from app.engine.imageio import load_image
     from app.engine.pipeline import load_pipeline
     from app.engine.training.svm_training import index_of
-    from app.evaluation.datasets import read_manifest
+    from app.manifests import read_manifest
 
     manifest, query = _manifest(tmp_path, penn_index)
     dirs = {}

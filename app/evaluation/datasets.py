@@ -1,71 +1,13 @@
-"""Dataset manifests: CSV with ``image,lat,lon,split[,group]``, image paths relative to the manifest.
-
-``group`` ties the rows of one capture (a photo and its crops): a query is never matched against its own
-group, and a group always sits on one side of a split, otherwise a crop of the query in the database
-would make recognition trivially easy.
-"""
+"""The data sets in ../shared as manifests (``app.manifests``): penn-campus-gps's rows with their splits and
+groups, and the manifests `geoloc datasets` writes."""
 
 from __future__ import annotations
 
 import csv
-import os
 import random
-from dataclasses import dataclass
 from pathlib import Path
 
-from app.engine.geo import valid_position
-
-SPLITS = ("db", "query", "train")
-
-
-class ManifestError(ValueError):
-    pass
-
-
-@dataclass(frozen=True)
-class Row:
-    image: Path  # absolute
-    lat: float
-    lon: float
-    split: str
-    group: str
-
-
-def read_manifest(path: Path) -> list[Row]:
-    path = Path(path)
-    if not path.exists():
-        raise ManifestError(f"manifest {path} does not exist")
-    rows = []
-    with path.open(newline="") as f:
-        reader = csv.DictReader(f)
-        missing = {"image", "lat", "lon", "split"} - set(reader.fieldnames or [])
-        if missing:
-            raise ManifestError(f"{path}: missing columns {sorted(missing)}; need image,lat,lon,split[,group]")
-        for n, r in enumerate(reader, start=2):
-            try:
-                lat, lon = float(r["lat"]), float(r["lon"])
-            except ValueError:
-                raise ManifestError(f"{path}:{n}: lat/lon are not numbers") from None
-            if not valid_position(lat, lon):
-                raise ManifestError(f"{path}:{n}: position {lat},{lon} is out of range")
-            split = r["split"].strip()
-            if split not in SPLITS:
-                raise ManifestError(f"{path}:{n}: split {split!r} is not one of {SPLITS}")
-            image = (path.parent / r["image"]).resolve()
-            group = (r.get("group") or "").strip() or r["image"]
-            rows.append(Row(image, lat, lon, split, group))
-    return rows
-
-
-def write_manifest(path: Path, rows: list[Row]) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with path.open("w", newline="") as f:
-        w = csv.writer(f)
-        w.writerow(["image", "lat", "lon", "split", "group"])
-        for r in rows:
-            w.writerow(
-                [os.path.relpath(r.image, path.parent.resolve()), f"{r.lat:.8f}", f"{r.lon:.8f}", r.split, r.group]
-            )
+from app.manifests import Row, write_manifest
 
 
 def penn_campus_rows(

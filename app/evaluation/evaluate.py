@@ -33,7 +33,7 @@ from app.engine.stored_features import decode as decode_stored
 from app.engine.stored_features import encode as encode_stored
 from app.errors import ManifestCannotBeEvaluated
 from app.evaluation.confidence_ranking import query_record, rank_confidence, ranking_lines
-from app.evaluation.datasets import Row, read_manifest
+from app.manifests import Row, read_manifest
 from app.usecases.extraction import Extracted, extract_batch
 from app.usecases.fitting import EVAL_BANK_SOURCES, FitOptions, FitPhoto, fit_pipeline, near_ids
 from app.usecases.locate import ESTIMATE_CANDIDATES, MIN_LOCAL_FEATURES, Excluding, locate_features

@@ -163,7 +163,7 @@ def _fitted_summary(pipeline: Pipeline, references: int) -> tuple[str, str]:
 def _train_photos(manifest: Path | None) -> list[FitPhoto]:
     """The train rows of ``manifest`` (all its rows when it has none: a manifest of training photos only),
     as training photos that only the bank learns from."""
-    from app.evaluation.datasets import read_manifest
+    from app.manifests import read_manifest
 
     if manifest is None:
         return []

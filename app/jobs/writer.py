@@ -21,10 +21,11 @@ from collections.abc import Callable
 from pathlib import Path
 
 from app.jobs.worker import IngestWorker, writer_lock
+from app.policies import IndexSizing
 from app.storage.backend import StorageBackend
 from app.storage.orphans import Janitor
 from app.storage.sqlite import SqliteBackend
-from app.usecases.collection import Collection, IndexSizing, SnapshotWriter
+from app.usecases.collection import Collection, SnapshotWriter
 from app.usecases.service import GeolocService
 
 log = logging.getLogger("geoloc.worker")

@@ -32,12 +32,12 @@ from typing import TypeVar
 from app.domain import LocateOptions
 from app.engine.errors import GeolocError
 from app.engine.progress import Progress
-from app.evaluation.datasets import ManifestError, read_manifest
 from app.jobs.ingest.run import IngestOptions, ingest
 from app.jobs.ingest.sources import Source, SourceItem
 from app.library.photos import PhotoMeta, read_meta, same_stat, walk_photos
 from app.library.suggest import suggestion
 from app.library.timeprior import Anchor, time_prior
+from app.manifests import ManifestError, read_manifest
 from app.settings import usable_cpus
 from app.storage.library import LOCATED, PROBLEM, LibraryJournal
 from app.usecases.service import GeolocService

@@ -30,8 +30,9 @@ import numpy as np
 from app.engine.calibration import Calibration
 from app.engine.configs import DEFAULT_CONFIG
 from app.engine.index.float_code_table import use_spill_dir
-from app.engine.index.references import COMPRESSED_KINDS, ReferenceIndex
+from app.engine.index.references import ReferenceIndex
 from app.engine.pipeline import Pipeline, PipelineSource
+from app.policies import IndexSizing, SnapshotPolicy
 from app.runtime import release_free_memory
 from app.storage.backend import StorageBackend
 from app.storage.changes import Change
@@ -40,57 +41,6 @@ from app.storage.snapshots import SnapshotInvalid, SnapshotMismatch, StagedSnaps
 from app.storage.store import ReferenceStore
 
 log = logging.getLogger("geoloc.collection")
-
-
-@dataclass(frozen=True)
-class SnapshotPolicy:
-    """Write a snapshot after ``every_changes`` index changes, or ``every_seconds`` after the first change
-    not yet in one, and at a clean shutdown. A restart then replays at most that many changes."""
-
-    every_changes: int = 5_000
-    every_seconds: float = 300.0
-
-    def due(self, pending_changes: int, seconds_pending: float) -> bool:
-        """``seconds_pending``: since the oldest change not yet in a snapshot."""
-        return pending_changes >= self.every_changes or (pending_changes > 0 and seconds_pending >= self.every_seconds)
-
-
-#: ``IndexSizing.switch_at``'s default (``Settings.index_switch_at``).
-DEFAULT_SWITCH_AT = 200_000
-
-
-@dataclass(frozen=True)
-class IndexSizing:
-    """When the exact index gives way to the compressed kinds: at ``switch_at`` live
-    references (0: never), for a configuration whose kinds are exact and that lets the size choose
-    (``PipelineConfig.index_by_size``). The switch goes one way: a collection that shrinks again keeps the
-    compressed kind (no back-and-forth around the threshold, and no second training).
-
-    Why 200,000 by default (docs/BENCHMARKS.md, one FAISS thread): the exact float search's time grows in
-    proportion to the size, and /locate may take at most 1.2x its time at 10^4 references; the exact search
-    uses up that margin near 2 x 10^5 references (and 200 MB of index at 1,032 B each). Below it the exact
-    search costs no accuracy and no training; above it the compressed kind searches in a small fraction of
-    that time and holds 114 B per reference in RAM (``ivf-rabitq``; its float codes for the re-rank are read
-    by ``pread`` from the snapshot file, spilled to a temporary file until the first one)."""
-
-    switch_at: int = DEFAULT_SWITCH_AT
-    #: After a failed switch, the next try waits this long (a training that fails fails again at once).
-    retry_seconds: float = 600.0
-
-    def due(self, index: ReferenceIndex) -> bool:
-        return self.switch_at > 0 and index.switches_by_size and index.is_exact and index.size >= self.switch_at
-
-    def describe(self, index: ReferenceIndex, switching: bool) -> str:
-        """How the kind is chosen, for /ready."""
-        if not index.switches_by_size:
-            return "the configuration's kinds at every size"
-        if self.switch_at <= 0:
-            return "exact at every size (GEOLOC_INDEX_SWITCH_AT=0)"
-        compressed = " / ".join(COMPRESSED_KINDS[p] for p in index.parts())
-        if not index.is_exact:
-            return f"{compressed}: switched from exact at {self.switch_at} references"
-        now = "; switching now (built in the background, the exact index serves meanwhile)" if switching else ""
-        return f"exact below {self.switch_at} references, then {compressed}{now}"
 
 
 @dataclass

@@ -23,12 +23,13 @@ from app.engine.geo import valid_position
 from app.engine.imageio import ImageLimits, LoadedImage
 from app.engine.pipeline import Features, Pipeline
 from app.errors import InvalidRequest
+from app.policies import IndexSizing, SnapshotPolicy
 from app.runtime import release_free_memory
 from app.storage.backend import StorageBackend
 from app.storage.feature_files import FeatureFiles, profile_root
 from app.storage.queue import Job
 from app.storage.store import KeysetPage, NewReference, Reference, ReferenceStore
-from app.usecases.collection import Collection, IndexSizing, SnapshotPolicy
+from app.usecases.collection import Collection
 from app.usecases.locate import StoredReferenceFeatures, StoreReferences, locate_features
 from app.usecases.thumbnails import THUMBNAIL_PX, keep_thumbnail, thumbnail
 from app.usecases.uploads import metadata_differences, prepare_upload

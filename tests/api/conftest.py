@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from app.evaluation.datasets import read_manifest
+from app.manifests import read_manifest
 from tools.server_process import ServerProcess, wait_job  # noqa: F401  (re-exported for the tests)
 
 CONFIG = "hybrid-bin"

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from app.engine.geo import haversine_m
-from app.evaluation.datasets import Row, write_manifest
+from app.manifests import Row, write_manifest
 from tests.api.conftest import CONFIG, Server
 from tests.conftest import PENN, SHARED
 from tests.test_cli import geoloc

@@ -16,7 +16,7 @@ from urllib.parse import urlparse
 
 import pytest
 
-from app.evaluation.datasets import read_manifest
+from app.manifests import read_manifest
 from tests.api.conftest import Server, wait_job
 from tests.conftest import CHECK_IMAGES, REPO
 

@@ -4,7 +4,7 @@ import json
 
 import pytest
 
-from app.evaluation.datasets import read_manifest
+from app.manifests import read_manifest
 from tests.api.conftest import Server, wait_job
 from tests.conftest import PENN
 

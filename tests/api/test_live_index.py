@@ -11,7 +11,7 @@ import time
 
 import pytest
 
-from app.evaluation.datasets import read_manifest
+from app.manifests import read_manifest
 from tests.api.conftest import CONFIG, Server, wait_job
 from tests.conftest import PENN
 

@@ -3,7 +3,7 @@ The figures it prints are not checked (they belong to docs/BENCHMARKS.md, not to
 
 import pytest
 
-from app.evaluation.datasets import read_manifest
+from app.manifests import read_manifest
 from bench.load import format_report, run_load
 from tests.api.conftest import Server
 

@@ -3,7 +3,7 @@ second process sees the new position at its next answer."""
 
 import json
 
-from app.evaluation.datasets import read_manifest
+from app.manifests import read_manifest
 from tests.api.conftest import Server, wait_job
 
 KEY = "patch-key"

@@ -19,7 +19,7 @@ import httpx
 import pytest
 
 from app.apikey import key_path, read_key
-from app.evaluation.datasets import read_manifest
+from app.manifests import read_manifest
 from tests.api.conftest import CONFIG, Server, wait_job
 from tests.conftest import PENN
 
@@ -84,7 +84,7 @@ def test_two_hosts_on_one_database_see_each_others_changes(tmp_path, fitted_mode
     """Then `geoloc refit` on one host re-encodes every reference (images read from the shared path) and
     switches the generation in the database: both servers load it without a restart. The hosts share one
     `pipelines/` folder (a symlink here; a shared mount in a deployment), as README 'Several hosts' says."""
-    from app.evaluation.datasets import read_manifest
+    from app.manifests import read_manifest
 
     (tmp_path / "host-a" / "pipelines").mkdir(parents=True)
     (tmp_path / "host-b").mkdir()

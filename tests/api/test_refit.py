@@ -13,8 +13,8 @@ import pytest
 
 from app.encoding import EncodeItem, LocalEngine
 from app.engine.imageio import ImageLimits
-from app.evaluation.datasets import read_manifest
 from app.jobs.refit import RefitOptions, fit_generation, reindex, switch
+from app.manifests import read_manifest
 from app.storage.store import NewReference, ReferenceStore
 from app.usecases.service import GeolocService
 from tests.api.conftest import CONFIG, Server, wait_job

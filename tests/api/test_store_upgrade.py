@@ -19,7 +19,7 @@ from pathlib import Path
 
 import pytest
 
-from app.evaluation.datasets import read_manifest
+from app.manifests import read_manifest
 from app.storage.migrations import STEPS
 from app.storage.settings import StorageSettings
 from app.storage.store import ReferenceStore

@@ -15,7 +15,7 @@ import time
 
 import pytest
 
-from app.evaluation.datasets import read_manifest
+from app.manifests import read_manifest
 from tools.server_process import ServerProcess
 
 CONFIG = "lite2-hybrid-384-sv"

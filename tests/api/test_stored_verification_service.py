@@ -13,7 +13,7 @@ import pytest
 
 from app.engine.configs import DEFAULT_CONFIG, get_config
 from app.engine.geo import haversine_m
-from app.evaluation.datasets import read_manifest
+from app.manifests import read_manifest
 
 CONFIG = "lite2-hybrid-384-sv"
 BUDGET_BYTES = 64 * 1024

@@ -12,7 +12,7 @@ import sys
 import pytest
 
 from app.engine.models.squeezenet import MODEL_FILENAME
-from app.evaluation.datasets import read_manifest
+from app.manifests import read_manifest
 from tools.server_process import ServerProcess, wait_job
 
 CONFIG = "hybrid"

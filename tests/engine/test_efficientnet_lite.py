@@ -186,8 +186,8 @@ def test_the_lite2_feature_level_hybrid_finds_a_reencoded_photo(name, lite2, mod
     from app.domain import LocateOptions
     from app.engine.index.references import ReferenceIndex
     from app.engine.pipeline import Pipeline
-    from app.evaluation.datasets import read_manifest
     from app.evaluation.evaluate import RowReferences
+    from app.manifests import read_manifest
     from app.usecases.locate import locate_features
 
     rows = [r for r in read_manifest(mini_manifest) if r.split != "query"]

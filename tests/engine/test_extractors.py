@@ -10,7 +10,7 @@ from app.engine.local_features import RootSift
 from app.engine.models.xfeat import XFeatFeatures
 from app.engine.pipeline import Pipeline, load_pipeline, pipeline_dir
 from app.engine.registry import Kind, UnknownModel, create, files_for, names
-from app.evaluation.datasets import read_manifest
+from app.manifests import read_manifest
 from tests.conftest import penn_photo
 
 

@@ -16,7 +16,7 @@ from app.engine import configs as configs_mod
 from app.engine.configs import PipelineConfig
 from app.engine.index.base import register_index_kind
 from app.engine.index.faiss_index import FaissIndex
-from app.evaluation.datasets import read_manifest
+from app.manifests import read_manifest
 
 TOY_KIND = "toy-sq8"
 

@@ -11,7 +11,7 @@ import pytest
 
 from app.engine import configs as configs_mod
 from app.engine.configs import PipelineConfig
-from app.evaluation.datasets import read_manifest
+from app.manifests import read_manifest
 
 #: Small and fast codes (SqueezeNet GeM, 64-d floats and 64 bits) in the two kinds the named ``-ivf``
 #: configurations use; the named ones fit EfficientNet-Lite2 and RootSIFT, too slow for a test.

@@ -12,7 +12,7 @@ import pytest
 from app.engine import configs as configs_mod
 from app.engine import registry
 from app.engine.registry import Kind, UnknownModel
-from app.evaluation.datasets import read_manifest
+from app.manifests import read_manifest
 
 MODULE = "tests.engine.toy_matcher"
 

@@ -19,7 +19,7 @@ from app.engine.configs import PipelineConfig, get_config
 from app.engine.dense import resize_short_side
 from app.engine.models.base import OnnxModel
 from app.engine.registry import Kind, Plugin, UnknownModel, files_for
-from app.evaluation.datasets import read_manifest
+from app.manifests import read_manifest
 
 TOY_FILE = "toy.onnx"
 TOY_DIM = 8

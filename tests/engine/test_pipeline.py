@@ -12,8 +12,8 @@ from app.engine.errors import IncompatibleArtifact, ModelNotReady
 from app.engine.imageio import load_image
 from app.engine.index.references import ReferenceIndex
 from app.engine.pipeline import Pipeline
-from app.evaluation.datasets import read_manifest
 from app.evaluation.evaluate import RowReferences
+from app.manifests import read_manifest
 from app.usecases.locate import locate_features
 
 

@@ -18,7 +18,8 @@ from pathlib import Path
 import pytest
 
 from app.engine.configs import DEFAULT_CONFIG
-from app.evaluation.datasets import penn_campus_rows, write_manifest
+from app.evaluation.datasets import penn_campus_rows
+from app.manifests import write_manifest
 from bench.library_time_prior import penn_library
 from tests.conftest import PENN, REPO, SHARED
 

@@ -12,7 +12,8 @@ from pathlib import Path
 import pytest
 
 from app.engine.configs import DEFAULT_CONFIG
-from app.evaluation.datasets import Row, penn_campus_rows, write_manifest
+from app.evaluation.datasets import penn_campus_rows
+from app.manifests import Row, write_manifest
 from tests.conftest import PENN
 
 #: A whole library scanned with the fitted default pipeline: make test, not make test-quick.

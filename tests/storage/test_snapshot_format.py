@@ -13,7 +13,7 @@ import pytest
 from app.engine.configs import PipelineConfig
 from app.engine.imageio import load_image
 from app.engine.pipeline import Pipeline
-from app.evaluation.datasets import read_manifest
+from app.manifests import read_manifest
 from app.storage.snapshots import FORMAT, MANIFEST, SnapshotFile, SnapshotManifest
 from app.storage.store import NewReference, ReferenceStore
 from app.usecases.collection import Collection

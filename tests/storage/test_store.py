@@ -12,7 +12,7 @@ from app.engine.errors import IncompatibleArtifact
 from app.engine.imageio import load_image
 from app.engine.pipeline import Pipeline
 from app.errors import StorageUnavailable
-from app.evaluation.datasets import read_manifest
+from app.manifests import read_manifest
 from app.storage.errors import is_storage_error
 from app.storage.store import NewReference, ReferenceStore
 

@@ -17,7 +17,7 @@ import pytest
 from app.engine.configs import get_config
 from app.engine.imageio import load_image
 from app.engine.pipeline import Pipeline
-from app.evaluation.datasets import read_manifest
+from app.manifests import read_manifest
 from app.storage.database import DB_NAME
 from app.storage.snapshots import MANIFEST, SnapshotMismatch, SnapshotUnverifiable, check_binding
 from app.storage.snapshots import read_manifest as read_manifest_of

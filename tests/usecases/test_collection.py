@@ -5,9 +5,10 @@ import json
 import numpy as np
 import pytest
 
+from app.policies import SnapshotPolicy
 from app.storage.snapshots import MANIFEST
 from app.storage.store import NewReference, ReferenceStore
-from app.usecases.collection import Collection, SnapshotPolicy
+from app.usecases.collection import Collection
 from tests.storage.test_store import fitted  # noqa: F401  (the module's fitted pipeline and codes)
 
 #: Every test here runs on SQLite and on PostgreSQL (the ``backend`` fixture).

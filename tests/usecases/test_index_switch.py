@@ -12,9 +12,10 @@ import pytest
 
 from app.engine.configs import get_config
 from app.engine.index.references import ReferenceIndex
+from app.policies import IndexSizing, SnapshotPolicy
 from app.storage.snapshots import MANIFEST
 from app.storage.store import ReferenceStore
-from app.usecases.collection import Collection, IndexSizing, SnapshotPolicy
+from app.usecases.collection import Collection
 from tests.storage.test_store import fitted  # noqa: F401  (the module's fitted pipeline and codes)
 from tests.usecases.test_collection import _fill
 
