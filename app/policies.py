@@ -1,13 +1,13 @@
 """When the index changes shape: how often a snapshot is written (``SnapshotPolicy``) and when an exact
 index gives way to the compressed kinds (``IndexSizing``). Plain values with their rule, made from
-``Settings`` at each entry point and passed to the collection."""
+``Settings`` at each entry point and passed to the collection. Light to import (``Settings`` imports it,
+and every command reads its settings): the index module, and FAISS with it, is loaded only to describe a
+kind."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
-
-from app.engine.index.references import COMPRESSED_KINDS
 
 if TYPE_CHECKING:
     from app.engine.index.references import ReferenceIndex
@@ -53,6 +53,8 @@ class IndexSizing:
 
     def describe(self, index: ReferenceIndex, switching: bool) -> str:
         """How the kind is chosen, for /ready."""
+        from app.engine.index.references import COMPRESSED_KINDS
+
         if not index.switches_by_size:
             return "the configuration's kinds at every size"
         if self.switch_at <= 0:

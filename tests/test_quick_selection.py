@@ -35,6 +35,7 @@ def test_quick_selection_leaves_out_crash_fuzz_browser_library_and_container_onl
         "tests/library/test_library_browser.py",
         "tests/library/test_readme_library.py",
         "tests/library/test_manifest_library.py",
+        "tests/library/test_library_files.py",
         "tests/test_container_build.py",
     }
     assert left_out <= everything
