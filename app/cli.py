@@ -271,9 +271,9 @@ def ingest(
     chunks as pending rows, claimed by this run, encoded and completed in batches. Resumable: files stored by
     an earlier run (same path, size and mtime) are not read again, and identical images are stored once.
     Files that cannot be used are skipped and listed in a CSV report; a completed run exits 0."""
-    from app.jobs.ingest.run import IngestOptions
-    from app.jobs.ingest.run import ingest as run_ingest
-    from app.jobs.ingest.sources import SourceError, open_source
+    from app.ingestion.bulk import IngestOptions
+    from app.ingestion.bulk import ingest as run_ingest
+    from app.ingestion.sources import SourceError, open_source
     from app.usecases.service import GeolocService
 
     try:
@@ -607,7 +607,7 @@ def worker_cmd(
     stops working and waits to take it again."""
     import logging
 
-    from app.jobs.writer import WriterBusy, run_worker
+    from app.ingestion.writer import WriterBusy, run_worker
     from app.runtime import serving_blas_threads
     from app.storage.shared_images import ImagesNotShared, check_images_shared
     from app.storage.store import ReferenceStore
@@ -685,7 +685,7 @@ def features_backfill(
     """Make the stored local features the data dir's indexed references lack, or hold damaged (resumable: a
     sound file is done; progress printed). Safe beside a running service."""
     from app.errors import OperationRefused
-    from app.jobs.backfill_features import backfill_stored_features
+    from app.ingestion.backfill import backfill_stored_features
 
     try:
         report = backfill_stored_features(data_dir, models_dir, config, say=typer.echo, backend=_S.backend(data_dir))
@@ -833,7 +833,7 @@ def _failure(exc: BaseException) -> tuple[int, str]:
     """The exit code and the one line for a failure no command handled (``EXIT_CODES``)."""
     from app.apikey import ApiKeyError
     from app.errors import code_of
-    from app.jobs.ingest.sources import SourceError
+    from app.ingestion.sources import SourceError
     from app.manifests import ManifestError
     from app.storage.errors import is_storage_error
 

@@ -188,7 +188,7 @@ Upload = make_dataclass(
 )
 Upload.__module__ = __name__
 Upload.__doc__ = """One image to add: its bytes, its file name, and the reference's fields as given
-    (``REFERENCE_FIELDS``, in that order; not validated yet: ``app.usecases.uploads.prepare_upload`` does, naming the
+    (``REFERENCE_FIELDS``, in that order; not validated yet: ``app.ingestion.uploads.prepare_upload`` does, naming the
     image). A position of None reads it from the photo's EXIF."""
 
 

@@ -25,8 +25,9 @@ import time
 from pathlib import Path
 
 from app.domain import Upload
-from app.encoding import EncodeItem, LocalEngine, encode_and_complete
 from app.engine.geo import haversine_m
+from app.ingestion.encoding.items import EncodeItem
+from app.ingestion.encoding.local import LocalEngine, encode_and_complete
 from app.usecases.service import GeolocService
 from bench.common import REPO, is_photo, machine, median_ms, penn_rows, percentiles, write_section
 from tools.server_process import ServerProcess

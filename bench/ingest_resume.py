@@ -20,8 +20,8 @@ from pathlib import Path
 
 from app.engine.configs import DEFAULT_CONFIG
 from app.engine.progress import Progress
-from app.jobs.ingest.run import IngestOptions, IngestRun
-from app.jobs.ingest.sources import open_source
+from app.ingestion.bulk import IngestOptions, IngestRun
+from app.ingestion.sources import open_source
 from app.storage.journal import JOURNAL_NAME
 from app.usecases.service import GeolocService
 from bench.common import REPO, median_ms

@@ -35,11 +35,12 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 import cv2  # noqa: E402
 
 from app.domain import Upload  # noqa: E402
-from app.encoding import EncodeItem, LocalEngine, encode_and_complete  # noqa: E402
-from app.encoding.items import Encoded  # noqa: E402
 from app.engine.configs import DEFAULT_CONFIG  # noqa: E402
 from app.engine.imageio import load_image  # noqa: E402
 from app.engine.models.ort import set_session_threads  # noqa: E402
+from app.ingestion.completion import complete  # noqa: E402
+from app.ingestion.encoding.items import Encoded, EncodeItem  # noqa: E402
+from app.ingestion.encoding.local import LocalEngine, encode_and_complete  # noqa: E402
 from app.usecases.service import GeolocService  # noqa: E402
 from bench.common import REPO, write_section  # noqa: E402
 
@@ -63,16 +64,15 @@ def uploads(kind: str, n: int) -> list[Upload]:
 
 
 class TimedWriter:
-    """The service as ``encode_and_complete`` sees it, with the time spent completing (the writer) summed."""
+    """``complete`` as ``encode_and_complete`` calls it, with the time spent completing (the writer) summed."""
 
-    def __init__(self, service: GeolocService):
-        self.service = service
+    def __init__(self) -> None:
         self.seconds = 0.0
 
-    def complete(self, results: Sequence[Encoded]) -> list[int]:
+    def __call__(self, service: GeolocService, results: Sequence[Encoded]) -> list[int]:
         t0 = time.perf_counter()
         try:
-            return self.service.complete(results)
+            return complete(service, results)
         finally:
             self.seconds += time.perf_counter() - t0
 
@@ -88,11 +88,11 @@ def timed_run(service: GeolocService, items: list[EncodeItem], engine) -> tuple[
     """(images/s, writer share, CPU ms per image) of one ``encode_and_complete`` over ``items``. CPU time is
     this process's (driver, writer, local threads) plus the Ray actors': what an image costs whatever the
     load, so it tells Ray's overhead apart from the shared machine's noise."""
-    writer = TimedWriter(service)
+    writer = TimedWriter()
     actors_cpu = getattr(engine, "cpu_seconds", lambda: 0.0)
     c0, a0 = time.process_time(), actors_cpu()
     t0 = time.perf_counter()
-    done = encode_and_complete(writer, items, engine, batch=32)
+    done = encode_and_complete(service, items, engine, batch=32, complete_batch=writer)
     total = time.perf_counter() - t0
     cpu = time.process_time() - c0 + actors_cpu() - a0
     if done != len(items):
@@ -122,13 +122,13 @@ def cost_split(service: GeolocService, items: list[EncodeItem]) -> dict[str, flo
     for start in range(0, len(results), 32):
         chunk = results[start : start + 32]
         t0 = time.perf_counter()
-        service.complete(chunk)
+        complete(service, chunk)
         per["insert"] += [(time.perf_counter() - t0) * 1000 / len(chunk)] * len(chunk)
     return {s: statistics.median(v) for s, v in per.items()}
 
 
 def measure(kind: str, n: int, args, root: Path) -> dict:
-    from app.encoding.ray import RayEngine
+    from app.ingestion.encoding.ray import RayEngine
 
     images = uploads(kind, n)
     service, items = fresh(root, args.models_dir, args.config, images)
@@ -261,7 +261,7 @@ def main() -> None:
 
     import ray
 
-    from app.encoding.ray import connect
+    from app.ingestion.encoding.ray import connect
 
     cv2.setNumThreads(1)
     load0 = os.getloadavg()[0]

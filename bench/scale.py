@@ -116,7 +116,7 @@ def interleaved(sizes: list[int], root: Path, models: Path, config: str, photos:
     """The same use cases in one process, size by size for each photo (the fairest comparison on a shared
     machine): locate through the core, and one upload accepted, encoded and completed (the job)."""
     from app.domain import LocateOptions, Upload
-    from app.jobs.worker import IngestWorker
+    from app.ingestion.worker import IngestWorker
     from app.usecases.service import GeolocService
 
     svcs = {n: GeolocService.open(root / f"n{n}", models, config) for n in sizes}

@@ -29,10 +29,10 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
 from app.domain import Upload  # noqa: E402
-from app.encoding import EncodeItem, LocalEngine, encode_and_complete  # noqa: E402
-from app.encoding.items import encode_data  # noqa: E402
 from app.engine.models.ort import set_session_threads  # noqa: E402
 from app.engine.pipeline import Pipeline  # noqa: E402
+from app.ingestion.encoding.items import EncodeItem, encode_data  # noqa: E402
+from app.ingestion.encoding.local import LocalEngine, encode_and_complete  # noqa: E402
 from app.storage.feature_files import FeatureFiles, profile_root  # noqa: E402
 from app.usecases.service import GeolocService  # noqa: E402
 from bench.common import REPO, machine  # noqa: E402

@@ -139,3 +139,30 @@ def test_the_code_never_cites_issue_numbers():
     hold the measured figures and name their commands)."""
     found = lines_citing_issue_numbers()
     assert found == [], "issue numbers cited at:\n" + "\n".join(found)
+
+
+#: The queue's consumer side (``app.storage.queue``, forwarded by ``ReferenceStore``): claiming pending rows,
+#: their attempts, releasing and completing them.
+QUEUE_CALLS = {"pending", "claim", "release", "start_attempts", "end_attempts", "complete"}
+
+
+def queue_calls_outside_ingestion() -> list[str]:
+    """``file:line`` of calls ``<x>.store.<call>(`` or ``store.<call>(`` of the queue's consumer side made
+    outside app/ingestion/ and app/storage/."""
+    found = []
+    for path in sorted(APP.rglob("*.py")):
+        if path.is_relative_to(APP / "ingestion") or path.is_relative_to(APP / "storage"):
+            continue
+        for node in ast.walk(ast.parse(path.read_text())):
+            if not (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute)):
+                continue
+            owner = node.func.value
+            name = owner.attr if isinstance(owner, ast.Attribute) else getattr(owner, "id", "")
+            if node.func.attr in QUEUE_CALLS and name == "store":
+                found.append(f"{path.relative_to(APP.parent)}:{node.lineno} store.{node.func.attr}(")
+    return found
+
+
+def test_the_queue_is_consumed_by_the_ingestion_package_only():
+    """The write path is one package: every claim, release and completion of queued rows is made there."""
+    assert queue_calls_outside_ingestion() == []

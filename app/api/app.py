@@ -19,8 +19,8 @@ from app.api.limits import BodyLimits
 from app.api.metrics import Metrics, MetricsMiddleware
 from app.api.routes import ROUTERS, ROUTES
 from app.engine.index.faiss_index import set_search_threads
-from app.jobs.worker import IngestWorker
-from app.jobs.writer import Writer
+from app.ingestion.worker import IngestWorker
+from app.ingestion.writer import Writer
 from app.runtime import serving_blas_threads
 from app.settings import Settings, usable_cpus
 from app.storage.shared_images import ImagesNotShared, check_images_shared
@@ -35,7 +35,7 @@ BACKFILL_NICE = 10
 
 
 def _run_writer(app: FastAPI, service: GeolocService) -> None:
-    """The in-process worker: the writer role (``app.jobs.writer``) now, or, while another process (a server
+    """The in-process worker: the writer role (``app.ingestion.writer``) now, or, while another process (a server
     or `geoloc worker`) holds the data dir's worker lock, a retry every GEOLOC_WORKER_RETRY_SECONDS that takes
     the role over once that process is gone (failover: uploads accepted here are still indexed)."""
     state = app.state
@@ -88,9 +88,9 @@ def _first_start(app: FastAPI) -> None:
 def _backfill(app: FastAPI, stop: threading.Event) -> None:
     """A data dir whose configuration stores local features but whose references lack some (made before it
     stored them, restored from a backup without them) gets them in the background
-    (``app.jobs.backfill_features``, what `geoloc features backfill` runs), while answers verify the
+    (``app.ingestion.backfill``, what `geoloc features backfill` runs), while answers verify the
     candidates that have a file and leave the rest unverified. /ready shows the walk's latest line."""
-    from app.jobs.backfill_features import PAGE, backfill_stored_features, needed
+    from app.ingestion.backfill import PAGE, backfill_stored_features, needed
 
     state = app.state
     s: Settings = state.settings

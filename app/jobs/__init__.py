@@ -1,1 +1,2 @@
-"""Background jobs: the writer role (one per data dir), the ingestion worker, `geoloc ingest` and refit."""
+"""Jobs over a whole data dir that are not the write path (``app.ingestion``): the re-fit and its
+re-encoding, and the first start of an empty data dir."""

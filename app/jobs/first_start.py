@@ -5,7 +5,7 @@ Why: a user with Docker alone has no ``make fit`` and no fitted pipeline; the im
 the data volume starts empty. So the server's loader (``app.api.app``) calls ``run_first_start`` before it
 opens the data dir: the fit is ``app.usecases.fitting.fit_pipeline`` (what `geoloc fit` runs), saved in the data dir
 as generation 0 (``pipelines/<config>-g0``, the layout a later `geoloc refit` continues from), and the photos
-go in through the ingest use case (``app.jobs.ingest.run.ingest``, what `geoloc ingest` runs). Nothing here
+go in through the ingest use case (``app.ingestion.bulk.ingest``, what `geoloc ingest` runs). Nothing here
 is a second fit or ingest path.
 
 Restarts: the pipeline folder is written atomically and recorded only while the data dir has no pipeline
@@ -30,7 +30,7 @@ from app.engine.imageio import ImageLimits
 from app.engine.pipeline import Pipeline
 from app.engine.progress import Progress
 from app.errors import FitRefused, ServiceError
-from app.jobs.ingest.sources import Source, SourceItem, open_source
+from app.ingestion.sources import Source, SourceItem, open_source
 from app.permissions import private_dir
 from app.storage.backend import StorageBackend
 from app.storage.sqlite import SqliteBackend
@@ -269,7 +269,7 @@ def _ingest(
     workers: int,
     backend: StorageBackend,
 ) -> int:
-    from app.jobs.ingest.run import IngestOptions, ingest
+    from app.ingestion.bulk import IngestOptions, ingest
     from app.usecases.service import GeolocService
 
     total = source.count()

@@ -26,13 +26,13 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from app.encoding import EncodeItem, batched, make_engine
-from app.encoding.items import Encoded
 from app.engine.configs import DEFAULT_CONFIG, get_config
 from app.engine.imageio import ImageLimits
 from app.engine.pipeline import Pipeline, PipelineSource
 from app.errors import FitRefused, RefitError, StorageUnavailable
-from app.jobs.writer import write_snapshot_if_free
+from app.ingestion.encoding.items import Encoded, EncodeItem
+from app.ingestion.encoding.local import batched, make_engine
+from app.ingestion.writer import write_snapshot_if_free
 from app.storage.backend import StorageBackend
 from app.storage.feature_files import FeatureFiles, profile_root
 from app.storage.generations import ReindexTarget

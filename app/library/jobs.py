@@ -22,10 +22,10 @@ from pathlib import Path
 
 from app.engine.errors import GeolocError
 from app.engine.imageio import ImageLimits
+from app.ingestion.thumbnails import render_thumbnail
 from app.library.scan import ScanOptions, scan_library
 from app.storage.library import LibraryJournal
 from app.usecases.service import GeolocService
-from app.usecases.thumbnails import render_thumbnail
 from app.user_files import FileTooLarge, is_within, read_regular
 
 log = logging.getLogger("geoloc.library")
@@ -133,7 +133,7 @@ class LibraryJobs:
 
     def thumbnail(self, path: Path, px: int, limits: ImageLimits) -> bytes:
         """A JPEG of a journalled photo's pixels only (no EXIF, XMP or comment), upright, at most ``px`` on a
-        side, decoded as a reference's thumbnail is (``app.usecases.thumbnails``: reduced, under the pixel
+        side, decoded as a reference's thumbnail is (``app.ingestion.thumbnails``: reduced, under the pixel
         budget). Read only from a regular file under the root, never through a link (one put there since
         the scan is refused), and no larger than the server's upload limit."""
         try:

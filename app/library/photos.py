@@ -141,7 +141,7 @@ def walk_photos(root: Path, skip: Path | None = None) -> list[Path]:
     Symbolic links are skipped, files and folders alike: a link may lead out of the folder (or out of the
     server's library root), and reading, thumbnailing or writing through it would touch a file the user
     did not put in the library (exiftool would even replace the link with a regular file)."""
-    from app.jobs.ingest.sources import IMAGE_SUFFIXES
+    from app.ingestion.sources import IMAGE_SUFFIXES
 
     out = []
     for folder, dirs, files in os.walk(root):  # followlinks=False: a linked folder is listed, never entered

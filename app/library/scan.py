@@ -32,8 +32,8 @@ from typing import TypeVar
 from app.domain import LocateOptions
 from app.engine.errors import GeolocError
 from app.engine.progress import Progress
-from app.jobs.ingest.run import IngestOptions, ingest
-from app.jobs.ingest.sources import Source, SourceItem
+from app.ingestion.bulk import IngestOptions, ingest
+from app.ingestion.sources import Source, SourceItem
 from app.library.photos import PhotoMeta, read_meta, same_stat, walk_photos
 from app.library.suggest import suggestion
 from app.library.timeprior import Anchor, time_prior

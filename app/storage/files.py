@@ -12,7 +12,7 @@ from app.permissions import PRIVATE_FILE
 
 IMAGES = "images"
 #: Inside the images folder: a JPEG thumbnail per reference and size (``thumbnails/<px>/<sha256>.jpg``), made
-#: once (``app.usecases.thumbnails``) and removed with the image. A dot folder: what checks and sweeps of the images
+#: once (``app.ingestion.thumbnails``) and removed with the image. A dot folder: what checks and sweeps of the images
 #: folder pass over.
 THUMBNAILS = ".thumbnails"
 #: Up to this many files a batch syncs each file; beyond, one ``syncfs`` of the images' file system.

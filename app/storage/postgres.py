@@ -295,7 +295,7 @@ class DatabaseWriterLock:
         return True
 
     #: The lock goes with its session: a restart of the server, or a network cut, loses it under a running
-    #: holder (``alive`` says so; ``app.jobs.writer.Writer`` then gives the role up).
+    #: holder (``alive`` says so; ``app.ingestion.writer.Writer`` then gives the role up).
     can_be_lost = True
 
     @property

@@ -12,17 +12,17 @@ import math
 import threading
 import time
 from collections.abc import Callable, Sequence
-from concurrent.futures import ThreadPoolExecutor
 from contextlib import AbstractContextManager, nullcontext
 from pathlib import Path
 
 from app.domain import Accepted, LocateAnswer, LocateOptions, ReferenceEdit, Upload
-from app.encoding.items import Encoded, EncodeItem, encode_item
 from app.engine.errors import InvalidPosition
 from app.engine.geo import valid_position
 from app.engine.imageio import ImageLimits, LoadedImage
 from app.engine.pipeline import Features, Pipeline
 from app.errors import InvalidRequest
+from app.ingestion.thumbnails import THUMBNAIL_PX, thumbnail
+from app.ingestion.uploads import metadata_differences, prepare_upload
 from app.policies import IndexSizing, SnapshotPolicy
 from app.runtime import release_free_memory
 from app.storage.backend import StorageBackend
@@ -31,8 +31,6 @@ from app.storage.queue import Job
 from app.storage.store import KeysetPage, NewReference, Reference, ReferenceStore
 from app.usecases.collection import Collection
 from app.usecases.locate import StoredReferenceFeatures, StoreReferences, locate_features
-from app.usecases.thumbnails import THUMBNAIL_PX, keep_thumbnail, thumbnail
-from app.usecases.uploads import metadata_differences, prepare_upload
 
 log = logging.getLogger("geoloc.core")
 
@@ -179,7 +177,7 @@ class GeolocService:
         except OSError as e:  # keeping queries is a courtesy; a full disk must not fail the answer
             log.warning("query not kept: %s", e)
 
-    # -- accept, encode, complete -----------------------------------------------------------------------
+    # -- accept (the queued rows are encoded and completed by app.ingestion.completion) ----------------
     def accept(self, uploads: Sequence[Upload], source: str = "api") -> Accepted:
         """Validate every upload, then store them all (images durable, rows and job in one transaction) as
         pending rows. The index is not touched: the worker encodes them."""
@@ -221,71 +219,6 @@ class GeolocService:
             raise InvalidRequest("heading must be a number in [0, 360)")
         return self.store.update(ref_id, fields)
 
-    def encode(self, batch: Sequence[tuple[int, Path]], workers: int = 1) -> list[Encoded]:
-        items = [EncodeItem(i, p, thumbnail_px=self.thumbnail_px) for i, p in batch]
-        if workers <= 1 or len(items) <= 1:
-            return [encode_item(self.pipeline, self.limits, item) for item in items]
-        with ThreadPoolExecutor(max_workers=workers) as pool:
-            return list(pool.map(lambda item: encode_item(self.pipeline, self.limits, item), items))
-
-    def complete(self, results: Sequence[Encoded]) -> list[int]:
-        """Record a batch in one transaction (storage failures stay pending) and bring the index up to date.
-        Results made by a pipeline the data dir no longer uses (a re-fit switched while they were encoded)
-        are not recorded: their rows stay pending, and this process loads the new generation before
-        returning, so the next batch is encoded by it."""
-        kept = self._keep_thumbnails(results)  # before the rows: a finished job's thumbnail is there
-        stored = self._keep_stored_features(results)  # before the rows too: an indexed row can be verified
-        by_pipeline: dict[str | None, list] = {}
-        for r in results:
-            if not r.retry:
-                by_pipeline.setdefault(r.fingerprint, []).append((r.ref_id, r.float_code, r.binary_code, r.error))
-        done: list[int] = []
-        stale = False
-        for fingerprint, final in by_pipeline.items():
-            recorded = self.store.complete(final, fingerprint)
-            stale |= fingerprint is not None and not recorded and any(e is None for *_, e in final)
-            done += recorded
-        for ref_id, path in kept.items():  # deleted meanwhile, or left pending: no thumbnail outlives its row
-            if ref_id not in done:
-                path.unlink(missing_ok=True)
-        for ref_id, path in stored.items():
-            if ref_id not in done:
-                path.unlink(missing_ok=True)
-        if stale and self.store.get_meta("fingerprint") != self.pipeline.fingerprint:
-            self.collection.refresh_generation(wait=True)
-        self.collection.catch_up()
-        return done
-
-    def _keep_thumbnails(self, results: Sequence[Encoded]) -> dict[int, Path]:
-        """Keep the thumbnails the encoder made (``app.usecases.thumbnails``); returns where, by reference id."""
-        kept = {}
-        for r in results:
-            if r.thumbnail is not None and r.error is None and not r.retry:
-                image = self.store.image_path(r.ref_id)
-                if image is not None and (path := keep_thumbnail(image, self.thumbnail_px, r.thumbnail)):
-                    kept[r.ref_id] = path
-        return kept
-
-    def stored_features_files(self) -> FeatureFiles | None:
-        """The configuration's stored local-features files (``data_dir/features/<profile>``), or None when
-        it stores none."""
-        profile = self.pipeline.config.stored_features
-        return None if profile is None else FeatureFiles(profile_root(self.store.data_dir, profile))
-
-    def _keep_stored_features(self, results: Sequence[Encoded]) -> dict[int, Path]:
-        """Write the stored local features the encoder made, one file per image (keyed by its sha256, as its
-        image file is named); returns where, by reference id."""
-        files = self.stored_features_files()
-        kept: dict[int, Path] = {}
-        if files is None:
-            return kept
-        for r in results:
-            if r.stored_features is not None and r.error is None and not r.retry:
-                image = self.store.image_path(r.ref_id)
-                if image is not None:
-                    kept[r.ref_id] = files.write(image.name.split(".", 1)[0], r.stored_features)
-        return kept
-
     # -- the rest ---------------------------------------------------------------------------------------
     def delete(self, ref_id: int) -> str | None:
         """None: no such reference; else whether its image file is ``"removed"`` or its removal ``"queued"``
@@ -314,7 +247,7 @@ class GeolocService:
         return self.store.image_path(ref_id)
 
     def thumbnail(self, ref_id: int) -> bytes | None:
-        """The reference's JPEG thumbnail (``app.usecases.thumbnails``); None when there is no such reference.
+        """The reference's JPEG thumbnail (``app.ingestion.thumbnails``); None when there is no such reference.
         FileNotFoundError when its stored image is gone."""
         path = self.store.image_path(ref_id)
         return None if path is None else thumbnail(path, self.thumbnail_px, self.limits)

@@ -145,8 +145,8 @@ def test_check_never_says_repair_removes_what_it_leaves(mini_collection, fitted_
 def test_a_resumed_refit_names_the_bank_of_its_pipeline(mini_collection, fitted_models, tmp_path):
     """The refit is interrupted as ``test_refit`` interrupts one (its re-index stopped part-way, as a killed
     process leaves it), then `geoloc refit` continues it in a process that never ran the fit."""
-    from app.encoding import LocalEngine
     from app.engine.imageio import ImageLimits
+    from app.ingestion.encoding.local import LocalEngine
 
     data = tmp_path / "data"
     shutil.copytree(mini_collection, data)

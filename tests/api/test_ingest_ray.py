@@ -115,7 +115,7 @@ def test_a_client_session_the_head_failed_to_start_is_asked_for_again(monkeypatc
     failed", seen once in CI); the next start succeeds, so `connect` asks again before failing with one line.
     That failure cannot be caused on demand on a real head, so ``ray.init`` raises it here."""
     ray = pytest.importorskip("ray")
-    from app.encoding import ray as engine
+    from app.ingestion.encoding import ray as engine
 
     said = "Initialization failure from server:\nRuntimeError: Starting Ray client server failed. See logs."
     calls = []

@@ -14,13 +14,14 @@ import numpy as np
 import pytest
 
 from app.domain import Upload
-from app.encoding import EncodeItem, LocalEngine, encode_and_complete, make_engine
+from app.ingestion.encoding.items import EncodeItem
+from app.ingestion.encoding.local import LocalEngine, encode_and_complete, make_engine
 from app.usecases.service import GeolocService
 from tests.api.conftest import CONFIG
 from tests.conftest import PENN
 
 ray = pytest.importorskip("ray", reason="the ray extra is not installed (pip install geoloc[ray])")
-from app.encoding.ray import RayEngine, RayEngineError, connect  # noqa: E402
+from app.ingestion.encoding.ray import RayEngine, RayEngineError, connect  # noqa: E402
 
 pytestmark = pytest.mark.ray
 
@@ -160,8 +161,8 @@ def test_a_pool_larger_than_the_cluster_times_out_with_a_clear_error(ray_cluster
 
 
 def test_the_shipped_package_loads_the_same_pipeline(tmp_path, fitted_models):
-    from app.encoding.ray import PipelinePackage, model_files
     from app.engine.pipeline import PipelineSource
+    from app.ingestion.encoding.ray import PipelinePackage, model_files
 
     source = PipelineSource.default(fitted_models, CONFIG)
     package = PipelinePackage.of(source)

@@ -11,8 +11,10 @@ import time
 import numpy as np
 import pytest
 
-from app.encoding import EncodeItem, LocalEngine
 from app.engine.imageio import ImageLimits
+from app.ingestion.completion import complete, encode_batch
+from app.ingestion.encoding.items import EncodeItem
+from app.ingestion.encoding.local import LocalEngine
 from app.jobs.refit import RefitOptions, fit_generation, reindex, switch
 from app.manifests import read_manifest
 from app.storage.store import NewReference, ReferenceStore
@@ -156,13 +158,13 @@ def test_a_stale_worker_never_records_old_codes(template, fitted_models, tmp_pat
     # An upload accepted now, encoded by a worker that still holds generation 0.
     photo = next(r for r in rows if r.split == "query")
     (((ref_id, _),), _) = old.store.add_many([NewReference(photo.image.read_bytes(), "jpeg", 1.0, 2.0)])
-    stale = old.encode(old.store.pending(10))
+    stale = encode_batch(old, old.store.pending(10))
     assert stale[0].fingerprint == old_fp
-    assert old.complete(stale) == []  # not recorded: the data dir uses generation 1 now
+    assert complete(old, stale) == []  # not recorded: the data dir uses generation 1 now
     assert old.store.get(ref_id).status == "pending"
     # ... and the service loaded generation 1 before returning, so its next batch is encoded by it.
     assert old.collection.generation == 1 and old.pipeline.fingerprint == target.fingerprint
-    assert old.complete(old.encode(old.store.pending(10))) == [ref_id]
+    assert complete(old, encode_batch(old, old.store.pending(10))) == [ref_id]
     row = old.store.db.execute("SELECT binary_code FROM refs WHERE id=?", (ref_id,)).fetchone()
     fresh = next(engine.run([EncodeItem(ref_id, old.store.image_path(ref_id))]))
     assert np.array_equal(np.frombuffer(row[0], np.uint8), fresh.binary_code)

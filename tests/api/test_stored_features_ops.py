@@ -27,7 +27,7 @@ def sv_collection(tmp_path_factory, models_dir, mini_manifest, lite2, xfeat):
     """``lite2-hybrid-384-sv`` fitted on the mini manifest, and a data dir holding its 10 db whole photos,
     ingested by the worker (so each has its stored features). Tests copy the data dir."""
     from app.cli import fit
-    from app.jobs.worker import IngestWorker
+    from app.ingestion.worker import IngestWorker
     from app.usecases.service import GeolocService
 
     models = tmp_path_factory.mktemp("sv-models")
@@ -95,7 +95,7 @@ def test_backup_and_restore_carry_the_stored_features(sv_collection, tmp_path):
 
 
 def test_backfill_resumes_and_marks_the_data_dir_done(sv_collection, tmp_path):
-    from app.jobs.backfill_features import LOCK, MARKER, backfill_stored_features, needed
+    from app.ingestion.backfill import LOCK, MARKER, backfill_stored_features, needed
     from app.storage.feature_files import profile_root
 
     models, source, _ = sv_collection

@@ -40,7 +40,7 @@ def sv_models(tmp_path, models_dir, lite2, xfeat):
 def test_stored_features_written_verified_and_removed(sv_models, mini_manifest, tmp_path):
     from app.cli import fit
     from app.domain import LocateOptions, Upload
-    from app.jobs.worker import IngestWorker
+    from app.ingestion.worker import IngestWorker
     from app.storage.feature_files import FeatureFiles, profile_root
     from app.storage.sqlite import SqliteBackend
     from app.usecases.operations import check_data_dir
@@ -115,7 +115,7 @@ def test_stored_features_written_verified_and_removed(sv_models, mini_manifest, 
 
     # A data dir whose references lack their files gets them back (the same bytes ingestion wrote), with
     # progress; a second run finds them all there (a file that exists is the resume marker).
-    from app.jobs.backfill_features import backfill_stored_features
+    from app.ingestion.backfill import backfill_stored_features
 
     written = {s: files.read(s) for s in shas}
     lost = sorted(shas)[:3]

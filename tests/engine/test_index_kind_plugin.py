@@ -61,8 +61,8 @@ def test_a_toy_index_kind_fits_ingests_and_locates(toy_config, mini_manifest, tm
     from app.cli import fit
     from app.domain import LocateOptions, Upload
     from app.engine.pipeline import pipeline_dir
+    from app.ingestion.worker import IngestWorker
     from app.jobs.refit import RefitOptions, refit
-    from app.jobs.worker import IngestWorker
     from app.usecases.service import GeolocService
 
     models = tmp_path / "models"

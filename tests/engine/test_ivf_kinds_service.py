@@ -58,7 +58,7 @@ def test_fit_ingest_locate_delete_snapshot_reopen(ivf_models, mini_manifest, tmp
     from app.engine.index.kinds.binary_ivf import BinaryIvfIndex
     from app.engine.index.kinds.ivf_rabitq import IvfCompressedIndex
     from app.engine.pipeline import pipeline_dir
-    from app.jobs.worker import IngestWorker
+    from app.ingestion.worker import IngestWorker
     from app.usecases.service import GeolocService
 
     name = IVF_CONFIG.name

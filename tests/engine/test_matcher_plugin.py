@@ -36,7 +36,7 @@ def test_a_toy_matcher_fits_ingests_and_locates_with_verification(toy, mini_mani
     from app.cli import fit
     from app.domain import LocateOptions, Upload
     from app.engine.imageio import load_image
-    from app.jobs.worker import IngestWorker
+    from app.ingestion.worker import IngestWorker
     from app.usecases.service import GeolocService
 
     models = tmp_path / "models"

@@ -82,8 +82,8 @@ def toy_registered(monkeypatch, tmp_path):
 def test_a_toy_global_model_fits_ingests_and_locates(toy_registered, mini_manifest, tmp_path):
     from app.cli import fit
     from app.domain import LocateOptions, Upload
-    from app.encoding.ray import model_files
-    from app.jobs.worker import IngestWorker
+    from app.ingestion.encoding.ray import model_files
+    from app.ingestion.worker import IngestWorker
     from app.usecases.service import GeolocService
 
     models = toy_registered

@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 
 from app.engine.configs import DEFAULT_CONFIG
-from app.jobs.ingest.run import IngestOptions, ingest
+from app.ingestion.bulk import IngestOptions, ingest
 from app.library.scan import PathsSource, ScanOptions, library_files, scan_library
 from app.storage.library import LibraryJournal
 from app.usecases.service import GeolocService

@@ -20,11 +20,11 @@ import pytest
 from app.domain import Upload
 from app.engine.errors import NoGpsInImage
 from app.engine.imageio import ImageLimits, load_image
+from app.ingestion.uploads import prepare_upload
 from app.library.photos import read_meta
 from app.library.review import decide
 from app.library.writeback import WriteBackError, open_folder, read_gps, undo, write_back
 from app.storage.library import LOCATED, LibraryJournal
-from app.usecases.uploads import prepare_upload
 from app.user_files import NotARegularFile, read_regular
 from tests.conftest import PENN, REPO
 from tests.library.conftest import exiftool_ready

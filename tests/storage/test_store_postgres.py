@@ -9,7 +9,7 @@ import threading
 import numpy as np
 import pytest
 
-from app.jobs.worker import writer_lock
+from app.ingestion.worker import writer_lock
 from app.storage.postgres import ChangeListener, DatabaseWriterLock
 from app.storage.settings import StorageSettings
 from app.storage.store import NewReference, ReferenceStore

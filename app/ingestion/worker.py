@@ -5,7 +5,7 @@ those rows are the durable queue. The worker encodes a batch and completes it in
 also appends the index changes to the log); completing is idempotent, so a worker killed at any moment
 loses nothing and duplicates nothing. Only one worker runs per data dir (a file lock; on PostgreSQL, per
 database, across hosts: an advisory lock), and the process that holds it is also the one that writes index
-snapshots (the writer role: ``app.jobs.writer``).
+snapshots (the writer role: ``app.ingestion.writer``).
 """
 
 from __future__ import annotations
@@ -14,6 +14,7 @@ import logging
 import threading
 from collections.abc import Callable
 
+from app.ingestion.completion import complete, encode_batch
 from app.storage.backend import StorageBackend, WriterLock
 from app.storage.errors import is_storage_error
 from app.usecases.service import GeolocService
@@ -67,9 +68,9 @@ class IngestWorker:
                 "quarantined references %s: their encoding never finished %d times", quarantined, self.max_attempts
             )
             batch = [b for b in batch if b[0] not in quarantined]
-        results = self.service.encode(batch, self.workers)
+        results = encode_batch(self.service, batch, self.workers)
         store.end_attempts([i for i, _ in batch])  # they returned: only a death leaves a count behind
-        done = self.service.complete(results)
+        done = complete(self.service, results)
         failed = sum(1 for r in results if r.error is not None) + len(quarantined)
         retry = sum(1 for r in results if r.retry)
         if self.on_batch:
@@ -80,7 +81,7 @@ class IngestWorker:
 
     def run_forever(self) -> None:
         """Encode until stopped. The rest of the writer role (snapshots, housekeeping) runs beside it in
-        threads of its own, started and stopped by ``app.jobs.writer.Writer``."""
+        threads of its own, started and stopped by ``app.ingestion.writer.Writer``."""
         backoff = self.poll_seconds
         while not self.stop_event.is_set():
             try:

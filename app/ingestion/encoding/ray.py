@@ -31,11 +31,11 @@ from dataclasses import dataclass
 from itertools import islice
 from pathlib import Path
 
-from app.encoding.items import Encoded, EncodeItem, encode_item, read_item
 from app.engine.configs import get_config
 from app.engine.imageio import ImageLimits
 from app.engine.pipeline import PipelineSource
 from app.errors import ServiceError
+from app.ingestion.encoding.items import Encoded, EncodeItem, encode_item, read_item
 
 log = logging.getLogger("geoloc.ray")
 

@@ -4,7 +4,7 @@ features, CNN, aggregation) runs.
 Why an engine boundary: encoding is the one cost that outgrows a machine, so the bulk paths (``geoloc
 ingest``, re-indexing) hand their rows to an engine and complete what comes back in batches, while the
 rest of the path (accept -> pending rows -> complete, one writer of the data dir) stays the core's. The
-local engine is a thread pool in this process; the Ray engine (``app/encoding/ray.py``) runs the same
+local engine is a thread pool in this process; the Ray engine (``app/ingestion/encoding/ray.py``) runs the same
 ``encode_item`` in actors of a Ray cluster. Both take ``EncodeItem`` values and yield ``Encoded`` results
 in any order.
 """
@@ -16,19 +16,19 @@ from concurrent.futures import ThreadPoolExecutor
 from itertools import islice
 from typing import Protocol
 
-from app.encoding.items import Encoded, EncodeItem, encode_item
 from app.engine.imageio import ImageLimits
 from app.engine.pipeline import Pipeline
+from app.ingestion.completion import complete
+from app.ingestion.encoding.items import Encoded, EncodeItem, encode_item
+from app.usecases.service import GeolocService
 
 
 class Encoder(Protocol):
-    """What the bulk loop needs of the service (``app.usecases.service.GeolocService``): the loaded pipeline, the
-    image limits, and the one writer's ``complete``."""
+    """What an engine needs of the service (``app.usecases.service.GeolocService``): the loaded pipeline and
+    the image limits."""
 
     pipeline: Pipeline
     limits: ImageLimits
-
-    def complete(self, results: Sequence[Encoded]) -> list[int]: ...
 
 
 class EncodeEngine(Protocol):
@@ -71,17 +71,19 @@ def batched(items: Iterable, size: int) -> Iterator[list]:
 
 
 def encode_and_complete(
-    service: Encoder,
+    service: GeolocService,
     items: Iterable[EncodeItem],
     engine: EncodeEngine,
     batch: int = 32,
     on_batch: Callable[[Sequence[Encoded]], None] | None = None,
+    complete_batch: Callable[[GeolocService, Sequence[Encoded]], list[int]] = complete,
 ) -> int:
     """Run ``items`` through ``engine`` and complete the results in batches of ``batch`` (one transaction
-    each, by this process: the one writer). Returns how many rows were completed."""
+    each, by this process: the one writer; ``complete_batch``: ``app.ingestion.completion.complete``, or a
+    benchmark's timed call of it). Returns how many rows were completed."""
     done = 0
     for results in batched(engine.run(items), batch):
-        done += len(service.complete(results))
+        done += len(complete_batch(service, results))
         if on_batch is not None:
             on_batch(results)
     return done
@@ -92,7 +94,7 @@ def make_engine(service: Encoder, ray: str | None = None, workers: int = 1, shar
     instance on this machine), ``"auto"`` or a cluster address such as ``ray://head:10001``."""
     if ray is None:
         return LocalEngine(service.pipeline, service.limits, workers)
-    from app.encoding.ray import RayEngine  # optional dependency: pip install geoloc[ray]
+    from app.ingestion.encoding.ray import RayEngine  # optional dependency: pip install geoloc[ray]
 
     source = service.pipeline.source
     if source is None:

@@ -2,7 +2,7 @@
 
 import pytest
 
-from app.jobs.ingest.sources import SourceError, SourceItem, open_source
+from app.ingestion.sources import SourceError, SourceItem, open_source
 
 
 def test_a_folder_yields_its_photos_recursively_in_a_stable_order(tmp_path):

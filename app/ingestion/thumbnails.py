@@ -87,7 +87,7 @@ def thumbnail_of(rgb: np.ndarray, size: int) -> bytes:
 
 
 def keep_thumbnail(image: Path, size: int, data: bytes) -> Path | None:
-    """Keep a thumbnail made elsewhere (at encoding: ``app.encoding.items.encode_data``) for ``image``;
+    """Keep a thumbnail made elsewhere (at encoding: ``app.ingestion.encoding.items.encode_data``) for ``image``;
     returns its path, or None when it could not be written."""
     path = thumbnail_path(image, size)
     try:

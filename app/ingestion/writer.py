@@ -1,7 +1,7 @@
 """The writer role of a data dir, held by one process at a time: encoding the queued uploads (the ingestion
 worker), writing the index snapshots and the database checkpoints, and the housekeeping of image files
 (``app.orphans.Janitor``). The data dir's worker lock (``worker.lock``; on PostgreSQL the database's advisory
-lock, one for all hosts: ``app.jobs.worker.writer_lock``) says which process holds it; that
+lock, one for all hosts: ``app.ingestion.worker.writer_lock``) says which process holds it; that
 process runs all of it, and gives it up in one order: the worker stops, the final snapshot and checkpoint
 are written, then the lock is released (a process that takes it over next finds nothing to replay).
 
@@ -20,7 +20,7 @@ import threading
 from collections.abc import Callable
 from pathlib import Path
 
-from app.jobs.worker import IngestWorker, writer_lock
+from app.ingestion.worker import IngestWorker, writer_lock
 from app.policies import IndexSizing
 from app.storage.backend import StorageBackend
 from app.storage.orphans import Janitor

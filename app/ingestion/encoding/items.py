@@ -15,7 +15,7 @@ from app.engine.errors import GeolocError
 from app.engine.imageio import ImageLimits, LoadedImage
 from app.engine.pipeline import Pipeline
 from app.engine.stored_features import encode as encode_stored
-from app.usecases.thumbnails import thumbnail_of
+from app.ingestion.thumbnails import thumbnail_of
 
 log = logging.getLogger("geoloc.encoding")
 
@@ -40,7 +40,7 @@ class Encoded:
     error: str | None = None  # a permanent failure (the row becomes failed)
     retry: bool = False  # a storage failure: the row stays pending and is tried again later
     fingerprint: str | None = None  # the pipeline that made the codes (a re-fit may switch meanwhile)
-    thumbnail: bytes | None = None  # a JPEG made from the same decode (``app.usecases.thumbnails``), when asked
+    thumbnail: bytes | None = None  # a JPEG made from the same decode (``app.ingestion.thumbnails``), when asked
     #: The reference's stored local features (``app.engine.stored_features.encode``'s bytes) from the same
     #: decode, when the configuration names a profile (``PipelineConfig.stored_features``); the writer keeps
     #: them (``app.storage.feature_files``) before the row completes.
@@ -78,7 +78,7 @@ def encode_data(
     except GeolocError as e:
         return Encoded(ref_id, None, None, str(e), fingerprint=pipeline.fingerprint)
     except MemoryError:
-        raise  # the machine's state, not the image's: the row stays pending (app/jobs/worker.py counts it)
+        raise  # the machine's state, not the image's: the row stays pending (app/ingestion/worker.py counts it)
     except Exception as e:
         log.exception("reference %d: encoding failed", ref_id)
         reason = f"encoding failed: {type(e).__name__}: {str(e)[:300]}"

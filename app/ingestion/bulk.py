@@ -2,9 +2,10 @@
 transaction), claim the new rows, encode them with an engine and complete them in batches.
 
 Why this shape:
-- Streaming chunks (``chunk`` files at a time) keeps memory flat on 10^6 photos: a chunk is read, validated
-  with ``app.usecases.uploads.prepare_upload`` (the API's limits), accepted, journalled, and handed on; the engine pulls
-  the next items only as it needs them, so the next chunk is read while this one encodes.
+- Streaming chunks (``chunk`` files at a time) keeps memory flat on 10^6 photos: a chunk is read,
+  validated with ``app.ingestion.uploads.prepare_upload`` (the API's limits), accepted, journalled, and
+  handed on; the engine pulls the next items only as it needs them, so the next chunk is read while this
+  one encodes.
 - Accepted rows are the core's ``pending`` rows, so a crash loses nothing; the run claims them for a lease
   so that a running server's worker (which reads ``store.pending``) does not encode the same rows, and a
   crashed run's claims simply expire and the server's worker takes the rows over.
@@ -26,8 +27,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from app.domain import Upload
-from app.encoding import EncodeItem, batched, encode_and_complete, make_engine
-from app.encoding.items import Encoded
 from app.engine.errors import (
     GeolocError,
     ImageTooLarge,
@@ -37,12 +36,14 @@ from app.engine.errors import (
     UnsupportedImageFormat,
 )
 from app.engine.progress import Progress
-from app.jobs.ingest.sources import Source, SourceItem
-from app.jobs.writer import Writer
+from app.ingestion.encoding.items import Encoded, EncodeItem
+from app.ingestion.encoding.local import batched, encode_and_complete, make_engine
+from app.ingestion.sources import Source, SourceItem
+from app.ingestion.uploads import prepare_upload
+from app.ingestion.writer import Writer
 from app.storage.journal import FileKey, Journal
 from app.storage.store import NewReference
 from app.usecases.service import GeolocService
-from app.usecases.uploads import prepare_upload
 from app.user_files import FileTooLarge, NotARegularFile, read_regular
 
 #: How long this run's claim on a row lasts: the row is encoded within seconds of being claimed, so a
@@ -237,7 +238,7 @@ def ingest(
     progress: Progress | None = None,
 ) -> tuple[Summary, int]:
     """The whole of `geoloc ingest`: the run, and, when no server's worker holds the data dir (this run then
-    holds the writer role, ``app.jobs.writer``), the rows earlier runs left pending (crashed, or storage
+    holds the writer role, ``app.ingestion.writer``), the rows earlier runs left pending (crashed, or storage
     retries) and a final snapshot. Returns the run's summary and how many of those rows it encoded.
     ``progress``: where the run counts its photos (default: a bar, or a log line per thousand)."""
     writer = Writer(service.store.backend, options.batch, workers=options.workers)

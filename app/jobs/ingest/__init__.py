@@ -1,1 +1,0 @@
-"""Bulk ingestion (`geoloc ingest SOURCE`): sources, the resumable run, its progress."""
