@@ -126,8 +126,10 @@ serve: fit
 # Everything but the container test (make test-container): 13 min here with the Debian base already made
 # (the image build is most of it), about 10 min more to make the base.
 NOT_IN_TEST := not container
+# Tests run on TEST_WORKERS processes (pytest-xdist), a module's tests on one of them (tests/conftest.py).
+TEST_WORKERS ?= 2
 test: setup browser exiftool postgres model $(RAY_STAMP)
-	$(BIN)/python -m pytest -q -m "$(NOT_IN_TEST)"
+	$(BIN)/python -m pytest -q -m "$(NOT_IN_TEST)" -n $(TEST_WORKERS) --dist loadgroup --durations=25
 
 # The edit-test loop: engine, store, CLI and API tests (real servers included) without the crash, fuzz,
 # browser, library-scan and container tests (pytest markers); tests/test_quick_selection.py checks that selection.

@@ -18,6 +18,16 @@ CHECK_IMAGES = SHARED / "models" / "squeezenet1.1" / "check-images"
 def pytest_collection_modifyitems(config, items):
     if not PENN.exists():
         raise pytest.UsageError(f"the shared data is missing: expected {PENN} (../shared beside the repo)")
+    for item in items:
+        item.add_marker(pytest.mark.xdist_group(_worker_group(item)))
+
+
+def _worker_group(item: pytest.Item) -> str:
+    """Which pytest-xdist worker group a test joins under ``--dist loadgroup`` (``make test``): a module's
+    tests stay together, so its module-scoped servers and fits are made once; every test that starts Ray
+    shares one group, because a second local Ray instance on the same machine would be found by
+    ``address="auto"`` and joined by the wrong test."""
+    return "ray" if item.get_closest_marker("ray") else item.nodeid.split("::")[0]
 
 
 @pytest.fixture(scope="session")
