@@ -20,7 +20,7 @@ HARD_QUERY ?= $(SHARED)/data/penn-campus-gps/photos/img_00008.jpg
 # A photo from elsewhere: San Francisco, a place the demo collection does not hold.
 ELSEWHERE_QUERY ?= $(SHARED)/data/sf-streetview-toy/queries/q1.jpg
 
-.PHONY: setup browser exiftool postgres model manifests fit demo run serve test test-quick test-container lint eval results bench load fuzz crash-full clean-index
+.PHONY: demo-queries demo-doc setup browser exiftool postgres model manifests fit demo run serve test test-quick test-container lint eval results bench load fuzz crash-full clean-index
 
 setup: $(VENV)/.installed $(LEAFLET) $(SWAGGER)
 
@@ -101,8 +101,9 @@ demo: fit
 HOST ?= 127.0.0.1
 PORT ?= 8000
 
-# Set up, ingest the demo collection, show a located demo query, then serve on $(HOST):$(PORT).
-run: demo
+# The three demo queries `make run` prints, on the demo collection as it is (`make demo-queries` after
+# `make run` or `make demo`); tools/demo_doc.py puts their output in the README (`make demo-doc`).
+define demo_queries
 	@echo "--- demo query 1, an easy case: $(DEMO_QUERY): a photo of the Penn campus that is not in the demo"
 	@echo "    collection (neither it nor its crops). The service answers from the pixels alone:"
 	@$(GEOLOC) locate $(DEMO_QUERY) --top-k 3 --compare-exif
@@ -110,8 +111,20 @@ run: demo
 	@$(GEOLOC) locate $(HARD_QUERY) --top-k 5 --compare-exif --brief
 	@echo "--- demo query 3, a photo from elsewhere: $(ELSEWHERE_QUERY) (San Francisco, no reference there):"
 	@$(GEOLOC) locate $(ELSEWHERE_QUERY) --top-k 5 --brief
+endef
+
+demo-queries:
+	$(demo_queries)
+
+# Rewrite the README's demo block from a real run of the demo queries.
+demo-doc:
+	$(BIN)/python -m tools.demo_doc
+
+# Set up, ingest the demo collection, show a located demo query, then serve on $(HOST):$(PORT).
+run: demo
+	$(demo_queries)
 	@echo "--- the geoloc command is in .venv: run 'source .venv/bin/activate' in each new shell (in this folder),"
-	@echo "    then the README's geoloc lines work as written (or write .venv/bin/geoloc)"
+	@echo "    then the docs' geoloc lines work as written (or write .venv/bin/geoloc)"
 	@if KEY=$$($(GEOLOC) api-key); then \
 	  echo "--- API key: $$KEY (writes need it in X-API-Key; it stays in the data dir's api_key file)"; \
 	  echo "    curl -H 'X-API-Key: $$KEY' -F image=@$(DEMO_QUERY) -F top_k=3 http://$(HOST):$(PORT)/locate"; \
@@ -151,13 +164,13 @@ lint: setup
 
 # One evaluation per named configuration, with the query role rotated over FOLDS folds.
 eval: model $(MANIFEST)
-	$(BIN)/python bench/results.py --manifest $(MANIFEST) --folds $(FOLDS) --out out/eval --no-write
+	$(BIN)/python -m bench.results --manifest $(MANIFEST) --folds $(FOLDS) --out out/eval --no-write
 
-# Regenerate docs/RESULTS.md (every configuration plus the parameter sweeps behind the defaults).
+# Regenerate docs/results.md (every configuration plus the parameter sweeps behind the defaults).
 results: model $(MANIFEST)
-	$(BIN)/python bench/results.py --manifest $(MANIFEST) --folds $(FOLDS) --out out/eval
+	$(BIN)/python -m bench.results --manifest $(MANIFEST) --folds $(FOLDS) --out out/eval
 
-# Regenerate docs/BENCHMARKS.md: server stage latencies vs the floor, ingestion, load, baseline, search scaling.
+# Regenerate docs/benchmarks.md: server stage latencies vs the floor, ingestion, load, baseline, search scaling.
 # make bench also compares /locate of the default with hybrid-xfeat, so both pipelines must be fitted.
 XFEAT_PIPELINE := models/pipelines/hybrid-xfeat/pipeline.json
 $(XFEAT_PIPELINE): $(MANIFEST) | model

@@ -53,7 +53,7 @@ class Settings(StorageSettings):
     protect_reads: bool = Field(False, description="require the API key on reads too")
     max_upload_bytes: int = Field(30 * 1024 * 1024, description="per image; 12 MP phone photos are 2-8 MB")
     max_image_pixels: int = Field(50_000_000, description="declared pixels; refuses decompression bombs")
-    max_files_per_request: int = 50
+    max_files_per_request: int = Field(50, description="images in one POST /references request")
     max_request_bytes: int = Field(
         512 * 1024 * 1024,
         description="a whole POST /references body (with max_upload_bytes x max_files_per_request, the smaller)",
@@ -62,7 +62,7 @@ class Settings(StorageSettings):
     worker: str = Field(
         "inprocess", description="inprocess: this process encodes uploads; none: a separate `geoloc worker` does"
     )
-    worker_batch: int = 8
+    worker_batch: int = Field(8, description="pending uploads the ingestion worker encodes and completes together")
     worker_retry_seconds: float = Field(
         5.0,
         gt=0,
