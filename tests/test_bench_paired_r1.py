@@ -23,4 +23,4 @@ def test_wins_losses_and_the_sign_test(tmp_path) -> None:
     base = _run(tmp_path / "a.json", [right[0], right[1], wrong, wrong])
     variant = _run(tmp_path / "b.json", [right[0], wrong, right[2], right[3]])
     assert paired(base, variant) == {"queries": 4, "wins": 2, "losses": 1, "p": 1.0}
-    assert round(sign_test(5, 0), 4) == 0.0625 and round(sign_test(51, 47), 2) == 0.76  # RESULTS.md's figures
+    assert round(sign_test(5, 0), 4) == 0.0625 and round(sign_test(51, 47), 2) == 0.76  # results.md's figures

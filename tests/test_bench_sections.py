@@ -1,11 +1,11 @@
-"""Benchmarks share docs/BENCHMARKS.md: each owns a marked section, and no run erases another's."""
+"""Benchmarks share docs/benchmarks.md: each owns a marked section, and no run erases another's."""
 
 from bench.benchmarks import write_kept
 from bench.common import marked_sections, write_section
 
 
 def test_sections_are_replaced_in_place_and_kept_by_the_full_render(tmp_path):
-    doc = tmp_path / "BENCHMARKS.md"
+    doc = tmp_path / "benchmarks.md"
     doc.write_text("# Benchmarks\n\nold figures\n")
     write_section("scale", "## Scale\n\nfirst", doc)
     write_section("ingest", "## Ingestion\n\nrate 5", doc)

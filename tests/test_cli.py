@@ -265,12 +265,12 @@ def test_eval_names_a_manifest_that_leaves_nothing_to_fit_on(workdir, penn_index
 
 def test_every_failure_is_one_line_and_a_documented_exit_code(tmp_path):
     """Issue 22: `geoloc locate missing.jpg` printed a 42-line traceback. Every failure: one line on stderr,
-    an exit code of the README's table (app.cli.EXIT_CODES); --debug adds the traceback."""
+    an exit code of docs/guide.md's table (app.cli.EXIT_CODES); --debug adds the traceback."""
     from app.cli import EXIT_CODES
 
-    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    guide = (Path(__file__).resolve().parents[1] / "docs" / "guide.md").read_text()
     for code, meaning in EXIT_CODES.items():
-        assert f"| {code} | {meaning} |" in readme, code
+        assert f"| {code} | {meaning} |" in guide, code
     photo = str(PENN / "photos" / "img_00000.jpg")
     empty = ("--data-dir", str(tmp_path / "data"), "--models-dir", str(tmp_path / "models"))
     cases = [

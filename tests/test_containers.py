@@ -61,7 +61,7 @@ def test_compose_shares_one_volume_and_checks_readiness():
 
 def test_every_service_of_the_image_builds_it_and_the_readme_names_its_first_pipeline():
     """No service names geoloc:latest without the build that makes it (compose would try to pull it from a
-    registry that has none), and the README names the folder the first start really writes."""
+    registry that has none), and docs/operations.md names the folder the first start really writes."""
     from app.engine.configs import DEFAULT_CONFIG
 
     compose = yaml.safe_load((REPO / "docker-compose.yml").read_text())
@@ -70,9 +70,9 @@ def test_every_service_of_the_image_builds_it_and_the_readme_names_its_first_pip
     assert set(ours) >= {"api", "worker", "ray-head", "ray-worker", "api-replica"}
     for name, service in ours.items():
         assert service.get("build") == services["api"]["build"], name
-    readme = (REPO / "README.md").read_text()
-    assert f"/data/pipelines/{DEFAULT_CONFIG}-g0" in readme
-    assert not re.search(r"/data/pipelines/(?!" + re.escape(DEFAULT_CONFIG) + r"-g0)", readme)
+    docs = "\n".join(p.read_text() for p in [REPO / "README.md", *sorted((REPO / "docs").glob("*.md"))])
+    assert f"/data/pipelines/{DEFAULT_CONFIG}-g0" in (REPO / "docs" / "operations.md").read_text()
+    assert not re.search(r"/data/pipelines/(?!" + re.escape(DEFAULT_CONFIG) + r"-g0)", docs)
 
 
 def test_compose_needs_no_python_on_the_host():

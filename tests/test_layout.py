@@ -135,7 +135,7 @@ def lines_citing_issue_numbers() -> list[str]:
 
 
 def test_the_code_never_cites_issue_numbers():
-    """Comments and docstrings say why, not which issue asked for it (docs/RESULTS.md and docs/BENCHMARKS.md
+    """Comments and docstrings say why, not which issue asked for it (docs/results.md and docs/benchmarks.md
     hold the measured figures and name their commands)."""
     found = lines_citing_issue_numbers()
     assert found == [], "issue numbers cited at:\n" + "\n".join(found)

@@ -18,11 +18,11 @@ def test_markdown_links_stay_inside_the_repository():
             path = (doc.parent / target).resolve()
             assert path.is_relative_to(REPO), f"{doc.name} links {target}, outside the repository"
             assert path.exists(), f"{doc.name} links {target}, which does not exist"
-    assert "](docs/METHOD.md)" in README
+    assert "](docs/method.md)" in README
 
 
 def test_the_method_page_cites_the_thesis_tables():
-    method = (REPO / "docs" / "METHOD.md").read_text()
+    method = (REPO / "docs" / "method.md").read_text()
     for table in ("3.1", "3.3", "4.1", "4.2", "5.1", "6.1", "6.2", "6.4"):
         assert f"table {table}" in method, table
     for figure in ("0.47", "0.076", "78.4", "89.1", "58.3", "75.9"):

@@ -78,11 +78,11 @@ def test_framework_refusals_map_to_listed_codes_with_their_status():
     assert framework_code(418) == "malformed_request" and framework_code(502) == "internal_error"
 
 
-def test_the_readme_lists_every_code_with_its_status():
-    readme = (REPO / "README.md").read_text()
+def test_the_api_page_lists_every_code_with_its_status():
+    api = (REPO / "docs" / "api.md").read_text()
     for code, c in ERRORS.items():
-        rows = [line for line in readme.splitlines() if line.startswith(f"| `{code}` |")]
-        assert rows, f"README.md has no row for {code}"
+        rows = [line for line in api.splitlines() if line.startswith(f"| `{code}` |")]
+        assert rows, f"docs/api.md has no row for {code}"
         assert f"| {c.status} |" in rows[0], rows[0]
 
 

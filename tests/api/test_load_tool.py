@@ -1,5 +1,5 @@
 """bench/load.py against a real server: a few seconds, bounded, so the tool itself cannot rot.
-The figures it prints are not checked (they belong to docs/BENCHMARKS.md, not to a test)."""
+The figures it prints are not checked (they belong to docs/benchmarks.md, not to a test)."""
 
 import pytest
 

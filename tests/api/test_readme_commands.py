@@ -1,10 +1,10 @@
-"""The README's commands, run the way the README writes them, in a shell, on real photos (issue 22).
+"""The commands of the README and of docs/*.md, run the way the pages write them, in a shell, on real photos.
 
-Each line of the README's ``sh`` blocks that starts with ``curl`` or ``geoloc`` runs in bash after the
-README's own set-up line (``source .venv/bin/activate``, from the checkout; ``geoloc`` is not on the PATH
-before it) and ``KEY=$(geoloc api-key)``. The files the lines name (photo.jpg, a.jpg, b.jpg,
-phone-photo-with-gps.jpg, survey.csv, ~/photos) are real penn-campus-gps photos put under those names in
-the shell's folder. A synopsis line runs in its shortest form: its optional ``[...]`` parts left out.
+Each line of the pages' ``sh`` blocks (README.md first, then docs/ by name) that starts with ``curl`` or
+``geoloc`` runs in bash after the README's own set-up line (``source .venv/bin/activate``, from the checkout;
+``geoloc`` is not on the PATH before it) and ``KEY=$(geoloc api-key)``. The files the lines name (photo.jpg,
+a.jpg, b.jpg, phone-photo-with-gps.jpg, survey.csv, ~/photos) are real penn-campus-gps photos put under those
+names in the shell's folder. A synopsis line runs in its shortest form: its optional ``[...]`` parts left out.
 
 The only rewrites are the ones a reader makes too (``PLACEHOLDERS``): the server's address (a free port
 instead of 8000), the job id the README writes JOB_ID, a manifest for M, and temporary folders for
@@ -29,6 +29,10 @@ from tests.api.conftest import CONFIG, Server
 from tests.conftest import PENN, REPO, SHARED
 
 README = (REPO / "README.md").read_text()
+#: Every page whose ``sh`` blocks a reader runs: the README, then docs/ by name (api.md's curl lines in order).
+PAGES = [REPO / "README.md", *sorted((REPO / "docs").glob("*.md"))]
+DOCS = "\n".join(page.read_text() for page in PAGES)
+API_DOC = (REPO / "docs" / "api.md").read_text()
 ACTIVATE = "source .venv/bin/activate"
 
 #: README lines run by other tests (their commands there are the same, through `python -m app.cli`).
@@ -48,7 +52,7 @@ ELSEWHERE = {
     "geoloc ingest ~/photos --ray auto": "needs a running Ray cluster (tests/api/test_ingest_ray.py: --ray local)",
     "geoloc ingest ~/photos --ray ray://head:10001 --workers 32": "needs a remote Ray cluster",
     "geoloc ingest ~/photos --data-dir /var/lib/geoloc": "tests/api/test_postgres_hosts.py (ingest into "
-    "PostgreSQL: the README's 'Several hosts' block needs a database server)",
+    "PostgreSQL: operations.md's 'Several hosts' block needs a database server)",
     "geoloc serve --data-dir /var/lib/geoloc": "tests/api/test_postgres_hosts.py (two servers on PostgreSQL)",
     "geoloc library scan ~/library --data-dir D --geojson out.geojson --csv out.csv": LIBRARY,
     "geoloc library scan ~/library --data-dir D": LIBRARY,
@@ -185,7 +189,7 @@ def test_every_readme_command_is_run_here_or_elsewhere(shell):
     """The curl lines in order (a job id from an answer feeds the JOB_ID line, a reference it added the REF_ID
     lines), then the geoloc lines. The README edits and deletes only a reference it added itself, never one
     of the demo collection's (issue 34: its PATCH and DELETE named demo reference 12)."""
-    lines = [c for c in commands(README) if c.split()[0] in ("curl", "geoloc")]
+    lines = [c for c in commands(DOCS) if c.split()[0] in ("curl", "geoloc")]
     curls = [c for c in lines if c.startswith("curl")]
     assert len(curls) >= 14, curls
     assert not [c for c in curls if re.search(r"/references/\d", c)], "a README line names a demo reference"
@@ -236,7 +240,7 @@ def test_every_readme_command_is_run_here_or_elsewhere(shell):
     assert {"survey 34", "survey 36", "img_00020.jpg", "img_00033.jpg"} <= labels, labels
     assert all(r["captured_at"] is None or "T" in r["captured_at"] for r in refs)
     unknown = [c for c in lines if c.startswith("geoloc") and shortest(c) not in ran and shortest(c) not in ELSEWHERE]
-    assert not unknown, f"README commands run by no test: {unknown}"
+    assert not unknown, f"commands of README.md or docs/ run by no test: {unknown}"
 
 
 def _shape(value):
@@ -249,7 +253,7 @@ def _shape(value):
 
 
 def test_the_readme_example_answer_has_the_fields_of_a_real_one(shell):
-    section = README.split("### A /locate answer, field by field", 1)[1].split("\n### ", 1)[0]
+    section = API_DOC.split("## A /locate answer, field by field", 1)[1].split("\n## ", 1)[0]
     example = json.loads(re.search(r"```json\n(.*?)```", section, re.S).group(1))
     p = shell("curl -F image=@photo.jpg -F top_k=3 http://127.0.0.1:8000/locate")
     status, body = _status_and_body(p)
@@ -283,7 +287,7 @@ def test_the_readme_synopsis_shows_each_numeric_default_the_command_has():
 
     group = typer.main.get_command(app)
     checked = []
-    for line in commands(README):
+    for line in commands(DOCS):
         words = line.split()
         if words[0] != "geoloc" or len(words) < 2 or words[1] not in group.commands:
             continue
@@ -298,7 +302,7 @@ def test_the_readme_synopsis_shows_each_numeric_default_the_command_has():
 def test_the_readme_recipe_for_another_configuration_fills_its_data_dir_and_git_ignores_it():
     """The hybrid-bin recipe served an empty collection (no ingest shown) from an untracked index-bin/ (issue
     34): it ingests into the data dir it serves, and git ignores that folder."""
-    text = " ".join(README.split())
+    text = " ".join(API_DOC.split())
     recipe = text.split("serve another one on its own data dir", 1)[1].split("geoloc serve", 1)[0]
     assert "make fit CONFIG=hybrid-bin" in recipe
     assert re.search(r"geoloc ingest [^`]*--config hybrid-bin --data-dir index-bin", recipe), recipe

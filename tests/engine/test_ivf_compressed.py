@@ -187,7 +187,7 @@ def test_near_duplicates_come_first_with_the_exact_quantizer():
     """The default quantizer is exact (a flat scan of the centroids), so a reference's own photo encoded
     again as a query (cosine about 0.95 on real photos) is always in a probed list. With an HNSW graph over
     4,096 centroids at efSearch 64, 2 of 5 uploads on a real server at 10^6 were not: their list was not
-    among the 64 the graph returned (docs/BENCHMARKS.md)."""
+    among the 64 the graph returned (docs/benchmarks.md)."""
     import faiss
 
     rng = np.random.default_rng(3)

@@ -107,7 +107,7 @@ def test_an_image_without_keypoints_is_unverified_not_an_error(built):
 
 
 def test_the_speed_benchmark_runs_on_real_photos(built):
-    """``python -m bench.matcher_speed`` (docs/BENCHMARKS.md's command) with a tiny budget: its table."""
+    """``python -m bench.matcher_speed`` (docs/benchmarks.md's command) with a tiny budget: its table."""
     import subprocess
     import sys
 

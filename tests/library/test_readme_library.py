@@ -1,4 +1,4 @@
-"""The README's "Geolocating a photo library" lines, run as written in a shell on real photos (issue 36):
+"""The "Geolocating a photo library" lines of docs/guide.md, run as written in a shell on real photos (issue 36):
 penn's 81 photos with the 16 query-split photos' GPS removed, two San Francisco photos, a text file named
 .jpg and a photo with broken EXIF. Checked after each line: the GeoJSON (RFC 7946) and the CSV cover every
 photo without GPS; each confident position lies within its stated radius of the truth; the San Francisco
@@ -27,8 +27,8 @@ from tests.library.conftest import ELSEWHERE, copy_collection, make_library
 #: A whole library scanned with the fitted default pipeline: make test, not make test-quick.
 pytestmark = pytest.mark.library
 
-README = (REPO / "README.md").read_text()
-SECTION = README.split("## Geolocating a photo library")[1].split("\n## ")[0]
+GUIDE = (REPO / "docs" / "guide.md").read_text()
+SECTION = GUIDE.split("## Geolocating a photo library")[1].split("\n## ")[0]
 LINES = [c for c in commands(SECTION) if c.startswith("geoloc library")]
 
 
