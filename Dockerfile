@@ -29,7 +29,7 @@ ENV PYTHONDONTWRITEBYTECODE=1 \
 
 # postgresql-client: pg_dump and pg_restore, which `geoloc backup`/`restore` run when the store is on
 # PostgreSQL. pg_dump refuses a server of a newer major version than its own: Debian bookworm's client is
-# 15, the compose file's server is postgres:15; a newer server needs a newer client (README, "Several hosts").
+# 15, the compose file's server is postgres:15; a newer server needs a newer client (docs/operations.md, "Several hosts").
 # libimage-exiftool-perl: exiftool, which `geoloc library write` and POST /library/scans/{id}/write call.
 RUN apt-get update \
     && apt-get install -y --no-install-recommends libgomp1 postgresql-client libimage-exiftool-perl \

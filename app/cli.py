@@ -35,7 +35,7 @@ ConfigOpt = Annotated[str, typer.Option("--config", "-c", help="named pipeline c
 ManifestOpt = Annotated[Path, typer.Option("--manifest", "-m", help="CSV: image,lat,lon,split[,group]")]
 
 
-#: The exit codes of every command (the README's "Exit codes" table is checked against this one).
+#: The exit codes of every command (the "Exit codes" table of docs/guide.md is checked against this one).
 EXIT_CODES: dict[int, str] = {
     0: "done",
     1: "done, and found problems (`geoloc check`), or nothing to print (`geoloc api-key` under GEOLOC_NO_AUTH)",

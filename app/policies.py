@@ -37,7 +37,7 @@ class IndexSizing:
     (``PipelineConfig.index_by_size``). The switch goes one way: a collection that shrinks again keeps the
     compressed kind (no back-and-forth around the threshold, and no second training).
 
-    Why 200,000 by default (docs/BENCHMARKS.md, one FAISS thread): the exact float search's time grows in
+    Why 200,000 by default (docs/benchmarks.md, one FAISS thread): the exact float search's time grows in
     proportion to the size, and /locate may take at most 1.2x its time at 10^4 references; the exact search
     uses up that margin near 2 x 10^5 references (and 200 MB of index at 1,032 B each). Below it the exact
     search costs no accuracy and no training; above it the compressed kind searches in a small fraction of

@@ -88,7 +88,7 @@ def serving_blas_threads(threads: int = SERVING_BLAS_THREADS) -> int | None:
     Why: a query's BLAS work is one vector through the PCA-whitening (a few ms), yet after each parallel
     call OpenBLAS's worker threads spin, busy, for about 2^28 cycles before they sleep, and that spinning
     falls on the next query's SIFT and CNN. Measured on 2 cores (``lite2-hybrid-384``, 1600 px photos, the
-    service in-process), one thread cuts both the CPU and the wall time of a /locate markedly (docs/BENCHMARKS.md,
+    service in-process), one thread cuts both the CPU and the wall time of a /locate markedly (docs/benchmarks.md,
     "A faster default"). A fit has its own fixed count (``fit_threads``)."""
     import numpy  # noqa: F401  (threadpoolctl limits the BLAS libraries already loaded: numpy's)
     from threadpoolctl import threadpool_info, threadpool_limits

@@ -1,4 +1,4 @@
-"""Write docs/BENCHMARKS.md: every speed and memory figure of the service, measured in one run.
+"""Write docs/benchmarks.md: every speed and memory figure of the service, measured in one run.
 
     .venv/bin/python -m bench.benchmarks            # `make bench`; about 15-20 minutes on 2 cores
 
@@ -177,7 +177,7 @@ def render(fig: dict) -> str:
         f"Machine: {fig['machine']}. Server and bench share the machine; onnxruntime uses all cores, "
         "FAISS one thread per search (the service defaults).",
         "All times are medians unless marked p95/p99; ratios compare two figures from this same run. "
-        "Accuracy figures are in docs/RESULTS.md (`make results`); the recalls quoted here are from this run.",
+        "Accuracy figures are in docs/results.md (`make results`); the recalls quoted here are from this run.",
         "",
         "## Summary",
         "",
@@ -322,7 +322,7 @@ def main() -> None:
     ap.add_argument("--reps-full", type=int, default=5, help="repetitions over the 6 12 MP originals")
     ap.add_argument("--reps-1600", type=int, default=2, help="repetitions over the 1600 px query photos")
     ap.add_argument("--load-seconds", type=float, default=30)
-    ap.add_argument("--out", type=Path, default=REPO / "docs" / "BENCHMARKS.md")
+    ap.add_argument("--out", type=Path, default=REPO / "docs" / "benchmarks.md")
     ap.add_argument("--json", type=Path, default=REPO / "out" / "bench" / "benchmarks.json")
     ap.add_argument("--render-only", action="store_true", help="rewrite --out from the figures in --json")
     args = ap.parse_args()

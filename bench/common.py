@@ -112,7 +112,7 @@ def synthetic_reference(photo: np.ndarray, rng: np.random.Generator, long_side: 
     return buf.tobytes()
 
 
-BENCHMARKS_DOC = REPO / "docs" / "BENCHMARKS.md"
+BENCHMARKS_DOC = REPO / "docs" / "benchmarks.md"
 
 
 def _markers(name: str) -> tuple[str, str]:
@@ -122,7 +122,7 @@ def _markers(name: str) -> tuple[str, str]:
 def write_section(name: str, body: str, doc: Path = BENCHMARKS_DOC) -> None:
     """Replace (or append) one marked section of a results document, leaving the others as they are.
 
-    Why markers: several benchmarks write into docs/BENCHMARKS.md on their own schedules (`make bench`,
+    Why markers: several benchmarks write into docs/benchmarks.md on their own schedules (`make bench`,
     bench/scale.py, bench/ingest_speed.py); each owns its section, so no run erases another's figures."""
     begin, end = _markers(name)
     section = f"{begin}\n{body.strip()}\n{end}"

@@ -151,7 +151,7 @@ def main() -> None:
     ap.add_argument("--reps", type=int, default=3)
     ap.add_argument("--manifest", type=Path, default=None, help="default: data/manifests/penn-campus-gps.csv")
     ap.add_argument("--limit", type=int, default=0, help="first N query photos (0: all)")
-    ap.add_argument("--no-doc", action="store_true", help="print only; leave docs/BENCHMARKS.md alone")
+    ap.add_argument("--no-doc", action="store_true", help="print only; leave docs/benchmarks.md alone")
     args = ap.parse_args()
     os.environ.setdefault("GEOLOC_FAISS_THREADS", "1")
     fig = run(args.models_dir, args.configs.split(","), args.reps, args.manifest, args.limit)

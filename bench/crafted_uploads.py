@@ -115,7 +115,7 @@ def main() -> None:
     ap.add_argument("--config", default="hybrid-nobank", help="the hybrid's extraction, no SVM bank to fit")
     ap.add_argument("--manifest", type=Path, default=MANIFEST, help="where the penn photos and crops are listed")
     ap.add_argument("--only", default="", help="run the shapes whose name contains this text (all by default)")
-    ap.add_argument("--write", action="store_true", help="write the figures into docs/BENCHMARKS.md")
+    ap.add_argument("--write", action="store_true", help="write the figures into docs/benchmarks.md")
     args = ap.parse_args()
     if args.only and args.write:
         ap.error("--write writes every shape's row: run it without --only")

@@ -565,7 +565,7 @@ def main() -> None:
     ap.add_argument("--manifest", type=Path, default=REPO / "data" / "manifests" / "penn-campus-gps.csv")
     ap.add_argument("--models-dir", type=Path, default=REPO / "models")
     ap.add_argument("--config", default="lite2-hybrid-384")
-    ap.add_argument("--write", action="store_true", help="write the section into docs/BENCHMARKS.md")
+    ap.add_argument("--write", action="store_true", help="write the section into docs/benchmarks.md")
     args = ap.parse_args()
     figures, context = run(args, progress=lambda m: print(m, flush=True))
     command = "PYTHONPATH=$PWD .venv/bin/python -m bench.index_scale " + " ".join(sys.argv[1:])

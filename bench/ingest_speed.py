@@ -46,7 +46,7 @@ from bench.common import REPO, write_section  # noqa: E402
 
 set_session_threads(1)  # before any session: one onnxruntime thread, as an actor holding 1 CPU
 PENN = REPO.parent / "shared" / "data" / "penn-campus-gps"
-DOC = REPO / "docs" / "BENCHMARKS.md"
+DOC = REPO / "docs" / "benchmarks.md"
 STAGES = ("read", "decode", "features", "cnn", "aggregation", "insert")
 
 
@@ -254,7 +254,7 @@ def main() -> None:
     ap.add_argument("--workers", type=int, nargs="+", default=[1, 2])
     ap.add_argument("--split-images", type=int, default=20, help="images timed stage by stage")
     ap.add_argument("--cores", type=int, nargs="+", default=[8, 16, 32, 64], help="N for the projection")
-    ap.add_argument("--write-docs", action="store_true", help="replace the Ingestion table in docs/BENCHMARKS.md")
+    ap.add_argument("--write-docs", action="store_true", help="replace the Ingestion table in docs/benchmarks.md")
     args = ap.parse_args()
     if sorted(args.workers)[:2] != [1, 2]:
         raise SystemExit("--workers must include 1 and 2 (the scaling figure compares them)")

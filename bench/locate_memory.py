@@ -5,7 +5,7 @@ penn references, then per burst: samples the server's RSS at idle, sends N concu
 49 MP image (a flat PNG declaring 7000 x 7000, tens of KB, or a 7000 x 7000 JPEG upscaled from a penn
 photo), samples RSS every 50 ms for the peak, and for --after seconds once all answers are in. Each
 setting runs in a fresh server; the old settings (no /locate limit, no malloc trim) are the baseline,
-measured in the same process. Prints medians over --repeats; --write puts them in docs/BENCHMARKS.md.
+measured in the same process. Prints medians over --repeats; --write puts them in docs/benchmarks.md.
 
     .venv/bin/python -m bench.locate_memory --repeats 2
 """
@@ -150,7 +150,7 @@ def main() -> None:
     ap.add_argument("--concurrent", type=int, default=8)
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--after", type=float, default=60.0, help="seconds of RSS samples after a burst")
-    ap.add_argument("--write", action="store_true", help="write the figures into docs/BENCHMARKS.md")
+    ap.add_argument("--write", action="store_true", help="write the figures into docs/benchmarks.md")
     args = ap.parse_args()
 
     global WARM

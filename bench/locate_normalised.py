@@ -9,7 +9,7 @@ Starts ``geoloc serve`` (tools/server_process.py) on a temporary data dir with t
 ``--config`` (when the models dir has none, one fitted on 40 penn images into out/bench-models/, kept for
 the next run: the fitted state changes no timing), indexes penn db references through POST /references,
 then per round: the workload, a /locate of a 1600 px penn photo, the workload, a /locate of a 12 MP
-original (photos-full, 4000 x 3000). Prints p50s and the ratios; ``--write`` puts them in docs/BENCHMARKS.md.
+original (photos-full, 4000 x 3000). Prints p50s and the ratios; ``--write`` puts them in docs/benchmarks.md.
 
     .venv/bin/python -m bench.locate_normalised --rounds 30
 """
@@ -89,7 +89,7 @@ def main() -> None:
     ap.add_argument("--config", default=DEFAULT_CONFIG, help="a configuration fitted in the models dir")
     ap.add_argument("--rounds", type=int, default=30)
     ap.add_argument("--references", type=int, default=64, help="db rows indexed before timing")
-    ap.add_argument("--write", action="store_true", help="write the figures into docs/BENCHMARKS.md")
+    ap.add_argument("--write", action="store_true", help="write the figures into docs/benchmarks.md")
     ap.add_argument(
         "--baseline-tree",
         type=Path,

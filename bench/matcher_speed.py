@@ -15,7 +15,7 @@ both matchers back to back, in alternating order, and the figures that matter ar
 
     python -m bench.matcher_speed [--queries 8] [--k 10] [--keypoints 512] [--threads 2] [--write-docs]
 
-``--write-docs`` writes the table into the "matcher" section of docs/BENCHMARKS.md.
+``--write-docs`` writes the table into the "matcher" section of docs/benchmarks.md.
 """
 
 from __future__ import annotations
@@ -55,7 +55,7 @@ def main() -> None:
     ap.add_argument("--k", type=int, default=10, help="candidates verified per query")
     ap.add_argument("--keypoints", type=int, default=0, help="LighterGlue keypoints (0: the matcher's default)")
     ap.add_argument("--threads", type=int, default=2, help="onnxruntime threads (Settings.ort_threads)")
-    ap.add_argument("--write-docs", action="store_true", help="write the matcher section of docs/BENCHMARKS.md")
+    ap.add_argument("--write-docs", action="store_true", help="write the matcher section of docs/benchmarks.md")
     args = ap.parse_args()
     started = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
     load_before = os.getloadavg()[0]

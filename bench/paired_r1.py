@@ -2,7 +2,7 @@
 became right (wins) and wrong (losses) from the baseline to the variant, with a two-sided sign test.
 
 Why: on 40 queries a difference of two or three in R@1 is within chance; the paired counts and the sign
-test say whether a variant's gain is more than that (RESULTS.md reports them beside each variant).
+test say whether a variant's gain is more than that (results.md reports them beside each variant).
 
     .venv/bin/python -m bench.paired_r1 out/eval/i33-default-40.json out/eval/i33-ms448-40.json
 """

@@ -1,5 +1,5 @@
 """The store on PostgreSQL against SQLite, in one process: what a replica pays to catch up on one change, what
-a cold start pays to read every code, what the rows take on disk (the README's sizing note), and whether a
+a cold start pays to read every code, what the rows take on disk (the sizing note of docs/operations.md), and whether a
 query the service runs per request or per change grows with the collection.
 
 Run: ``python -m bench.pg_catchup --refs 1000000`` (starts a throw-away PostgreSQL server of its own with
@@ -9,7 +9,7 @@ the first ``--add-rows`` through the store's bulk path (``add_many``: image file
 on PostgreSQL), which gives the insert rate; the rest straight into the store's own tables, the rows and
 their change log entries as ``add_many`` writes them, in big batches (COPY on PostgreSQL, one
 ``executemany`` on SQLite), without image files: nothing measured here reads an image, and writing and
-syncing 10^6 files per engine was where a 10^6 run spent its time (see docs/BENCHMARKS.md).
+syncing 10^6 files per engine was where a 10^6 run spent its time (see docs/benchmarks.md).
 
 What is measured is the store's real code, as the service runs it: the cold start is ``code_stream`` (the
 bulk read a replica starting without a snapshot makes, in a process started for it, with that process's

@@ -1,7 +1,8 @@
-"""Regenerate docs/RESULTS.md: every named configuration on penn-campus-gps, then the sweeps behind the
-defaults, each through the same ``evaluate`` as ``geoloc eval`` (same folds, same seed).
+"""Regenerate the marked section of docs/results.md: every named configuration on penn-campus-gps, then the
+sweeps behind the defaults, each through the same ``evaluate`` as ``geoloc eval`` (same folds, same seed).
+The rest of the page (the default's figures, each with its own command) is kept as it is.
 
-    .venv/bin/python bench/results.py --manifest data/manifests/penn-campus-gps.csv --folds 5 --out out/eval
+    .venv/bin/python -m bench.results --manifest data/manifests/penn-campus-gps.csv --folds 5 --out out/eval
 
 (`make results`). Extracted features are cached in OUT/cache, so variants that change only aggregation or
 codes reuse them.
@@ -20,6 +21,7 @@ from app.evaluation.evaluate import evaluate, format_summary, write_report
 from app.manifests import read_manifest
 from app.runtime import configure_allocator
 from app.settings import Settings
+from bench.common import write_section
 
 REPO = Path(__file__).resolve().parents[1]
 configure_allocator(Settings().malloc_tuning, Settings().malloc_trim)  # as every geoloc command: timings comparable
@@ -129,7 +131,7 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=REPO / "out/eval")
     ap.add_argument("--models-dir", type=Path, default=REPO / "models")
     ap.add_argument("--no-sweeps", action="store_true", help="only the named configurations")
-    ap.add_argument("--no-write", action="store_true", help="do not rewrite docs/RESULTS.md")
+    ap.add_argument("--no-write", action="store_true", help="do not rewrite docs/results.md")
     args = ap.parse_args()
 
     cache = args.out / "cache"
@@ -167,11 +169,9 @@ def main() -> None:
     def rel(p: Path) -> Path:
         return p.resolve().relative_to(REPO) if p.resolve().is_relative_to(REPO) else p
 
-    cmd = f"{rel(Path(__file__))} --manifest {rel(args.manifest)} --folds {args.folds} --out {rel(args.out)}"
-    cmd = ".venv/bin/python " + cmd
+    cmd = f"--manifest {rel(args.manifest)} --folds {args.folds} --out {rel(args.out)}"
+    cmd = ".venv/bin/python -m bench.results " + cmd
     md = [
-        "# Results on penn-campus-gps",
-        "",
         f"Regenerate with `make results`, which runs `{cmd}` (about {((time.time() - started) / 60):.0f} minutes "
         f"on this machine: {platform.machine()}, 2 cores). Each row is `geoloc eval --manifest {args.manifest.name} "
         f"--config NAME --folds {args.folds}` (plus `--set` / `--mode` for the sweeps); the JSON and Recall@N plot "
@@ -188,12 +188,12 @@ def main() -> None:
         "codebook, PCA and binariser on its own db and the train rows, never on its queries. Recall@N is the mean "
         "over folds.",
         "- Correct at N: one of the top N references lies within 25 m of the query's position. Chance is high "
-        "here (BASELINE.md: R@1 7.6 %, R@5 32 %) because the campus is small; 5 of 6 queries are 224 px crops, "
+        "here (R@1 7.6 %, R@5 32 % for a random ranking) because the campus is small; 5 of 6 queries are 224 px crops, "
         "which are harder than the photos.",
         "- ms per query: median over queries of each stage, measured one query at a time (onnxruntime on 2 "
         "threads). `total` is the median of per-query sums, not the sum of medians. bytes/ref: code bytes per "
         "reference (float32 codes plus packed bits).",
-        "- Estimate: the fused position of METHOD.md; `confident / then right` is how often the estimate was "
+        "- Estimate: the fused position of method.md; `confident / then right` is how often the estimate was "
         "marked confident and, of those, how often it was within 25 m (is the confidence honest?).",
         "",
         "## Every named configuration",
@@ -249,11 +249,8 @@ def main() -> None:
             *[_row(r, get_config(n).with_overrides(o).name) for n, m, o, r in sweeps],
             "",
         ]
-    out = REPO / "docs" / "RESULTS.md"
-    notes = REPO / "docs" / "RESULTS.notes.md"
-    if notes.exists():
-        md += ["## Notes", "", notes.read_text().strip(), ""]
-    out.write_text("\n".join(md))
+    out = REPO / "docs" / "results.md"
+    write_section("results", "\n".join(md), out)
     print(f"wrote {out}")
     print(json.dumps({n: r["recall_at"] for n, r in main_results.items()}))
 

@@ -7,7 +7,7 @@ For each size: a data dir seeded with synthetic codes (bench.seed, kept between 
 /locate p50/p95 on real 1600 px photos steady and right after an upload, the job time per upload, and how
 long a second API process on the same data dir takes to see an upload. Prints the table and the ratios of
 each size against the smallest, and writes them to OUT/scale.json and the scale section of
-docs/BENCHMARKS.md.
+docs/benchmarks.md.
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ from tools.server_process import ServerProcess, wait_job
 
 REPO = Path(__file__).resolve().parents[1]
 PENN = REPO.parent / "shared" / "data" / "penn-campus-gps" / "photos"
-DOC = REPO / "docs" / "BENCHMARKS.md"
+DOC = REPO / "docs" / "benchmarks.md"
 
 
 def _ms(f) -> float:

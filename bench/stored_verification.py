@@ -19,7 +19,7 @@ of ``penn-photos-40.csv`` against its 341 references:
 and the adaptive stop (``stop_margin``): candidates verified, time, R@1.
 
     nice -n 10 .venv/bin/python -m bench.stored_verification            # prints the figures
-    nice -n 10 .venv/bin/python -m bench.stored_verification --write    # and writes docs/BENCHMARKS.md
+    nice -n 10 .venv/bin/python -m bench.stored_verification --write    # and writes docs/benchmarks.md
 
 Global candidates are the pipeline's float codes ranked by inner product (what the flat float index
 returns). Timings: one process on a shared 2-core machine; medians.
@@ -330,7 +330,7 @@ def main() -> None:
     ap.add_argument("--k", type=int, default=10, help="global candidates verified per query")
     ap.add_argument("--profiles", nargs="*", help="names (prefixes) of PROFILES to measure, in this order; default all")
     ap.add_argument("--max-queries", type=int, default=None)
-    ap.add_argument("--write", action="store_true", help="write the section of docs/BENCHMARKS.md")
+    ap.add_argument("--write", action="store_true", help="write the section of docs/benchmarks.md")
     a = ap.parse_args()
     chosen = PROFILES if not a.profiles else [p for x in a.profiles for p in PROFILES if p.name.startswith(x)]
     body = run(a.manifest, a.k, chosen, a.max_queries)

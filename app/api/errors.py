@@ -3,7 +3,7 @@
 The codes are a frozen, documented list (``ERRORS``): clients branch on them, so a code is snake_case,
 has one HTTP status and one meaning, and is never renamed. The engine raises its own exception classes
 (``UnreadableImage``, ...); only this module turns them into codes, so the engine's class names never
-leak into the API. The README's error table and the OpenAPI document are checked against this list."""
+leak into the API. The error table of docs/api.md and the OpenAPI document are checked against this list."""
 
 from __future__ import annotations
 

@@ -61,7 +61,7 @@ CONSERVATIVE_SHARE = 0.8
 SAME_COLLECTION_SHARE = 0.5
 #: About how many references (photos and crops, several per place) a collection needs before its own
 #: calibration finds a level at which answers are confident: measured on penn-campus-gps by refitting
-#: subsets of whole captures (``python -m bench.calibration_size``, docs/RESULTS.md): refits of a hundred
+#: subsets of whole captures (``python -m bench.calibration_size``, docs/results.md): refits of a hundred
 #: or so references found none, refits of a few hundred did.
 CONFIDENT_FROM_REFERENCES = 300
 #: The share of confident answers whose truth lies within the stated radius: what the answer states.
@@ -76,7 +76,7 @@ RADIUS_BINS = 4
 #: with n captures all right, the bound is n / (n + z^2), as if 1.64 wrong captures were added.
 CEILING_Z = 1.2816
 
-# The reason codes a client can branch on (documented in the README and in /locate's schema).
+# The reason codes a client can branch on (documented in docs/api.md and in /locate's schema).
 NO_FEATURES = "no_features"
 NO_REFERENCES = "no_references"
 NO_MATCH = "no_match"
@@ -274,7 +274,7 @@ class Calibration:
         Why never below the constant rule: the calibration's sample is easier than real queries (its Brier
         score is well below the held-out queries'; it locates the collection's own references under an SVM
         bank trained on them), so its conformal radii alone held for clearly fewer confident answers than the
-        ``RADIUS_RATE`` stated (docs/RESULTS.md). The larger of the two held for more than it; the conformal
+        ``RADIUS_RATE`` stated (docs/results.md). The larger of the two held for more than it; the conformal
         radius widens an answer whose bin's errors are larger than the rule's."""
         r = self.radius
         if not r:

@@ -2,7 +2,7 @@
 
 A fitted model records its configuration in its manifest, so ``--config hybrid-bin`` today and a reload
 next month build the same thing. Sizes and counts were chosen by measurement on penn-campus-gps with
-``geoloc eval --folds`` (docs/RESULTS.md has the figures).
+``geoloc eval --folds`` (docs/results.md has the figures).
 """
 
 from __future__ import annotations
@@ -72,7 +72,7 @@ class PipelineConfig(BaseModel):
     #: (``Collection``). False: the named kinds serve at every size. A configuration that names another kind
     #: keeps it whatever this says.
     index_by_size: bool = True
-    #: ``geoloc fit`` trains an SVM bank (from the collection, METHOD.md "SVM bank") and queries aggregate
+    #: ``geoloc fit`` trains an SVM bank (from the collection, method.md "SVM bank") and queries aggregate
     #: only the features it keeps; False aggregates every feature. Ignored without local features. The
     #: default is True so that the definitions fitted before this field existed stay equal (Pipeline.load).
     svm_bank: bool = True
@@ -137,7 +137,7 @@ class PipelineConfig(BaseModel):
 
 _HYBRID = dict(local="sift", cnn_local_weight=1.0, cnn_global_weight=1.0, codebook="minibatch", k=64, pca_dim=256)
 # XFeat (learned, 64-d) in place of RootSIFT; keypoints and image size chosen with --folds 5 on
-# penn-campus-gps (docs/RESULTS.md, "XFeat local features").
+# penn-campus-gps (docs/results.md, "XFeat local features").
 _XFEAT = dict(local="xfeat", local_long_side=640, max_keypoints=1024)
 
 CONFIGS: dict[str, PipelineConfig] = {
@@ -234,7 +234,7 @@ CONFIGS: dict[str, PipelineConfig] = {
 # model: its head map (1280, stride 32) or its richest stride-16 map (720) GeM-pooled, alone or joined with
 # the RootSIFT MBVLAD (image-level hybrid), and the stride-16 map sampled at every keypoint (the lite2-hybrid
 # family: the feature-level hybrid of the default with Lite2 in place of fire9, the best recall measured).
-# Figures: docs/RESULTS.md, "EfficientNet-Lite2" and "The Lite2 map at each keypoint".
+# Figures: docs/results.md, "EfficientNet-Lite2" and "The Lite2 map at each keypoint".
 _LITE2 = dict(global_model="efficientnet-lite2", cnn_short_side=448)
 _LITE2_HYBRID = {**_HYBRID, **_LITE2, "global_model": "efficientnet-lite2-mid"}
 for _config in [
@@ -346,7 +346,7 @@ for _base, _kinds in [
     CONFIGS[_config.name] = _config
 
 # The default: it beats hybrid at R@1, R@5 and confident-and-right answers on penn-campus-gps (5 folds), in
-# less /locate time than hybrid (docs/RESULTS.md, "A faster default"). Data dirs built before keep the
+# less /locate time than hybrid (docs/results.md, "A faster default"). Data dirs built before keep the
 # configuration they record.
 DEFAULT_CONFIG = "lite2-hybrid-384"
 

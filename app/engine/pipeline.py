@@ -39,7 +39,7 @@ PIPELINE_MANIFEST = "pipeline.json"
 #: A decode keeps at least this many times the sides a pipeline's branches read. At 1 (decoding
 #: at the branches' scale, JPEG DCT scaling to between 1x and 2x), a 1600 px JPEG was read at 800 px, the same
 #: pixels as a PNG at 533 px (box reduce by 3) and its 12 MP original at 504 (DCT 1/8): three pictures for
-#: one photo, and hybrid R@1 on whole photos fell (docs/RESULTS.md). At 2 a 1600 px photo is decoded whole
+#: one photo, and hybrid R@1 on whole photos fell (docs/results.md). At 2 a 1600 px photo is decoded whole
 #: whatever its container, a 12 MP one at 1/4 (JPEG) or by a box of 4 (PNG), and the branches' area filters
 #: do the rest.
 DECODE_OVERSAMPLE = 2

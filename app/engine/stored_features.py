@@ -1,7 +1,7 @@
 """A reference's local features in the compact form stored beside it: numpy in, bytes out, and back.
 
 Why store them: verification re-extracted every candidate's features from its image on every request
-(decode + RootSIFT per candidate: most of what ``rerank=true`` cost, docs/RESULTS.md), so it
+(decode + RootSIFT per candidate: most of what ``rerank=true`` cost, docs/results.md), so it
 could not be in every answer. Stored once at ingestion, a candidate's features are one small file read.
 
 The form (version 1, little-endian), ``HEADER`` then two arrays:

@@ -6,7 +6,7 @@ the same way, so one name fixes the extractor, its image size, its keypoint cap,
 fused score's noise floor together. The name is also the folder the files live in
 (``app.storage.feature_files``), so a configuration that changes any of them never reads another's files.
 
-The one profile was chosen by measurement on penn-photos-40 (docs/BENCHMARKS.md, "Stored local features for
+The one profile was chosen by measurement on penn-photos-40 (docs/benchmarks.md, "Stored local features for
 verification"): XFeat at 640 px (long side), 900 keypoints, 64-d descriptors stored as uint8 (59.8 KB a
 reference), matched as XFeat's upstream matcher does (mutual nearest neighbours, cosine > 0.82, no ratio
 test), then the H-or-F geometry; the adaptive stop at the fusion weight (0.5) never changes the first
@@ -48,7 +48,7 @@ class StoredProfile:
     #: WRONG (beyond 25 m) candidates among the verified top 10 of penn-campus-gps's 5 folds have many more (a
     #: shared facade verifies from across a street); the floor is their p95. At the old floor verification lost
     #: R@1 against no verification; at this one it gains (``bench.fusion_replay``, then a 5-fold run;
-    #: docs/RESULTS.md, "Verified confidence from stored features").
+    #: docs/results.md, "Verified confidence from stored features").
     fusion_floor: int = 48
 
 

@@ -1,4 +1,4 @@
-"""The evaluation protocol of METHOD.md: Recall@N within d metres, estimate error, time per stage, bytes.
+"""The evaluation protocol of method.md: Recall@N within d metres, estimate error, time per stage, bytes.
 
 Every image is decoded and its features extracted once; each fold then fits the pipeline on its own db
 and train rows, indexes the db rows in memory and queries the query rows through
@@ -106,7 +106,7 @@ class ConfidenceRankings(BaseModel):
 
 class EvalResult(BaseModel):
     """One evaluation run. Its JSON form (``model_dump``) is the report ``geoloc eval --out`` writes and
-    docs/RESULTS.md is made from."""
+    docs/results.md is made from."""
 
     config: str
     manifest: str

@@ -14,7 +14,7 @@ Why 4,096 folders (three hex digits): at 10^7 references that is about 2,400 fil
 index directories; listing one stays cheap), at 10^5 about 24, and the folders themselves cost 16 MB.
 
 Where they live at scale: the form chosen by measurement is XFeat at 640 px, 900 keypoints, 64-d uint8
-descriptors and uint16 positions: 61,224 bytes (59.8 KB) a reference, photo or crop (docs/BENCHMARKS.md,
+descriptors and uint16 positions: 61,224 bytes (59.8 KB) a reference, photo or crop (docs/benchmarks.md,
 "Stored local features for verification"; today's RootSIFT at 800 px, 1,500 keypoints, would take 193 KB).
 So 10^6 references take 61 GB and 10^7 take 612 GB of disk, beside the images (typically 0.5-3 MB each,
 so a few % more), never in memory: a request reads its K candidates' files (K x 60 KB, one random read

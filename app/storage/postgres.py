@@ -481,7 +481,7 @@ class PostgresBackend(StorageBackend):
     def stream_rows(self, db, sql: str, chunk: int) -> Iterator[list[tuple]]:
         """Through a server-side cursor (a client-side one holds the whole result in libpq's buffer first:
         gigabytes of peak at 10^6 codes), in the binary format: BYTEA codes travel as stored instead of as hex text,
-        half the bytes and no decoding (docs/BENCHMARKS.md)."""
+        half the bytes and no decoding (docs/benchmarks.md)."""
         with storage_guard("reading the codes"), db.raw.cursor("geoloc_bulk", binary=True) as cursor:
             cursor.itersize = chunk
             cursor.execute(translate(sql)[0])

@@ -98,7 +98,7 @@ def capture_group(lat: float, lon: float) -> str:
     Why not the capture time as well: a photo's crops carry no EXIF time, so a crop and the photo it was cut
     from were two captures, and ``geoloc refit``'s calibration located each against the other (0 m off): a
     small collection's rule then stated a radius of metres and a near-certain ``p_within_25m`` for answers
-    far off (docs/RESULTS.md). Two photos taken at one spot, to 0.1 m, count as one capture."""
+    far off (docs/results.md). Two photos taken at one spot, to 0.1 m, count as one capture."""
     return f"@{lat:.6f},{lon:.6f}"
 
 

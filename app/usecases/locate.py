@@ -166,7 +166,7 @@ def verify_candidate_pairs(
     The query's features are computed once; each candidate's are recomputed from its stored image (most
     of what verification costs). Storing the strongest 480 keypoints at ingest (62 KB per
     reference; all 1,500 would take 193 KB) verified as well on penn and is the measured next step; this
-    is the one place that would read them (docs/RESULTS.md, "Verification that works").
+    is the one place that would read them (docs/results.md, "Verification that works").
 
     ``features_cache`` (reference id -> its matcher features) keeps each candidate's features across calls:
     the calibration verifies hundreds of answers whose candidates recur, /locate never passes one."""

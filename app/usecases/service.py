@@ -39,7 +39,7 @@ def extraction_slots(concurrency: int) -> AbstractContextManager:
     """How many locates may decode and extract at once (0: no limit). Each holds a decoded photo and its
     feature maps meanwhile; the limit bounds that memory. One per usable CPU by default: with no
     limit, concurrent uploads of large photos each hold a full decode at once (bench/locate_memory.py).
-    Throughput pays a little (bench/load.py; docs/BENCHMARKS.md)."""
+    Throughput pays a little (bench/load.py; docs/benchmarks.md)."""
     return threading.BoundedSemaphore(concurrency) if concurrency else nullcontext()
 
 

@@ -7,7 +7,7 @@ training, the evaluation). Holding them in RAM would cost 1 KB per reference, te
 codes. So ``dump`` writes them into the index's own file, after FAISS's part, sorted by id, and ``read``
 keeps that file open: the ids (8 bytes per reference) and a live mask are the only part in RAM.
 
-Why rows are read with ``os.pread`` and not through a memory map (measured, docs/BENCHMARKS.md): the kernel
+Why rows are read with ``os.pread`` and not through a memory map (measured, docs/benchmarks.md): the kernel
 maps large page-cache folios, so each code a mapped re-rank read made far more of the file than its row
 resident in the process (RssFile grew by hundreds of MB within a few /locates at 10^6 references;
 ``madvise(MADV_RANDOM)`` did not help). A ``pread`` copies the ~100 rows a query asks for and leaves the

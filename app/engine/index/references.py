@@ -1,7 +1,7 @@
 """Search the reference codes: float (inner product), binary (Hamming) or two-stage.
 
 Two-stage takes a Hamming shortlist (cheap, approximate) and re-scores only the shortlist exactly with
-the float codes: most of the float accuracy at binary speed (METHOD.md, "Search"). A configuration with
+the float codes: most of the float accuracy at binary speed (method.md, "Search"). A configuration with
 both kinds of codes keeps both for every reference, so any of the three modes can be asked for.
 """
 

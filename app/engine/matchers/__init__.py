@@ -1,4 +1,4 @@
-"""Matchers: the plug-ins that verify a query's top candidates (METHOD.md's optional, costly verification step).
+"""Matchers: the plug-ins that verify a query's top candidates (method.md's optional, costly verification step).
 
 Why a package: verification is one idea with one contract (``base.Matcher``, ``base.Verification``) and
 several ways to do it (RootSIFT mutual nearest neighbours, LighterGlue, ...). Each matcher is one module of

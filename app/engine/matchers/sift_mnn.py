@@ -2,7 +2,7 @@
 H-or-F geometry (``geometry.fit_geometry``).
 
 Why RootSIFT: it is the most distinctive descriptor the pipelines have, and what was measured
-(docs/RESULTS.md, "Verification that works"). Positions are in pixels, as RANSAC thresholds are.
+(docs/results.md, "Verification that works"). Positions are in pixels, as RANSAC thresholds are.
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ from app.engine.registry import Kind, Plugin, register
 
 #: Verification resolution and keypoint cap: 800 px and 1,500 RootSIFT keypoints. Reference features are
 #: recomputed from the stored image (a decode and a RootSIFT each); all 1,500 would take 193 KB stored, three
-#: times the 64 KB a reference may take (docs/RESULTS.md, "Verification that works").
+#: times the 64 KB a reference may take (docs/results.md, "Verification that works").
 VERIFY_LONG_SIDE = 800
 VERIFY_MAX_KEYPOINTS = 1500
 _extractor = RootSift(max_keypoints=VERIFY_MAX_KEYPOINTS, long_side=VERIFY_LONG_SIDE)

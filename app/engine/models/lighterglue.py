@@ -31,12 +31,12 @@ PRUNE_THRESHOLD = 1 - 0.95
 #: Upstream's ``filter_threshold`` (``min_conf``): a mutual best match is kept above this probability.
 MATCH_THRESHOLD = 0.1
 #: What the matcher extracts per image: XFeat at this long side (never upscaled), the best keypoints.
-#: Chosen by measurement on penn-campus-gps (docs/BENCHMARKS.md, "Learned matching").
+#: Chosen by measurement on penn-campus-gps (docs/benchmarks.md, "Learned matching").
 LONG_SIDE = 640
 MAX_KEYPOINTS = 512
 #: Pairs per network run. The graph takes any batch (padding + masks), but on 2 CPU cores one pair per run
 #: measured faster than the K = 10 candidates of a query in one run (``bench.matcher_speed``,
-#: docs/BENCHMARKS.md): ten 512 x 512 attention maps do not stay in cache, and
+#: docs/benchmarks.md): ten 512 x 512 attention maps do not stay in cache, and
 #: a run's overhead is small next to its arithmetic. A GPU deployment would batch.
 BATCH = 1
 

@@ -1,6 +1,6 @@
 """Train an SVM bank from geotagged training photos against a fitted pipeline and its references.
 
-Steps (METHOD.md, "SVM bank"): retrieve each training photo's top-n references with the unfiltered
+Steps (method.md, "SVM bank"): retrieve each training photo's top-n references with the unfiltered
 pipeline; references within ``pos_radius_m`` are positives, references among the top-n beyond the
 negative radius are confusers; label every local feature by its matches; train the bank; then choose the
 decision threshold on a held-out part of the training photos (never on queries).
@@ -35,11 +35,11 @@ from app.engine.progress import tracked
 from app.engine.svm_bank import BankParams, SvmBank, labels_from_scores, match_scores
 
 KEEP_FRACTIONS = (0.3, 0.5, 0.7, 0.85)  # candidate operating points for the threshold
-#: The collection rule's cap on training photos sampled from the references (cost: docs/RESULTS.md).
+#: The collection rule's cap on training photos sampled from the references (cost: docs/results.md).
 MAX_COLLECTION_PHOTOS = 600
 #: The collection rule's operating points, chosen on its held-out references. "Keep all" is not among
 #: them: the served bank always filters, and whether it should filter at all was decided by the five-fold
-#: measurement in docs/RESULTS.md (R@1 close to no bank's), not by a hundred held-out references.
+#: measurement in docs/results.md (R@1 close to no bank's), not by a hundred held-out references.
 COLLECTION_KEEP_FRACTIONS: tuple[float, ...] | None = KEEP_FRACTIONS
 
 

@@ -1,6 +1,6 @@
 """A compressed IVF for 10^6-10^7 float references: exact coarse quantizer, RaBitQ codes, exact re-rank.
 
-Why: an exact search over 256-d float codes grows with the collection (docs/BENCHMARKS.md), and keeps 1 KB per
+Why: an exact search over 256-d float codes grows with the collection (docs/benchmarks.md), and keeps 1 KB per
 reference in RAM. Following FAISS's guidance for that size, the lists hold compressed codes (RaBitQ by
 default: one bit per dimension plus two floats; ``codec`` takes any FAISS factory code, "PQ32", "SQ4", ... for
 the bench), and a shortlist of ``shortlist`` ids is re-scored exactly from the float codes
@@ -13,7 +13,7 @@ HNSW graph: our codes are nearly isotropic (most of the 256 dimensions carry var
 over 4,096 centroids searched at efSearch 64 missed the exact nearest list for a share of codes
 (``bench.quantizer_assign``); on a real server at 10^6 references some uploaded photos were then not found
 by their own /locate, their list being among the query's nearest yet not among the 64 the graph returned
-(docs/BENCHMARKS.md). ``quantizer="hnsw"`` keeps the graph for the bench. An index written with the graph
+(docs/benchmarks.md). ``quantizer="hnsw"`` keeps the graph for the bench. An index written with the graph
 (before the exact quantizer) is served with an exact one over the same centroids when it is loaded: the
 lists and their codes stay valid, since the codes are residuals from those centroids.
 
