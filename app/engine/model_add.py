@@ -177,13 +177,15 @@ def _first_line(e: BaseException) -> str:
     return text[0][:300] if text else type(e).__name__
 
 
-def _check_onnx(path: Path) -> None:
+def _check_onnx(path: Path, given: Path) -> None:
+    """``path`` (the copy) is an ONNX model the checker accepts; the reason names ``given``, the user's file."""
     import onnx
 
     try:
         onnx.checker.check_model(str(path))
     except Exception as e:  # protobuf's decode errors, the checker's: the file is not a usable ONNX model
-        raise ModelRefused(f"{path.name} is not an ONNX model: {_first_line(e)}") from None
+        why = _first_line(e).replace(str(path), given.name)
+        raise ModelRefused(f"{given} is not an ONNX model: {why}") from None
 
 
 def add_model(name: str, onnx_path: Path, spec_path: Path, models_dir: Path) -> AddedModel:
@@ -203,7 +205,7 @@ def add_model(name: str, onnx_path: Path, spec_path: Path, models_dir: Path) -> 
     try:
         shutil.copyfile(onnx_path, work / MODEL_FILE)
         (work / SPEC_FILE).write_text(spec.to_json())
-        _check_onnx(work / MODEL_FILE)
+        _check_onnx(work / MODEL_FILE, Path(onnx_path))
         model = SpecModel(work / MODEL_FILE, spec)
         shape = check_graph(model)
         model.unload()
