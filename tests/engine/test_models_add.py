@@ -197,7 +197,9 @@ def test_models_add_refuses_with_the_reason_and_adds_nothing(exports, tmp_path):
         ("Bad Name", sq, exports / "squeezenet-vector.json", "is not one a configuration can carry"),
     ]
     for name, model, spec, reason in cases:
-        p = geoloc("models", "add", name, "--onnx", str(model), "--spec", str(spec), "--models-dir", str(models), check=False)  # fmt: skip
+        p = geoloc(
+            "models", "add", name, "--onnx", str(model), "--spec", str(spec), "--models-dir", str(models), check=False
+        )
         assert p.returncode == 2, (name, p.stdout, p.stderr)
         assert reason in p.stderr, (name, p.stderr)
         assert _listing(models) == [], (name, _listing(models))  # no folder, no leftover temporary
@@ -214,14 +216,25 @@ def test_models_add_list_and_check_verify_the_sha256(exports, tmp_path):
     models = tmp_path / "models"
     models.mkdir()
     sq = exports / "squeezenet-vector.onnx"
-    out = geoloc("models", "add", "sqv", "--onnx", str(sq), "--spec", str(exports / "squeezenet-vector.json"), "--models-dir", str(models))  # fmt: skip
+    out = geoloc(
+        "models",
+        "add",
+        "sqv",
+        "--onnx",
+        str(sq),
+        "--spec",
+        str(exports / "squeezenet-vector.json"),
+        "--models-dir",
+        str(models),
+    )
     assert "added added model sqv (512-d global vector, center_crop 224 px)" in out.stdout, out.stdout
     assert "configurations: sqv, sqv-hybrid" in out.stdout
     folder = models / "added" / "sqv"
     assert sorted(p.name for p in folder.iterdir()) == ["SHA256SUMS", "model.onnx", "spec.json"]
     assert folder.joinpath("model.onnx").read_bytes() == sq.read_bytes()
     listed = geoloc("models", "list", "--models-dir", str(models), "--check", check=False)
-    assert "added global model\tsqv\tadded/sqv/model.onnx, added/sqv/spec.json, added/sqv/SHA256SUMS\tadded, sha256 verified" in listed.stdout  # fmt: skip
+    files = "added/sqv/model.onnx, added/sqv/spec.json, added/sqv/SHA256SUMS"
+    assert f"added global model\tsqv\t{files}\tadded, sha256 verified" in listed.stdout, listed.stdout
     assert "configs sqv, sqv-hybrid; licence: BSD-2-Clause" in listed.stdout
     # A changed file is named by --check (exit 1).
     spec = json.loads(folder.joinpath("spec.json").read_text())
@@ -240,7 +253,17 @@ def _recall(models: Path, config: str, out: Path) -> dict[str, float]:
 def test_models_add_an_export_of_lite2_gem_recalls_as_the_built_in(exports, tmp_path):
     """The same R@1/5 as lite2-gem on the 40 whole photos, to the digit (and R@10/20 too)."""
     models = exports / "models"
-    geoloc("models", "add", "lite2-export", "--onnx", str(exports / "lite2-head.onnx"), "--spec", str(exports / "lite2-head.toml"), "--models-dir", str(models))  # fmt: skip
+    geoloc(
+        "models",
+        "add",
+        "lite2-export",
+        "--onnx",
+        str(exports / "lite2-head.onnx"),
+        "--spec",
+        str(exports / "lite2-head.toml"),
+        "--models-dir",
+        str(models),
+    )
     built_in = _recall(models, "lite2-gem", tmp_path / "built-in.json")
     added = _recall(models, "lite2-export", tmp_path / "added.json")
     print(f"lite2-gem {built_in}; lite2-export {added}")
