@@ -11,6 +11,8 @@ import time
 
 import pytest
 
+from app.engine.pipeline import PipelineSource
+from app.ingestion.encoding.ray import model_files
 from app.manifests import read_manifest
 from tests.api.conftest import CONFIG, ServerProcess
 from tests.engine.test_models_add import export_squeezenet_vector, geoloc, squeezenet_spec
@@ -65,6 +67,9 @@ def test_models_add_hybrid_fits_ingests_and_locates_through_a_server(added_model
         "20",
     )
     assert f"saved {added_models / 'pipelines' / config}" in fit.stdout, fit.stdout
+    # What Ray ships to its actors (`geoloc ingest --ray`): the added model's files, as a built-in's.
+    shipped = model_files(PipelineSource.default(added_models, config))
+    assert {f"added/{NAME}/model.onnx", f"added/{NAME}/spec.json", f"added/{NAME}/SHA256SUMS"} <= set(shipped)
     data = tmp_path / "data"
     out = geoloc(
         "ingest", "--manifest", m, "--split", "db", "--config", config, "--data-dir", str(data), "--models-dir", models
