@@ -27,6 +27,7 @@ from app.engine.added_models import (
     SUMS_FILE,
     added_root,
     describe,
+    is_added,
     register_added_models,
     sha256_file,
     sums_text,
@@ -84,6 +85,8 @@ def check_name(name: str, models_dir: Path) -> None:
     register_added_models(models_dir)
     if (added_root(models_dir) / name).exists():
         raise ModelNameTaken(f"a model named {name!r} was added to {models_dir} already")
+    if is_added(name):  # added to another models dir this process has read: free here
+        return
     if name in registry.names(Kind.GLOBAL_MODEL):
         raise ModelNameTaken(f"{name!r} is a built-in global model's name: choose another")
     for taken in (name, f"{name}-hybrid"):
