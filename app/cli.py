@@ -111,27 +111,52 @@ def models_build(
 def models_list(
     models_dir: ModelsDir = _S.models_dir,
     check: Annotated[
-        bool, typer.Option("--check", help="exit 1 when a plug-in's file is not in the models dir")
+        bool,
+        typer.Option(
+            "--check",
+            help="exit 1 when a plug-in's file is not in the models dir, or an added model's files are not the "
+            "ones added (sha256)",
+        ),
     ] = False,
 ) -> None:
     """Every plug-in of the registry (global models, local extractors, matchers), the files each reads and
-    whether the models dir holds them; then the buildable models (`geoloc models build --only NAME`)."""
-    from app.engine.registry import PLUGINS, Kind, builds, names
+    whether the models dir holds them; the models added with `geoloc models add` (their configurations and
+    licence); then the buildable models (`geoloc models build --only NAME`)."""
+    from app.engine.registry import builds
+    from app.usecases.models import list_models
 
-    absent: list[str] = []
-    for kind in Kind:
-        for name in names(kind):
-            files = PLUGINS[kind][name].files
-            gone = [f for f in files if not (models_dir / f).is_file()]
-            absent += gone
-            state = "no files" if not files else f"missing {', '.join(gone)}" if gone else "built"
-            typer.echo(f"{kind}\t{name}\t{', '.join(files) or '-'}\t{state}")
+    problems: list[str] = []
+    for entry in list_models(models_dir, verify_added=check):
+        problems += entry.problems
+        typer.echo(f"{entry.kind}\t{entry.name}\t{', '.join(entry.files) or '-'}\t{entry.state}")
+        if entry.about:
+            typer.echo(f"\t{entry.about}")
     for name, build in builds().items():
         typer.echo(
             f"build\t{name}\t{', '.join(build.files)}\t{f'--{build.source}' if build.source else 'pinned wheel'}"
         )
-    if check and absent:
-        _fail(f"not in {models_dir}: {', '.join(dict.fromkeys(absent))} (run `geoloc models build`)", code=1)
+    if check and problems:
+        _fail(f"in {models_dir}: {'; '.join(dict.fromkeys(problems))} (`geoloc models build`, or add it again)", code=1)
+
+
+@models_app.command("add")
+def models_add(
+    name: Annotated[str, typer.Argument(help="the model's name; its configurations are NAME and NAME-hybrid")],
+    onnx: Annotated[Path, typer.Option("--onnx", help="the exported ONNX graph")],
+    spec: Annotated[Path, typer.Option("--spec", help="its description: TOML (.toml) or JSON (docs/models.md)")],
+    models_dir: ModelsDir = _S.models_dir,
+) -> None:
+    """Add a global model: check that the graph loads and runs as SPEC says (input size and rule, output kind
+    and dimension, finite values, the same output twice) on probe images, then copy it with its spec and
+    sha256 into MODELS_DIR/added/NAME. A refusal says why and adds nothing."""
+    from app.usecases.models import add_model
+
+    added = add_model(name, onnx, spec, models_dir)
+    typer.echo(
+        f"added {added.description} to {added.folder} (sha256 {added.sha256[:16]}..., probe output "
+        f"{list(added.probe_shape)}, checked in {added.seconds:.1f} s); licence: {added.spec.licence}"
+    )
+    typer.echo(f"configurations: {', '.join(added.configs)} (`geoloc fit --config {name} ...`)")
 
 
 @app.command()
@@ -179,13 +204,13 @@ def fit(
 ) -> None:
     """Fit codebook, PCA-whitening and binariser on the manifest's db and train rows, then the SVM bank, then
     the confidence rule and p_within_25m on the db rows (the collection) themselves."""
-    from app.engine.configs import get_config
     from app.engine.pipeline import Pipeline, pipeline_dir
     from app.errors import FitRefused
     from app.manifests import read_manifest
     from app.usecases.fitting import FitOptions, FitPhoto, FitProgress, bank_source, check_bank_kind, fit_pipeline
+    from app.usecases.models import named_config
 
-    cfg = get_config(config)
+    cfg = named_config(config, models_dir)
     try:
         source = bank_source(cfg, svm_bank)
         check_bank_kind(svm_bank_kind)
@@ -500,15 +525,15 @@ def eval_cmd(
     ] = None,
 ) -> None:
     """Fit, index the db rows in memory, query the query rows through the core; print Recall@N, time, bytes."""
-    from app.engine.configs import get_config
     from app.evaluation.evaluate import evaluate, format_summary, write_report
     from app.usecases.fitting import EVAL_BANK_SOURCES
+    from app.usecases.models import named_config
 
     if svm_bank not in ("off", "positive", "negative"):
         _fail(f"--svm-bank must be off, positive or negative, not {svm_bank!r}")
     if svm_bank_source not in EVAL_BANK_SOURCES:
         _fail(f"--svm-bank-source must be one of {', '.join(EVAL_BANK_SOURCES)}, not {svm_bank_source!r}")
-    cfg = get_config(config).with_overrides(_parse_overrides(overrides or []))
+    cfg = named_config(config, models_dir).with_overrides(_parse_overrides(overrides or []))
     result = evaluate(
         manifest,
         cfg,

@@ -91,6 +91,10 @@ ENGINE_CODES: dict[str, str] = {
     _name(engine.IncompatibleArtifact): "not_ready",
     _name(engine.ModelBuildError): "not_ready",
     "app.engine.training.svm_training.NothingToTrainOn": "invalid_request",  # fit/eval leaving nothing to fit
+    # `geoloc models add`: a spec that cannot be read, a graph that does not run as its spec says, or a name
+    # already taken (``ModelNameTaken``, a subclass): the input was refused and nothing was added.
+    "app.engine.model_spec.SpecRefused": "invalid_request",
+    "app.engine.model_add.ModelRefused": "invalid_request",
 }
 
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 import json
 from typing import ClassVar, Literal
 
-from pydantic import BaseModel, ConfigDict, field_validator
+from pydantic import BaseModel, ConfigDict, field_validator, model_validator
 
 from app.engine.errors import GeolocError
 
@@ -42,6 +42,10 @@ class PipelineConfig(BaseModel):
     cnn_local_weight: float = 0.0  # > 0: feature-level hybrid, fire9 sampled at each keypoint
     cnn_global_weight: float = 0.0  # > 0: GeM vector joined to the aggregated one (image-level hybrid)
     gem_p: float = 3.0
+    #: How the global model's map becomes the global descriptor: ``gem`` (GeM with ``gem_p``), or ``none`` for
+    #: a model whose output already is one (a (1, 1, D) map: a model added with a ``global`` output,
+    #: ``app.engine.added_models``), used as it is; such a map cannot be sampled at keypoints.
+    global_pooling: Literal["gem", "none"] = "gem"
     #: Aggregation of local features.
     codebook: Literal["kmeans", "minibatch"] | None = "minibatch"
     k: int = 64
@@ -95,6 +99,7 @@ class PipelineConfig(BaseModel):
         "cnn_local_weight",
         "cnn_global_weight",
         "gem_p",
+        "global_pooling",
     )
 
     @field_validator("stored_features")
@@ -106,8 +111,22 @@ class PipelineConfig(BaseModel):
             get_profile(name)
         return name
 
+    @model_validator(mode="after")
+    def _vector_is_not_sampled(self) -> PipelineConfig:
+        if self.global_pooling == "none" and (self.cnn_local_weight > 0 or self.cnn_second_short_side is not None):
+            raise ValueError(
+                "a global model whose output is a vector (global_pooling none) has no map to sample at keypoints "
+                "or to pool at a second size: cnn_local_weight 0 and no cnn_second_short_side"
+            )
+        return self
+
     def extraction_key(self) -> str:
-        return json.dumps({f: getattr(self, f) for f in self.EXTRACTION_FIELDS}, sort_keys=True)
+        """The extraction fields' values; a field at its default that older keys lacked (``global_pooling``)
+        is left out, so feature caches written before it stay valid."""
+        fields = {f: getattr(self, f) for f in self.EXTRACTION_FIELDS}
+        if fields["global_pooling"] == "gem":
+            del fields["global_pooling"]
+        return json.dumps(fields, sort_keys=True)
 
     def with_overrides(self, overrides: dict[str, str]) -> PipelineConfig:
         """A variant for experiments (``geoloc eval --set k=32``); it keeps the name with a suffix."""
@@ -349,6 +368,39 @@ for _base, _kinds in [
 # less /locate time than hybrid (docs/results.md, "A faster default"). Data dirs built before keep the
 # configuration they record.
 DEFAULT_CONFIG = "lite2-hybrid-384"
+
+
+def global_model_configs(
+    model: str, short_side: int, gem_p: float, vector: bool, about: str
+) -> tuple[PipelineConfig, PipelineConfig]:
+    """The two named configurations of a global model added by the user (``app.engine.added_models``), named
+    after it: ``model`` (its descriptor alone, as lite2-gem) and ``model``-hybrid (with the default's local
+    branch, RootSIFT at 384 px: a feature map is sampled at each keypoint as in lite2-hybrid-384, a vector,
+    which has no map to sample, is joined at image level as in hybrid-lite2). ``about`` says what it is."""
+    model_fields = dict(global_model=model, cnn_short_side=short_side, gem_p=gem_p)
+    if vector:
+        model_fields["global_pooling"] = "none"
+    alone = PipelineConfig(
+        name=model,
+        description=f"{about}: its global descriptor alone, PCA-whitened floats",
+        local=None,
+        codebook=None,
+        cnn_global_weight=1.0,
+        whiten_power=0.25,
+        **model_fields,
+    )
+    hybrid_fields = {**_HYBRID, "local_long_side": 384}
+    if vector:  # image-level hybrid: RootSIFT MBVLAD joined with the vector
+        hybrid_fields["cnn_local_weight"] = 0.0
+        what = "RootSIFT MBVLAD (384 px) joined with its global vector (image-level hybrid)"
+    else:
+        what = "RootSIFT (384 px) joined with its map sampled at each keypoint, MBVLAD, joined with the map's GeM"
+    hybrid = PipelineConfig(
+        name=f"{model}-hybrid",
+        description=f"{about}: {what}, PCA-whitened floats",
+        **{**hybrid_fields, **model_fields},
+    )
+    return alone, hybrid
 
 
 def register_config(config: PipelineConfig) -> None:

@@ -32,6 +32,23 @@ def gem_pool(fire9: np.ndarray, p: float = 3.0) -> np.ndarray:
     return (g / max(np.linalg.norm(g), 1e-12)).astype(np.float32)
 
 
+def unit_vector(dense: np.ndarray, p: float = 3.0) -> np.ndarray:
+    """A (1, 1, C) map that is already a global descriptor (a model with its own pooling head), L2-normalised:
+    GeM would clamp its negative components."""
+    if dense.shape[0] * dense.shape[1] != 1:
+        raise ValueError(f"a global vector is a (1, 1, C) map, not {dense.shape}")
+    g = dense.reshape(-1).astype(np.float64)
+    return (g / max(np.linalg.norm(g), 1e-12)).astype(np.float32)
+
+
+#: How a pipeline turns a global model's map into its global descriptor (``PipelineConfig.global_pooling``).
+POOLINGS = {"gem": gem_pool, "none": unit_vector}
+
+
+def pool(dense: np.ndarray, pooling: str, p: float) -> np.ndarray:
+    return POOLINGS[pooling](dense, p)
+
+
 def sample_at(fire9: np.ndarray, xy_norm: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
     """Bilinear sample of the (H, W, C) map at positions ``xy_norm`` (N, 2), given as fractions of the
     image width and height (0..1), so the local-feature and CNN image sizes need not agree.

@@ -18,11 +18,12 @@ from pathlib import Path
 
 import numpy as np
 
+from app.engine.added_models import register_added_models
 from app.engine.artifacts import atomic_write_bytes, library_versions
 from app.engine.calibration import Calibration
 from app.engine.codes import Binariser
 from app.engine.configs import PipelineConfig, get_config
-from app.engine.dense import gem_pool, join_sampled
+from app.engine.dense import join_sampled, pool
 from app.engine.errors import IncompatibleArtifact, ModelNotReady
 from app.engine.imageio import ImageLimits, LoadedImage, load_image
 from app.engine.index.references import ReferenceIndex
@@ -128,6 +129,7 @@ class Pipeline:
         ``global_model`` given here (loaded once, shared by tests or an evaluation) wins over the one the
         registry would build from the models dir."""
         self.config = config
+        register_added_models(models_dir)  # a model the user added to it is a plug-in like a built-in
         if config.uses_global_model and global_model is None:
             if models_dir is None:
                 raise ModelNotReady(
@@ -237,7 +239,7 @@ class Pipeline:
         if self.global_model is not None:
             dense, second_gem, t["cnn"] = cnn.result() if cnn is not None else self._dense(rgb)
             if c.cnn_global_weight > 0 or local is None:
-                gem = gem_pool(dense, c.gem_p)
+                gem = pool(dense, c.global_pooling, c.gem_p)
                 if second_gem is not None:
                     gem = _unit(gem + second_gem)
             if c.cnn_local_weight > 0 and local is not None:
@@ -254,7 +256,7 @@ class Pipeline:
         dense = self.global_model.dense(rgb, c.cnn_short_side)
         second = None
         if c.cnn_second_short_side is not None and (c.cnn_global_weight > 0 or c.local is None):
-            second = gem_pool(self.global_model.dense(rgb, c.cnn_second_short_side), c.gem_p)
+            second = pool(self.global_model.dense(rgb, c.cnn_second_short_side), c.global_pooling, c.gem_p)
         return dense, second, (time.perf_counter() - t0) * 1000
 
     # -- stage 1b: feature selection (SVM bank) -------------------------------------------------------
@@ -430,6 +432,7 @@ class Pipeline:
                 f"{mpath} has format {manifest.get('format_version')}, expected {PIPELINE_FORMAT}"
             )
         saved = PipelineConfig(**manifest["config"])
+        register_added_models(models_dir)
         known = get_config(saved.name)
         if saved != known:
             raise IncompatibleArtifact(

@@ -73,11 +73,12 @@ _discovered: set[tuple[str, ...]] = set()
 _discovering = threading.RLock()
 
 
-def register(plugin: Plugin) -> Plugin:
+def register(plugin: Plugin, replace: bool = False) -> Plugin:
     """Called by a plug-in's own module when it is imported. A second plug-in of the same kind and name is
-    refused: two modules would otherwise decide silently by import order."""
+    refused: two modules would otherwise decide silently by import order. ``replace``: the caller owns the
+    name and defines it again (a model added by the user, read anew from its models dir)."""
     table = PLUGINS[plugin.kind]
-    if plugin.name in table and table[plugin.name] != plugin:
+    if plugin.name in table and table[plugin.name] != plugin and not replace:
         raise ValueError(f"a {plugin.kind} named {plugin.name!r} is already registered")
     table[plugin.name] = plugin
     return plugin

@@ -32,6 +32,7 @@ from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
+from app.engine.added_models import register_added_models
 from app.engine.configs import DEFAULT_CONFIG, get_config
 from app.engine.errors import GeolocError
 from app.engine.imageio import ImageLimits
@@ -94,6 +95,7 @@ def backfill_stored_features(
     store = ReferenceStore(data_dir, read_only=True, backend=backend)  # rows are only read; files beside them
     try:
         name = store.get_meta("config") or config or DEFAULT_CONFIG
+        register_added_models(models_dir)
         cfg = get_config(name)
         if cfg.stored_features is None:
             raise OperationRefused(

@@ -25,7 +25,6 @@ from pathlib import Path
 
 import numpy as np
 
-from app.engine.configs import get_config
 from app.engine.imageio import ImageLimits
 from app.engine.pipeline import Pipeline
 from app.engine.progress import Progress
@@ -216,8 +215,9 @@ def _fit(
     step, which reads them again), and save it as generation 0."""
     from app.jobs.refit import save_generation
     from app.usecases.fitting import FitOptions, FitPhoto, bank_source, fit_pipeline
+    from app.usecases.models import named_config
 
-    cfg = get_config(config)
+    cfg = named_config(config, models_dir)
     items = _sample(source, seed)
     if not items:
         raise FirstStartError(f"no photos in {source.path}: put geotagged photos (EXIF GPS) there")

@@ -40,6 +40,7 @@ from app.storage.sqlite import SqliteBackend
 from app.storage.store import ReferenceStore
 from app.usecases.collection import Collection, pipeline_source
 from app.usecases.fitting import FitOptions, FitPhoto, bank_source, capture_group, check_bank_kind, fit_pipeline
+from app.usecases.models import named_config
 
 log = logging.getLogger("geoloc.reindex")
 
@@ -94,7 +95,7 @@ def fit_generation(
     into."""
     generation, _, current = store.generation_state()
     name = options.config or current or DEFAULT_CONFIG
-    cfg = get_config(name)
+    cfg = named_config(name, models_dir)
     try:
         source = bank_source(cfg, options.svm_bank, train_photos_given=options.train_manifest is not None)
         check_bank_kind(options.bank_kind)

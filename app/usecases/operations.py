@@ -37,6 +37,7 @@ from app.storage.snapshots import (
 )
 from app.storage.store import ReferenceStore
 from app.usecases.collection import pipeline_source
+from app.usecases.models import check_models, named_config
 
 BACKUP_MANIFEST = "backup.json"
 KEY_NOTE = f"this backup holds the API key ({KEY_FILE}, mode 0600): keep it as private as the key itself"
@@ -101,6 +102,11 @@ def check_data_dir(data_dir: Path, models_dir: Path, config: str | None, backend
         )
     _check_leftovers(store, data_dir, r)
     name = store.get_meta("config") or config or DEFAULT_CONFIG
+    damaged = check_models(models_dir, named_config(name, models_dir))  # an added model's files, by sha256
+    if damaged:
+        r.problems += [f"{p}: add the model again (`geoloc models add`); the rest is not checked" for p in damaged]
+        store.close()
+        return r
     pipeline = pipeline_source(data_dir, models_dir, store.get_meta("pipeline"), name).load()
     r.lines.append(f"pipeline: {store.get_meta('pipeline') or 'models:' + name}, generation {store.head()[1]}")
     fsize = 4 * (pipeline.float_dim or 0)

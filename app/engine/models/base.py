@@ -49,6 +49,17 @@ class OnnxModel:
     def loaded(self) -> bool:
         return self._session is not None
 
+    def signature(self) -> tuple[list[tuple[str, list]], list[tuple[str, list]]]:
+        """The graph's inputs and outputs as (name, shape) pairs, a dimension None or a name where it is free
+        (loading the graph first if needed): what a model checks a description of it against."""
+        if self._session is None:
+            self.load()
+
+        def pairs(args) -> list[tuple[str, list]]:
+            return [(a.name, [d if isinstance(d, int) else None for d in a.shape]) for a in args]
+
+        return pairs(self._session.get_inputs()), pairs(self._session.get_outputs())
+
     def predict(self, inputs: dict[str, np.ndarray], outputs: list[str]) -> list[np.ndarray]:
         """Run the graph (loading it first if needed); onnxruntime sessions are safe to share across threads."""
         if self._session is None:

@@ -31,6 +31,7 @@ from dataclasses import dataclass
 from itertools import islice
 from pathlib import Path
 
+from app.engine.added_models import register_added_models
 from app.engine.configs import get_config
 from app.engine.imageio import ImageLimits
 from app.engine.pipeline import PipelineSource
@@ -131,6 +132,7 @@ def model_files(source: PipelineSource) -> dict[str, Path]:
     configuration uses, by their path relative to a models dir."""
     from app.engine.registry import files_for
 
+    register_added_models(source.models_dir)  # an added model's files ship like a built-in's
     config = get_config(source.config)
     files = {name: source.models_dir / name for name in files_for(config)}
     if not source.directory.is_dir():
