@@ -527,7 +527,7 @@ def fit_disc(
     limit = min(max_radius_m, MAX_EXTENT_SHARE * extent_m) if extent_m else max_radius_m
     return Disc(
         rate=rate,
-        edges=[round(float(x), 6) for x in edges],
+        edges=[float(x) for x in edges],  # unrounded: an answer tied with an edge reads the bin it was fitted in
         radius_m=[round(float(r), 1) if np.isfinite(r) else None for r in radii],
         n=np.bincount(bin_of, minlength=len(edges) + 1).tolist(),
         limit_m=round(float(limit), 1),
