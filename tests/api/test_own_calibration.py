@@ -11,6 +11,7 @@ import shutil
 import pytest
 
 from app.engine.calibration import CONFIDENT_FROM_REFERENCES
+from app.manifests import read_manifest
 from app.usecases.service import GeolocService
 from tests.api.conftest import CONFIG, Server
 from tests.conftest import PENN
@@ -97,3 +98,36 @@ def test_a_refit_counts_a_photo_and_its_crops_as_one_capture(tmp_path, calibrate
     assert cal["source"] == "collection", cal["note"]
     positions = {(r.lat, r.lon) for r in rows}  # 40 captures, a few of them taken at one spot
     assert cal["report"]["captures"] == len(positions) <= 40
+
+
+def test_an_answer_states_its_disc_and_its_rate_and_says_it_in_words(tmp_path, calibrated):
+    """The disc every answer states, through a real server: an answer with an estimate carries ``radius_m``
+    (one of the collection's fitted discs, informative: within its limit) and ``radius_rate`` (0.9); one
+    without says why in words that never claim the place is absent; `geoloc locate --brief` says "Taken
+    within R m of ...: 9 in 10 such answers are"."""
+    models, manifest = calibrated
+    disc = json.loads((models / "pipelines" / CONFIG / "calibration.json").read_text())["disc"]
+    assert disc is not None and disc["rate"] == 0.9 and disc["limit_m"] <= 100, disc
+    own = tmp_path / "own"
+    where = ["--models-dir", str(models), "--config", CONFIG]
+    geoloc("ingest", "--manifest", str(manifest), "--split", "db", "--data-dir", str(own), *where)
+    photos = [r.image for r in read_manifest(manifest)][::3][:12]  # each capture's photo, a reference itself
+    with Server(own, models) as s:
+        answers = {}
+        for photo in photos:
+            r = s.client.post("/locate", files=[("image", (photo.name, photo.read_bytes(), "image/jpeg"))])
+            assert r.status_code == 200, r.text
+            answers[photo] = r.json()
+    estimated = {p: a for p, a in answers.items() if a["estimate"] is not None}
+    assert estimated, [a["reason"] for a in answers.values()]
+    for a in estimated.values():
+        e = a["estimate"]
+        assert e["radius_rate"] == 0.9 and e["radius_m"] <= disc["limit_m"] and e["radius_m"] in disc["radius_m"]
+        assert a["reason"] is None and a["reason_code"] is None
+    for a in answers.values():
+        if a["estimate"] is None:
+            assert a["reason_code"] in ("ambiguous", "no_match") and "not in this collection" not in a["reason"]
+    photo, a = next(iter(estimated.items()))
+    brief = _locate(photo, own, models, "--brief")
+    e = a["estimate"]
+    assert brief.startswith(f"Taken within {e['radius_m']:.0f} m of ") and ": 9 in 10 such answers are" in brief, brief
