@@ -148,6 +148,31 @@ def test_eval_writes_the_report(workdir, mini_manifest):
     assert 0 <= a["coverage"] <= 1 and a["absent_radius_m"] == 100 and 0 <= a["absent_confident"] <= 1
     assert "precision_at_2x_radius" in a and "within twice the radius" in p.stdout
     assert sum(a["reason_codes"].values()) == 39 == sum(a["absent_reason_codes"].values())
+    # The disc's figures: the estimate share, the truth within the stated radius (overall, weakest quartile),
+    # the median and 90th-percentile radius (None without an estimate), and no_match's absent share.
+    assert a["estimate_share"] == a["coverage"] and r["fold"] is None
+    assert {"radius_coverage", "radius_coverage_weakest_quartile", "median_radius_m", "p90_radius_m"} <= set(a)
+    if a["median_radius_m"] is not None:
+        assert a["median_radius_m"] <= a["p90_radius_m"] and 0 <= a["radius_coverage"] <= 1
+    no_match = a["reason_codes"].get("no_match", 0) + a["absent_reason_codes"].get("no_match", 0)
+    assert a["no_match_answers"] == no_match and a["no_match_absent_at_m"] == 100
+    assert (a["no_match_absent_share"] is None) == (no_match == 0)
+    if no_match:
+        assert 0 <= a["no_match_absent_share"] <= 1 and "of which the place was absent" in p.stdout
+
+
+def test_eval_runs_one_fold(workdir, mini_manifest):
+    """`geoloc eval --folds 2 --fold 1`: the second fold alone (its queries, its fit), said so."""
+    out_json = workdir / "eval" / "fold1.json"
+    args = ["eval", "--manifest", str(mini_manifest), "--config", "hybrid", "--models-dir", str(workdir / "models")]
+    p = geoloc(*args, "--folds", "2", "--fold", "1", "--json", str(out_json))
+    assert "folds 2 (fold 1 only)" in p.stdout and "  fold 2:" not in p.stdout
+    r = json.loads(out_json.read_text())
+    assert r["folds"] == 2 and r["fold"] == 1 and len(r["answers_per_fold"]) == 1
+    assert 0 < r["n_query"] < 39 and {q["fold"] for q in r["queries"]} == {1}
+    assert r["answers"]["no_match_absent_at_m"] == 25  # no --absent-radius: --radius-m
+    bad = geoloc(*args, "--folds", "2", "--fold", "2", check=False)
+    assert bad.returncode == 2 and "--fold must be from 0 to 1" in bad.stderr
 
 
 def test_unknown_config_is_a_clear_error(workdir, mini_manifest):
