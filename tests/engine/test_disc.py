@@ -72,6 +72,19 @@ def test_stronger_evidence_never_states_a_wider_disc_and_absent_places_get_none(
     assert len(d.edges) == 2 and d.n == [100, 100, 100] and d.radius_m == [40.0, 40.0, 40.0]
 
 
+def test_a_bin_counts_its_captures_once_with_their_worst_error():
+    """Answers of one capture (a photo and its crops) fail together: counted in captures, a bin of 30
+    answers from 10 captures, one of whose three answers lies 80 m off, states 80 m (the worst of each
+    capture, the 10th of 10 at 90 %), where counted one by one it stated 5 m; from 6 captures, none."""
+    s = np.full(30, 0.9)
+    err = np.full(30, 5.0)
+    err[0] = 80.0
+    groups = [k // 3 for k in range(30)]
+    assert fit_disc(s, err, rate=0.9).radius_m == [RADIUS_FLOOR_M]
+    assert fit_disc(s, err, groups, rate=0.9).radius_m == [80.0]
+    assert fit_disc(s, err, [k // 5 for k in range(30)], rate=0.9).radius_m == [None]
+
+
 def test_no_disc_is_narrower_than_the_floor():
     rng = np.random.default_rng(3)
     s = rng.uniform(0, 1, 500)
