@@ -1,11 +1,11 @@
 """A stated disc that holds: a real fit of a 20-photo penn collection (each photo with two of its crops)
 calibrates every answer's disc split-conformally on its own references, per bin of evidence strength, the
 places removed from the collection counting as answers no disc holds; the discs are the conformal quantiles
-of the errors the calibration recorded (made monotone, floored), an answer states its bin's disc and the
-rate when it is informative and is "possible" otherwise, a conservative collection keeps the constant rule
-and says its rate is not calibrated, and a calibration.json from before discs still loads. The same fit's
-calibration counts its support in captures (a photo and its crops): no probability above what its captures
-can show, a confident level only on the right answers of enough captures."""
+of the errors the calibration recorded, counted in captures (made monotone, floored); an answer states its
+bin's disc and the rate when it is informative and is "possible" otherwise; a conservative collection keeps
+the constant rule and says its rate is not calibrated; a calibration.json from before discs still loads.
+The same fit's calibration counts its support in captures (a photo and its crops): no probability above
+what its captures can show, a confident level only on the right answers of enough captures."""
 
 from __future__ import annotations
 
@@ -86,15 +86,23 @@ def test_the_discs_are_the_conformal_quantiles_of_the_recorded_errors(fitted):
     assert d.n == np.bincount(bin_of, minlength=len(d.edges) + 1).tolist()
     raw = []
     for k in range(len(d.edges) + 1):
-        errors = err[bin_of == k]
-        assert len(errors) >= MIN_DISC_BIN
-        raw.append(_expected_radius(errors))
+        assert (bin_of == k).sum() >= MIN_DISC_BIN
+        # Counted in captures: each capture (present, or removed) once, with its worst error in the bin.
+        worst = {}
+        for j in np.flatnonzero(bin_of == k):
+            key = (samples[j].group, samples[j].absent)
+            worst[key] = max(worst.get(key, 0.0), err[j])
+        n = len(worst)
+        raw.append(_expected_radius(list(worst.values())) if math.ceil((n + 1) * RADIUS_RATE) <= n else np.inf)
     # Monotone (a bin never narrower than a stronger one) and floored, then rounded to 0.1 m; infinite: None.
     expected = [max(max(raw[k:]), RADIUS_FLOOR_M) for k in range(len(raw))]
     assert d.radius_m == [round(r, 1) if np.isfinite(r) else None for r in expected]
     for k, r in enumerate(d.radius_m):
         if r is not None:
             assert np.mean(err[bin_of == k] <= r + 0.05) >= RADIUS_RATE  # it holds on the sample itself
+    # 20 captures: no bin holds enough of them (9 at 90 %) for a disc, so no answer has an estimate, and the
+    # collection says what it needs.
+    assert d.radius_m == [None] * len(d.radius_m) and "no answer can be confident" in cal.confidence_note(60)
     # The weakest bin holds the places removed from the collection: no disc at all.
     assert d.radius_m[0] is None
     # And the note (the fit's and refit's summary, /ready) says how discs are chosen.
