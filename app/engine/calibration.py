@@ -408,8 +408,8 @@ def disc_reason(disc: Disc, answer_p: float) -> str:
     r = disc.radius(answer_p)
     if r is None:
         return (
-            f"no disc holds {share} (evidence strength {answer_p:.0%}): among this collection's own answers this "
-            "weak, more than the rest were of places it does not hold, or far off"
+            f"no disc holds {share} (evidence strength {answer_p:.0%}): of this collection's own answers this weak, "
+            f"more than {rate_words(1 - disc.rate)} were of places removed from it, or far off"
         )
     return (
         f"{share} (evidence strength {answer_p:.0%}) lie within {r:.0f} m, wider than the {disc.limit_m:.0f} m an "

@@ -17,6 +17,7 @@ from app.engine.calibration import (
     Calibration,
     Disc,
     Sample,
+    disc_reason,
     fit_calibration,
     fit_disc,
 )
@@ -146,6 +147,10 @@ def test_the_rule_states_the_disc_and_its_rate_and_says_what_it_measured(tmp_pat
     assert not d.confident and d.code == AMBIGUOUS
     assert "9 in 10 such answers" in d.reason and "wider than the 5 m an estimate may state" in d.reason, d.reason
     assert narrow.confidence_note(600) is not None  # no answer of it can have an estimate: it says so
+    assert disc.radius(0.0) is None and disc_reason(disc, 0.0) == (
+        "no disc holds 9 in 10 such answers (evidence strength 0%): of this collection's own answers this weak, "
+        "more than 1 in 10 were of places removed from it, or far off"
+    )
     assert cal.confidence_note(600) is None
     # Saved with the pipeline, read back unchanged; a file from before discs says so and keeps the old rule.
     cal.save(tmp_path)
