@@ -22,7 +22,7 @@ from tests.test_fit_reproducible import _manifest
 @pytest.fixture(scope="module")
 def calibrated(tmp_path_factory, models_dir, penn_index):
     """A models dir whose hybrid-bin pipeline is fitted and calibrated by `geoloc fit` on 40 penn captures
-    (120 photos and crops); and that manifest."""
+    (120 photos and crops), with GEOLOC_MAX_RADIUS_M=90; and that manifest."""
     root = tmp_path_factory.mktemp("calibrated")
     models = root / "models"
     models.mkdir()
@@ -30,9 +30,12 @@ def calibrated(tmp_path_factory, models_dir, penn_index):
         if f.is_file():
             (models / f.name).symlink_to(f)
     manifest, _ = _manifest(root, penn_index)
-    geoloc("fit", "--manifest", str(manifest), "--config", CONFIG, "--models-dir", str(models))
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("GEOLOC_MAX_RADIUS_M", "90")  # the widest disc that counts as an estimate, read by the fit
+        geoloc("fit", "--manifest", str(manifest), "--config", CONFIG, "--models-dir", str(models))
     cal = json.loads((models / "pipelines" / CONFIG / "calibration.json").read_text())
     assert cal["source"] == "collection" and len(cal["references"]) == 120, cal["note"]
+    assert cal["disc"]["max_radius_m"] == 90 and cal["disc"]["limit_m"] <= 90, cal["disc"]
     return models, manifest
 
 
@@ -69,9 +72,13 @@ def test_a_new_collection_is_judged_by_its_own_calibration_or_by_none(tmp_path, 
 
     # A refit calibrates it on itself; 20 photos are too few for a confident answer, and both the refit's
     # summary and /ready say what it needs.
-    out = geoloc("refit", "--data-dir", str(mine), *where).stdout
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("GEOLOC_RADIUS_RATE", "0.8")  # the discs' rate, read by the refit
+        out = geoloc("refit", "--data-dir", str(mine), *where).stdout
     needs = f"no answer can be confident in this collection yet: it needs about {CONFIDENT_FROM_REFERENCES} references"
     assert needs in out and "(it has 20)" in out, out
+    refitted = json.loads(next(mine.glob("pipelines/*-g1/calibration.json")).read_text())
+    assert refitted["disc"]["rate"] == 0.8, refitted
     with Server(mine, models) as s:
         ready = s.client.get("/ready").json()
     assert needs in ready["calibration"], ready
@@ -107,7 +114,7 @@ def test_an_answer_states_its_disc_and_its_rate_and_says_it_in_words(tmp_path, c
     within R m of ...: 9 in 10 such answers are"."""
     models, manifest = calibrated
     disc = json.loads((models / "pipelines" / CONFIG / "calibration.json").read_text())["disc"]
-    assert disc is not None and disc["rate"] == 0.9 and disc["limit_m"] <= 100, disc
+    assert disc is not None and disc["rate"] == 0.9 and disc["limit_m"] <= 90, disc
     own = tmp_path / "own"
     where = ["--models-dir", str(models), "--config", CONFIG]
     geoloc("ingest", "--manifest", str(manifest), "--split", "db", "--data-dir", str(own), *where)
