@@ -498,8 +498,10 @@ def calibrate_collection(
             {"sampled": len(held), "too_small": True},
         )
     by_group: dict[str, list[int]] = {}
+    by_spot: dict[str, list[int]] = {}  # a manifest without groups names each crop its own group
     for i in ids:
         by_group.setdefault(refs[i].group, []).append(i)
+        by_spot.setdefault(capture_group(refs[i].lat, refs[i].lon), []).append(i)
     source = GeotaggedReferences(refs, dict(images) if images else None)
     options = LocateOptions(top_k=ESTIMATE_CANDIDATES, rerank=False)  # the unverified rule, whatever the default
     verified_options = LocateOptions(top_k=ESTIMATE_CANDIDATES, rerank=True)
@@ -536,7 +538,8 @@ def calibrate_collection(
             if aux.config.local is not None and r.features.n_local < MIN_LOCAL_FEATURES:
                 continue
             codes = aux.encode_features(r.features, aux.select(r.features))  # once for both searches
-            own = by_group[r.group]
+            # Its capture left out: its group, and every reference taken at the same spot (``capture_group``).
+            own = sorted(set(by_group[r.group]) | set(by_spot[capture_group(r.lat, r.lon)]))
             t0 = time.perf_counter()
             rgb = query = None
             if i in to_verify and stored is not None:
