@@ -237,6 +237,8 @@ def fit(
         calibration_sample=calibration_sample,
         calibrate_verified=calibrate_rerank,
         workers=2,
+        radius_rate=_S.radius_rate,
+        max_radius_m=_S.max_radius_m,
     )
     pipe = Pipeline(cfg, models_dir=models_dir)
     try:
@@ -400,10 +402,9 @@ def locate(
 
 def rate_in_words(rate: float) -> str:
     """A rate as a count a reader pictures: 0.9 -> "9 in 10" (the page's ``rateInWords``)."""
-    for of in (10, 20, 100):
-        if abs(rate * of - round(rate * of)) < 1e-6:
-            return f"{round(rate * of)} in {of}"
-    return f"{rate:.0%}"
+    from app.engine.calibration import rate_words
+
+    return rate_words(rate)
 
 
 def radius_in_words(e: dict) -> str:
@@ -413,17 +414,25 @@ def radius_in_words(e: dict) -> str:
     return f"within {e['radius_m']:.0f} m: {rate_in_words(e['radius_rate'])} such answers are"
 
 
+def estimate_in_words(e: dict) -> str:
+    """An estimate's disc in words that claim what was measured: "Taken within 60 m of LAT,LON: 9 in 10 such
+    answers are" (the page's headline), or, uncalibrated, that its rate is not known."""
+    where = f"Taken within {e['radius_m']:.0f} m of {e['lat']:.5f},{e['lon']:.5f}"
+    if e.get("radius_rate") is None:
+        return f"{where} (how often the truth lies within that radius is not calibrated on this collection)"
+    return f"{where}: {rate_in_words(e['radius_rate'])} such answers are"
+
+
 def _in_words(out: dict) -> str:
-    """What a /locate answer (its JSON, ``out``) means, as the page says it: likely, possible, not found in this
-    collection or no match."""
+    """What a /locate answer (its JSON, ``out``) means, as the page says it: an estimate (a disc and its rate),
+    possible places only, no reference that looks like the photo, or no match."""
     from app.engine.geo import haversine_m
 
     cands, e = out["candidates"], out["estimate"]
     if not cands and e is not None:  # every candidate filtered out by --min-score, the estimate stands
         return (
-            f"Likely: taken within {e['radius_m']:.0f} m of {e['lat']:.5f},{e['lon']:.5f} (confidence "
-            f"{e['confidence']:.2f}; {radius_in_words(e)}); no candidate scores at least the --min-score asked, so "
-            "none is shown."
+            f"{estimate_in_words(e)} (confidence {e['confidence']:.2f}); no candidate scores at least the "
+            "--min-score asked, so none is shown."
         )
     if not cands and out["reason_code"] in ("no_references", "no_features"):
         return f"No match: no reference could be compared with this photo ({out['reason']})."
@@ -434,16 +443,15 @@ def _in_words(out: dict) -> str:
     if e is not None:
         inside = sum(c["distance_m"] is not None and c["distance_m"] <= e["radius_m"] for c in cands)
         return (
-            f"Likely: taken within {e['radius_m']:.0f} m of {e['lat']:.5f},{e['lon']:.5f} (confidence "
-            f"{e['confidence']:.2f}; {inside} of the {len(cands)} candidates lie within that radius; "
-            f"{radius_in_words(e)}). The best match is {name}, score {best['score']:.3f}."
+            f"{estimate_in_words(e)} (confidence {e['confidence']:.2f}; {inside} of the {len(cands)} candidates lie "
+            f"within that radius). The best match is {name}, score {best['score']:.3f}."
         )
     spread = max(haversine_m(a["lat"], a["lon"], b["lat"], b["lon"]) for a in cands for b in cands)
-    if out.get("reason_code") == "no_match":  # as the page says it
+    if out.get("reason_code") == "no_match":  # as the page says it: what was measured, not that the place is absent
         return (
-            f"Not found in this collection ({out['reason']}): the closest match is {name} at "
+            f"No reference looks like this photo ({out['reason']}): the closest match is {name} at "
             f"{best['lat']:.5f},{best['lon']:.5f}, score {best['score']:.3f}, and the {len(cands)} candidates "
-            f"shown are spread over {spread:.0f} m."
+            f"shown are spread over {spread:.0f} m. Compare their photos with yours."
         )
     chance = (
         f", with a {best['p_within_25m']:.0%} chance of lying within 25 m of where the photo was taken"
@@ -475,7 +483,7 @@ def _exif_check(gps, answer) -> dict:
         parts.append(f"The estimate is {est_m:.0f} m from there, {inside} its stated radius of {e.radius_m:.0f} m.")
     else:
         parts.append(
-            f"There is no confident estimate ({answer.reason}): the ranked candidates are guesses to compare "
+            f"There is no estimate ({answer.reason}): the ranked candidates are guesses to compare "
             "with the photo, not answers."
         )
     return {
@@ -494,6 +502,9 @@ def eval_cmd(
     radius_m: Annotated[float, typer.Option("--radius-m")] = 25.0,
     json_out: Annotated[Path | None, typer.Option("--json", help="write the result as JSON (and a PNG)")] = None,
     folds: Annotated[int, typer.Option(help="rotate the query role over K group folds")] = 1,
+    fold: Annotated[
+        int | None, typer.Option("--fold", help="run only fold F (0-based) of the --folds: a quick look")
+    ] = None,
     mode: Annotated[str | None, typer.Option(help="float, binary or two-stage")] = None,
     models_dir: ModelsDir = _S.models_dir,
     seed: int = 0,
@@ -520,7 +531,8 @@ def eval_cmd(
         float | None,
         typer.Option(
             "--absent-radius",
-            help="also locate each query with every reference within R m removed (a simulated absent place)",
+            help="also locate each query with every reference within R m removed (a simulated absent place); "
+            "a no_match's place counts as absent when no reference lies within R m (else --radius-m) of it",
         ),
     ] = None,
 ) -> None:
@@ -533,6 +545,8 @@ def eval_cmd(
         _fail(f"--svm-bank must be off, positive or negative, not {svm_bank!r}")
     if svm_bank_source not in EVAL_BANK_SOURCES:
         _fail(f"--svm-bank-source must be one of {', '.join(EVAL_BANK_SOURCES)}, not {svm_bank_source!r}")
+    if fold is not None and not 0 <= fold < max(folds, 1):
+        _fail(f"--fold must be from 0 to {max(folds, 1) - 1} (of --folds {folds}), not {fold}")
     cfg = named_config(config, models_dir).with_overrides(_parse_overrides(overrides or []))
     result = evaluate(
         manifest,
@@ -551,6 +565,7 @@ def eval_cmd(
         models_dir=models_dir,
         absent_radius_m=absent_radius,
         partial=json_out.with_suffix(".partial.json") if json_out else None,
+        fold=fold,
     )
     typer.echo(format_summary(result))
     if json_out:
@@ -827,6 +842,8 @@ def refit(
         fresh=fresh,
         calibration_sample=calibration_sample,
         calibrate_rerank=calibrate_rerank,
+        radius_rate=_S.radius_rate,
+        max_radius_m=_S.max_radius_m,
     )
     s = run_refit(data_dir, models_dir, options, ray=ray, limits=_S.image_limits(), backend=_S.backend(data_dir))
     secs = ", ".join(f"{k} {v:.1f} s" for k, v in s.seconds.items())

@@ -124,6 +124,19 @@ class Settings(StorageSettings):
     malloc_trim: bool = Field(
         True, description="hand freed memory back to the kernel after a large upload (app/runtime.py)"
     )
+    radius_rate: float = Field(
+        0.9,
+        gt=0.5,
+        lt=1.0,
+        description="the share of answers whose truth lies within the disc they state (docs/disc.md); "
+        "`geoloc fit` and `geoloc refit` fit the discs at it",
+    )
+    max_radius_m: float = Field(
+        100.0,
+        gt=0,
+        description='the widest disc that counts as an estimate (a wider one says "possible" only; docs/disc.md); '
+        "read by `geoloc fit` and `geoloc refit`",
+    )
     blas_threads: int = Field(
         1, ge=1, description="BLAS threads of a serving process (serve, worker): more only spin between queries"
     )

@@ -84,7 +84,7 @@ def test_build_fit_ingest_locate(workdir, mini_manifest):
     # Calibrated on 20 of these 30 references (a tiny sample, no threshold reaches 90 %), the rule gives no
     # confident answer, but a reference's own photo scores above anything its calibration saw: never
     # "not in this collection", and the reference itself comes first.
-    assert brief.stdout.startswith(("Likely: taken within ", "Possible only")), brief.stdout
+    assert brief.stdout.startswith(("Taken within ", "Possible only")), brief.stdout
     assert "img_00000.jpg" in brief.stdout and "not in this collection" not in brief.stdout, brief.stdout
     assert "EXIF GPS" in brief.stdout and not brief.stdout.lstrip().startswith("{")
 
@@ -148,6 +148,31 @@ def test_eval_writes_the_report(workdir, mini_manifest):
     assert 0 <= a["coverage"] <= 1 and a["absent_radius_m"] == 100 and 0 <= a["absent_confident"] <= 1
     assert "precision_at_2x_radius" in a and "within twice the radius" in p.stdout
     assert sum(a["reason_codes"].values()) == 39 == sum(a["absent_reason_codes"].values())
+    # The disc's figures: the estimate share, the truth within the stated radius (overall, weakest quartile),
+    # the median and 90th-percentile radius (None without an estimate), and no_match's absent share.
+    assert a["estimate_share"] == a["coverage"] and r["fold"] is None
+    assert {"radius_coverage", "radius_coverage_weakest_quartile", "median_radius_m", "p90_radius_m"} <= set(a)
+    if a["median_radius_m"] is not None:
+        assert a["median_radius_m"] <= a["p90_radius_m"] and 0 <= a["radius_coverage"] <= 1
+    no_match = a["reason_codes"].get("no_match", 0) + a["absent_reason_codes"].get("no_match", 0)
+    assert a["no_match_answers"] == no_match and a["no_match_absent_at_m"] == 100
+    assert (a["no_match_absent_share"] is None) == (no_match == 0)
+    if no_match:
+        assert 0 <= a["no_match_absent_share"] <= 1 and "of which the place was absent" in p.stdout
+
+
+def test_eval_runs_one_fold(workdir, mini_manifest):
+    """`geoloc eval --folds 2 --fold 1`: the second fold alone (its queries, its fit), said so."""
+    out_json = workdir / "eval" / "fold1.json"
+    args = ["eval", "--manifest", str(mini_manifest), "--config", "hybrid", "--models-dir", str(workdir / "models")]
+    p = geoloc(*args, "--folds", "2", "--fold", "1", "--json", str(out_json))
+    assert "folds 2 (fold 1 only)" in p.stdout and "  fold 2:" not in p.stdout
+    r = json.loads(out_json.read_text())
+    assert r["folds"] == 2 and r["fold"] == 1 and len(r["answers_per_fold"]) == 1
+    assert 0 < r["n_query"] < 39 and {q["fold"] for q in r["queries"]} == {1}
+    assert r["answers"]["no_match_absent_at_m"] == 25  # no --absent-radius: --radius-m
+    bad = geoloc(*args, "--folds", "2", "--fold", "2", check=False)
+    assert bad.returncode == 2 and "--fold must be from 0 to 1" in bad.stderr
 
 
 def test_unknown_config_is_a_clear_error(workdir, mini_manifest):
@@ -291,17 +316,24 @@ def test_every_failure_is_one_line_and_a_documented_exit_code(tmp_path):
     assert debug.stderr.strip().splitlines()[-1].startswith("error: ")
 
 
-def test_brief_says_not_found_in_this_collection_for_no_match():
-    """`geoloc locate --brief` words a no_match answer as the page does (the JSON shape of /locate)."""
+def test_brief_says_what_no_match_measures_and_an_estimate_its_disc():
+    """`geoloc locate --brief` words a no_match answer as the page does (the JSON shape of /locate): no
+    reference looks like the photo, never that the place is absent; an estimate states its disc and rate."""
     from app.cli import _in_words
 
     cand = {"reference_id": 3, "label": "a.jpg", "lat": 39.95, "lon": -75.19, "score": 0.58, "p_within_25m": 0.03}
     out = {
         "candidates": [cand, {**cand, "reference_id": 4, "lat": 39.951}],
         "estimate": None,
-        "reason": "not in this collection: no candidate has a 10% chance of lying within 25 m (best 3%)",
+        "reason": "no reference looks like this photo: no candidate has a 10% chance of lying within 25 m of where "
+        "it was taken (best 3%)",
         "reason_code": "no_match",
     }
     words = _in_words(out)
-    assert words.startswith("Not found in this collection (not in this collection") and "reference 3 (a.jpg)" in words
+    assert words.startswith("No reference looks like this photo (no reference looks") and "reference 3 (a.jpg)" in words
+    assert "not in this collection" not in words and "absent" not in words
     assert _in_words({**out, "reason_code": "ambiguous"}).startswith("Possible only")
+    estimate = {"lat": 39.95, "lon": -75.19, "radius_m": 60.0, "radius_rate": 0.9, "confidence": 0.8}
+    cands = [{**c, "distance_m": 0.0} for c in out["candidates"]]
+    words = _in_words({**out, "candidates": cands, "estimate": estimate, "reason": None, "reason_code": None})
+    assert words.startswith("Taken within 60 m of 39.95000,-75.19000: 9 in 10 such answers are (confidence 0.80"), words

@@ -82,6 +82,7 @@ def _first_start(app: FastAPI) -> None:
         s.image_limits(),
         workers=workers,
         backend=s.backend(s.data_dir),
+        disc={"radius_rate": s.radius_rate, "max_radius_m": s.max_radius_m},
     )
 
 

@@ -64,16 +64,17 @@ class EstimateOut(BaseModel):
     lat: float
     lon: float
     radius_m: float = Field(
-        description="where the truth lies, to 0.1 m: for radius_rate of such answers when it is given, else for "
-        "most confident answers"
+        description="the disc around lat, lon that holds the truth, to 0.1 m: for radius_rate of such answers "
+        "when it is given (the smallest disc that held at that rate for this collection's own answers with evidence "
+        "as strong), else for most confident answers"
     )
     radius_rate: float | None = Field(
         None,
         ge=0,
         le=1,
-        description="the share of such answers (confident, with evidence this strong) whose truth lies within "
-        "radius_m, calibrated on this collection by `geoloc fit` / `geoloc refit` (0.9: 9 in 10); null when the "
-        "collection is not calibrated and radius_m is the constant rule (farthest fused candidate + 40 m)",
+        description="the share of such answers (with evidence this strong) whose truth lies within radius_m, "
+        "calibrated on this collection by `geoloc fit` / `geoloc refit` (0.9: 9 in 10; GEOLOC_RADIUS_RATE); null "
+        "when the collection is not calibrated and radius_m is the constant rule (farthest fused candidate + 40 m)",
     )
     confidence: float = Field(ge=0, le=1, description="the fused group's share of the candidates' weight")
 
@@ -117,11 +118,13 @@ class IndexOut(BaseModel):
 class LocateOut(BaseModel):
     candidates: list[CandidateOut]
     estimate: EstimateOut | None
-    reason: str | None = Field(None, description="why there is no confident estimate, in words")
+    reason: str | None = Field(None, description="why there is no estimate, in words that claim only what was measured")
     reason_code: str | None = Field(
         None,
-        description="null when the estimate is confident; else no_match (the evidence says the place is not in "
-        "this collection), ambiguous (candidates, but not enough evidence for one place), no_features (the photo "
+        description="null when there is an estimate; else no_match (no reference looks like this photo: no "
+        "candidate has a 10 % chance of lying within 25 m; it does not say the place is absent from the "
+        "collection), ambiguous (candidates, but no disc small enough holds at the stated rate: possible places "
+        "only), no_features (the photo "
         "has no usable features: no candidates, no probabilities) or no_references (the collection or the "
         "region searched holds none)",
     )

@@ -13,15 +13,24 @@ candidates gives ``p_within_25m``; the rule then says, from the same sample:
   ``confident_p``: the lowest threshold at which the sample's confident answers were within 25 m at least
   ``TARGET_PRECISION`` of the time (a pessimistic count) and at most ``MAX_ABSENT_CONFIDENT`` of the absent
   places were confident (never if no threshold does);
-- **no_match** ("not in this collection") when no candidate reaches ``NO_MATCH_P``;
+- **no_match** ("no reference looks like this photo") when no candidate reaches ``NO_MATCH_P``: what it
+  measures is the candidates' look, not the place's absence (a place the collection holds can read so);
 - **ambiguous** otherwise.
+
+The estimate itself (``fit_disc``): for every answer, the smallest disc around the fused position that held
+the truth for ``RADIUS_RATE`` of the sampled answers with evidence as strong (split-conformal, per bin of
+``answer_p``), the absent places counting as answers whose truth lies in no disc at all. An answer has an
+estimate when its disc is informative (``Disc.limit_m``: at most ``MAX_RADIUS_M`` and ``MAX_EXTENT_SHARE``
+of the collection's extent); the rule above (``confident_p``) then only judges calibrations fitted before
+discs.
 
 The sample is counted in captures (a photo and its crops, ``Sample.group``), which answer alike: no
 probability exceeds ``max_p`` of the number located (what that many captures, all right, would show at the
 90 % lower bound).
 
-Each confident answer's radius (``stated_radius``) is fitted on the same sample: split-conformal, per bin of
-evidence strength, so that the truth lies within it for ``RADIUS_RATE`` of such answers (``fit_radius``).
+Before discs, each confident answer's radius (``stated_radius``) was fitted on the same sample: split-conformal,
+per bin of evidence strength, so that the truth lies within it for ``RADIUS_RATE`` of such answers
+(``fit_radius``); a calibration too small for a disc keeps that rule.
 
 A collection too small to calibrate (fewer than ``MIN_QUERIES`` sampled references, or fewer than
 ``MIN_POSITIVES`` right candidates among their answers) gets ``conservative()``: no probabilities at all,
@@ -32,6 +41,7 @@ and confident only when at least ``CONSERVATIVE_SUPPORT`` candidates agree on on
 from __future__ import annotations
 
 import json
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -72,6 +82,16 @@ RADIUS_RATE = 0.9
 MIN_BIN_SAMPLES = 30
 #: At most this many bins (quartiles of the evidence strength): the evaluation reports the weakest quartile.
 RADIUS_BINS = 4
+#: The disc (``fit_disc``): at most this many bins of evidence strength, each of at least ``MIN_DISC_BIN``
+#: sampled answers (with 25, the conformal quantile at 90 % is the 24th smallest error: one more unlucky
+#: error moves it by one rank, not past the end).
+DISC_BINS = 30
+MIN_DISC_BIN = 25
+#: An answer has an estimate only when its disc is at most this wide (``Settings.max_radius_m``' default;
+#: docs/disc.md says how it was chosen) ...
+MAX_RADIUS_M = 100.0
+#: ... and at most this share of the collection's extent (a disc as wide as the collection says nothing).
+MAX_EXTENT_SHARE = 0.25
 #: The z of the one-sided lower confidence bound (90 %) that caps every stated probability (``max_p``):
 #: with n captures all right, the bound is n / (n + z^2), as if 1.64 wrong captures were added.
 CEILING_Z = 1.2816
@@ -116,6 +136,37 @@ class Sample:
     group: str | None = None
 
 
+@dataclass(frozen=True)
+class Disc:
+    """The disc an answer states (``fit_disc``): per bin of evidence strength (``basis``: ``answer_p``; inner
+    edges ``edges``, ascending), the radius within which the truth lay for ``rate`` of the ``n`` sampled
+    answers of that bin (None: no finite radius did: too many of them were of places removed from the
+    collection, or far off), and ``limit_m``, the widest disc that counts as an estimate
+    (``min(max_radius_m, MAX_EXTENT_SHARE * extent_m)``)."""
+
+    rate: float
+    edges: list[float]
+    radius_m: list[float | None]
+    n: list[int]
+    limit_m: float
+    max_radius_m: float
+    extent_m: float | None = None
+    basis: str = "answer_p"
+
+    def radius(self, strength: float) -> float | None:
+        """The disc of an answer this strong (None: none holds at ``rate``)."""
+        return self.radius_m[int(np.searchsorted(np.asarray(self.edges, float), strength, side="right"))]
+
+    def estimate_radius(self, strength: float) -> float | None:
+        """The disc of an answer this strong when it is informative (at most ``limit_m``), else None."""
+        r = self.radius(strength)
+        return r if r is not None and r <= self.limit_m else None
+
+    @property
+    def informative_anywhere(self) -> bool:
+        return any(r is not None and r <= self.limit_m for r in self.radius_m)
+
+
 @dataclass
 class Calibration:
     names: tuple[str, ...] = ()
@@ -144,6 +195,9 @@ class Calibration:
     #: ``population`` (the sampled answers it was fitted on). None: the constant rule (a conservative
     #: collection, too few sampled answers, or a calibration fitted before stated radii).
     radius: dict | None = None
+    #: The disc every answer states (``fit_disc``, ``Disc``'s fields); None: fitted before discs (the
+    #: ``confident_p`` rule and ``radius`` then), or too few sampled answers to fit one.
+    disc: dict | None = None
     #: The highest probability this calibration states (``max_p``): what its sample of captures can support.
     #: 1.0 in a calibration fitted before it.
     ceiling: float = 1.0
@@ -181,7 +235,10 @@ class Calibration:
     def confidence_note(self, references: int) -> str | None:
         """What a collection that cannot give a confident answer yet needs (None when it can): the refit
         summary and /ready say it, so that a small collection's answers are not read as a fault."""
-        small = self.report.get("too_small") or (self.calibrated and self.confident_p > 1.0)
+        if self.disc is not None:
+            small = not Disc(**self.disc).informative_anywhere
+        else:
+            small = self.report.get("too_small") or (self.calibrated and self.confident_p > 1.0)
         if not small:
             return None
         return (
@@ -228,7 +285,12 @@ class Calibration:
                 None,
             )
         answer_p = float(p[members].max()) if members.any() else float(p.max())
-        if answer_p >= self.confident_p:
+        disc = Disc(**self.disc) if self.disc is not None else None
+        if disc is not None:
+            radius = disc.estimate_radius(answer_p)
+            if radius is not None:
+                return Decision(True, None, None, p, answer_p, radius, disc.rate)
+        elif answer_p >= self.confident_p:
             return Decision(True, None, None, p, answer_p, *self.stated_radius(answer_p, estimate.radius_m))
         best = float(p.max())
         top, seen = self._beyond_range(evidence)
@@ -246,11 +308,13 @@ class Calibration:
             return Decision(
                 False,
                 NO_MATCH,
-                f"not in this collection: no candidate has a {self.no_match_p:.0%} chance of lying within 25 m "
-                f"(best {best:.0%})",
+                f"no reference looks like this photo: no candidate has a {self.no_match_p:.0%} chance of lying "
+                f"within 25 m of where it was taken (best {best:.0%})",
                 p,
                 answer_p,
             )
+        if disc is not None:
+            return Decision(False, AMBIGUOUS, disc_reason(disc, answer_p), p, answer_p)
         if self.confident_p > 1.0:
             needs = (
                 "and no answer of this collection is confident: its calibration found no level at which its own "
@@ -284,7 +348,14 @@ class Calibration:
 
     @property
     def radius_note(self) -> str:
-        """How confident answers' radii are chosen, in words (the refit summary says it)."""
+        """How answers' radii are chosen, in words (the refit summary says it)."""
+        if self.disc:
+            d = Disc(**self.disc)
+            shown = [f"{r:.0f}" if r is not None else "none" for r in d.radius_m]
+            return (
+                f"discs of {', '.join(shown)} m by evidence strength, each holding for "
+                f"{d.rate * 100:.0f} % of {sum(d.n)} sampled answers; an estimate for those within {d.limit_m:.0f} m"
+            )
         if self.radius:
             radii = ", ".join(f"{x:.0f}" for x in self.radius["radius_m"])
             return (
@@ -321,14 +392,50 @@ class Calibration:
                 data.get("note", "") + "; fitted before stated radii: confident answers keep the constant rule's "
                 "radius, its rate not calibrated (`geoloc refit` fits them)"
             )
+        if data.get("source") == "collection" and "disc" not in data:
+            data["note"] = (
+                data.get("note", "") + "; fitted before discs: answers are judged by the confident threshold "
+                "(`geoloc refit` fits the disc every answer states)"
+            )
         if data.get("verified"):
             data["verified"]["names"] = tuple(data["verified"]["names"])
         return cls(**data)
 
 
+def disc_reason(disc: Disc, answer_p: float) -> str:
+    """Why an answer this strong has no estimate, in words that claim only what the calibration measured."""
+    share = f"{rate_words(disc.rate)} such answers"
+    r = disc.radius(answer_p)
+    if r is None:
+        return (
+            f"no disc holds {share} (evidence strength {answer_p:.0%}): of this collection's own answers this weak, "
+            f"more than {rate_words(1 - disc.rate)} were of places removed from it, or far off"
+        )
+    return (
+        f"{share} (evidence strength {answer_p:.0%}) lie within {r:.0f} m, wider than the {disc.limit_m:.0f} m an "
+        "estimate may state"
+    )
+
+
+def rate_words(rate: float) -> str:
+    """A rate as a count a reader pictures: 0.9 -> "9 in 10" (the CLI and the page say it alike)."""
+    for of in (10, 20, 100):
+        if abs(rate * of - round(rate * of)) < 1e-6:
+            return f"{round(rate * of)} in {of}"
+    return f"{rate:.0%}"
+
+
 # -- fitting ----------------------------------------------------------------------------------------------
-def fit_calibration(samples: list[Sample], seed: int = 0) -> Calibration:
-    """The logistic regression and the thresholds from the sampled answers (present and absent)."""
+def fit_calibration(
+    samples: list[Sample],
+    seed: int = 0,
+    rate: float = RADIUS_RATE,
+    max_radius_m: float = MAX_RADIUS_M,
+    extent_m: float | None = None,
+) -> Calibration:
+    """The logistic regression and the thresholds from the sampled answers (present and absent), and the disc
+    every answer states (``fit_disc``: at ``rate``, an estimate up to ``max_radius_m`` and a share of the
+    collection's ``extent_m``)."""
     from sklearn.linear_model import LogisticRegression
 
     present = [s for s in samples if not s.absent]
@@ -377,9 +484,66 @@ def fit_calibration(samples: list[Sample], seed: int = 0) -> Calibration:
             "mean_best_p_absent": round(float(np.mean(absent_best or [0.0])), 4),
         }
     )
-    cal.radius = fit_radius(cal, samples)
+    if all(s.absent or s.error_m is not None for s in samples):
+        strength = np.array([answer_probability(cal, s) for s in samples])
+        errors = np.array([np.inf if s.absent else s.error_m for s in samples])
+        # A capture's answers with its place present, and those with it removed, are two experiments.
+        groups = [(capture(s), s.absent) for s in samples]
+        disc = fit_disc(strength, errors, groups, rate, max_radius_m, extent_m)
+        cal.disc = asdict(disc) if disc is not None else None
+    if cal.disc is None:  # too few answers for a disc, or samples without errors: the confident threshold
+        cal.radius = fit_radius(cal, samples)
     cal.note = f"fitted on {len(present)} references of this collection; {cal.radius_note}"
     return cal
+
+
+def fit_disc(
+    strength: np.ndarray,
+    errors: np.ndarray,
+    groups: Sequence[object] | None = None,
+    rate: float = RADIUS_RATE,
+    max_radius_m: float = MAX_RADIUS_M,
+    extent_m: float | None = None,
+    floor_m: float = RADIUS_FLOOR_M,
+    bins: int = DISC_BINS,
+    min_n: int = MIN_DISC_BIN,
+) -> Disc | None:
+    """The smallest disc around the estimate that holds the truth for ``rate`` of the answers, conditional on
+    the evidence strength: split-conformal per quantile bin of ``strength`` (up to ``bins``, each of at least
+    ``min_n`` answers), the conformal quantile (the ceil((n + 1) * rate)-th smallest) of the bin's ``errors``
+    (metres from the estimate to the truth; ``inf`` for a place removed from the collection: no disc holds it),
+    made monotone (a stronger bin never states a wider disc than a weaker one: the running maximum from the
+    strong end), never below ``floor_m``. None when fewer than ``min_n`` answers.
+
+    ``groups`` (each answer's capture: a photo and its crops): the quantile is counted in captures, each
+    capture of a bin counting once with its worst error there, and a bin of too few captures for a conformal
+    quantile at ``rate`` (fewer than 9 at 90 %) states no disc. Why: a capture's answers fail together (its
+    crops show the same facade, matched to the same look-alike across the street), so counted one by one
+    they make a bin look surer than its captures allow; counted answer by answer, the discs held for clearly
+    fewer of the held-out queries than the rate stated (docs/disc.md).
+
+    Why conditional: one disc for all answers holds on average and not for the weak ones; "9 in 10" must
+    hold for answers like the one at hand. Why the absent places among them: a disc is then stated only where
+    the evidence says the place is held, and evidence that places removed from the collection also reach
+    gets no finite disc at all. Why monotone: a quantile bin's radius is noisy; stronger evidence stating a
+    wider disc than weaker evidence would be that noise, and the running maximum never narrows a bin."""
+    strength, errors = np.asarray(strength, float), np.asarray(errors, float)
+    if len(strength) < max(min_n, 1) or conformal_radius(errors, rate) is None:
+        return None
+    edges = strength_bins(strength, bins, min_n)
+    bin_of = np.searchsorted(edges, strength, side="right")
+    raw = np.array([_bin_radius(errors, bin_of == k, groups, rate) for k in range(len(edges) + 1)], float)
+    radii = np.maximum(np.maximum.accumulate(raw[::-1])[::-1], floor_m)
+    limit = min(max_radius_m, MAX_EXTENT_SHARE * extent_m) if extent_m else max_radius_m
+    return Disc(
+        rate=rate,
+        edges=[float(x) for x in edges],  # unrounded: an answer tied with an edge reads the bin it was fitted in
+        radius_m=[round(float(r), 1) if np.isfinite(r) else None for r in radii],
+        n=np.bincount(bin_of, minlength=len(edges) + 1).tolist(),
+        limit_m=round(float(limit), 1),
+        max_radius_m=float(max_radius_m),
+        extent_m=None if extent_m is None else round(float(extent_m), 1),
+    )
 
 
 def capture(s: Sample) -> object:
@@ -457,6 +621,18 @@ def fit_radius(cal: Calibration, samples: list[Sample], rate: float = RADIUS_RAT
         "n": np.bincount(bin_of, minlength=len(edges) + 1).tolist() if edges else [len(err)],
         "population": population,
     }
+
+
+def _bin_radius(errors: np.ndarray, in_bin: np.ndarray, groups: Sequence[object] | None, rate: float) -> float:
+    """A bin's conformal radius: over its answers, or over its captures' worst errors; inf when none holds."""
+    if groups is None:
+        r = conformal_radius(errors[in_bin], rate)
+    else:
+        worst: dict[object, float] = {}
+        for x, g in zip(errors[in_bin], (g for g, m in zip(groups, in_bin, strict=True) if m), strict=True):
+            worst[g] = max(worst.get(g, 0.0), float(x))
+        r = conformal_radius(np.array(list(worst.values())), rate)
+    return np.inf if r is None else r
 
 
 def answer_probability(cal: Calibration, s: Sample) -> float:

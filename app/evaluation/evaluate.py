@@ -84,7 +84,15 @@ class AnswerQuality(BaseModel):
     radius_coverage: float | None = None
     radius_coverage_weakest_quartile: float | None = None
     median_radius_m: float | None = None
+    p90_radius_m: float | None = None
     radius_rate: float | None = None
+    #: The share of queries with an estimate (``coverage``, by its plain name).
+    estimate_share: float | None = None
+    #: Of the no_match answers (present queries and simulated absent places): how many, and the share whose
+    #: place was absent (no reference searched within ``no_match_absent_at_m`` of the truth).
+    no_match_answers: int | None = None
+    no_match_absent_share: float | None = None
+    no_match_absent_at_m: float | None = None
     brier: float | None
     reliability: list[dict]
     reason_codes: dict[str, int]
@@ -111,6 +119,8 @@ class EvalResult(BaseModel):
     config: str
     manifest: str
     folds: int
+    #: The one fold run (0-based; ``--fold``), None when every fold ran.
+    fold: int | None = None
     n_db: int
     n_query: int
     radius_m: float
@@ -279,6 +289,7 @@ def evaluate(
     models_dir: Path | None = None,
     absent_radius_m: float | None = None,
     partial: Path | None = None,
+    fold: int | None = None,
 ) -> EvalResult:
     """``models_dir``: where the built models are (the global model through the registry, XFeat).
     ``svm_bank``: off (all features), positive (features the bank predicts useful) or negative (only
@@ -293,7 +304,12 @@ def evaluate(
     with and without it and the time it adds per query; and how each confidence score ranks the answers
     (``app.evaluation.confidence_ranking``) with and without it. ``partial``: a JSON file rewritten after each
     fold with the folds finished so far (their per-fold figures and per-query rows), so a run stopped before
-    its end still reports them."""
+    its end still reports them. ``fold`` (0-based): run only that one of the ``folds`` (a quick look; the
+    figures of record pool every fold).
+
+    Each answer is judged as /locate states it: its estimate's disc (``radius_m`` at ``radius_rate``), and,
+    for ``no_match``, whether its place is absent: no reference of the fold (less those removed, for a
+    simulated absent place) within ``absent_radius_m`` of the truth, else within ``radius_m``."""
     if svm_bank not in ("off", "positive", "negative"):
         raise ValueError(f"svm_bank must be off, positive or negative, not {svm_bank!r}")
     if bank_source not in EVAL_BANK_SOURCES:
@@ -301,6 +317,9 @@ def evaluate(
     rows = read_manifest(manifest)
     query_sets = [[r.group for r in rows if r.split == "query"]] if folds <= 1 else assign_folds(rows, folds, seed)
     check_folds(manifest, rows, query_sets)  # before the expensive extraction
+    if fold is not None and not 0 <= fold < len(query_sets):
+        raise ValueError(f"fold must be from 0 to {len(query_sets) - 1}, not {fold}")
+    chosen = [fold] if fold is not None else list(range(len(query_sets)))
     base = Pipeline(config, models_dir=models_dir)
     extracted = extract_cached(base, rows, cache_dir, workers)
     verify = rerank if rerank is not None else config.stored_features is not None
@@ -317,8 +336,8 @@ def evaluate(
     ranked_served, ranked_plain = [], []  # per present query: confidence_ranking.query_record
     n_db = n_query = 0
     bytes_per_ref = 0.0
-    for f, qgroups in enumerate(query_sets):
-        qset = set(qgroups)
+    for f in chosen:
+        qset = set(query_sets[f])
         q_idx = [i for i, r in enumerate(rows) if r.group in qset and r.split != "train"]
         db_idx = [i for i, r in enumerate(rows) if r.group not in qset and r.split != "train"]
         train_idx = [i for i, r in enumerate(rows) if r.split == "train"]
@@ -408,14 +427,16 @@ def evaluate(
                         for r, v in res.verification.items()
                     },
                 }
-            fold_present.append(_answer_record(res, rows[i], radius_m))
+            to_refs = haversine_m(rows[i].lat, rows[i].lon, lat[db_idx], lon[db_idx])
+            fold_present.append(_answer_record(res, rows[i], radius_m, float(to_refs.min(initial=np.inf))))
             if absent_radius_m:
                 gone = near_ids(geotagged, rows[i].lat, rows[i].lon, absent_radius_m)
+                left = to_refs[~np.isin(np.asarray(db_idx), gone)]
                 res_absent = locate_features(
                     pipe, Excluding(index, gone), refs, f_i, options, rgb, cluster_radius_m=radius_m, codes=codes,
                     stored=stored, stored_query=q_stored,
                 )  # as the present answer is located: verified with rerank  # fmt: skip
-                fold_absent.append(_answer_record(res_absent, rows[i], radius_m))
+                fold_absent.append(_answer_record(res_absent, rows[i], radius_m, float(left.min(initial=np.inf))))
             e = res.estimate
             if e.lat is not None:
                 err = float(haversine_m(rows[i].lat, rows[i].lon, e.lat, e.lon))
@@ -449,7 +470,7 @@ def evaluate(
                 per_query[-1]["confidence_without_verification"] = ranked_plain[-1]
             if res.features_extracted:
                 kept_fractions.append(res.features_kept / res.features_extracted)
-        quality.append(answer_quality(fold_present, fold_absent, absent_radius_m))
+        quality.append(answer_quality(fold_present, fold_absent, absent_radius_m, radius_m))
         all_present += fold_present
         all_absent += fold_absent
         hits_arr = np.array(hits, bool)
@@ -463,8 +484,8 @@ def evaluate(
         bytes_per_ref = index.bytes_per_reference()
         if partial is not None:
             done = {
-                "folds_done": f + 1,
-                "folds": len(query_sets),
+                "folds_done": len(quality),
+                "folds": len(chosen),
                 "recall_at_per_fold": per_fold,
                 "without_rerank_recall_at_per_fold": per_fold_plain,
                 "answers_per_fold": quality,
@@ -487,7 +508,8 @@ def evaluate(
             "config": config.name,
             "manifest": str(manifest),
             "folds": len(query_sets),
-            "n_db": n_db // len(query_sets),
+            "fold": fold,
+            "n_db": n_db // len(chosen),
             "n_query": n_query,
             "radius_m": radius_m,
             "mode": mode or config.modes[0],
@@ -528,7 +550,7 @@ def evaluate(
                 "kept_fraction_median": float(np.median(kept_fractions)) if kept_fractions else None,
                 "folds": bank_reports,
             },
-            "answers": answer_quality(all_present, all_absent, absent_radius_m),
+            "answers": answer_quality(all_present, all_absent, absent_radius_m, radius_m),
             "answers_per_fold": quality,
             "calibration_per_fold": calibration_reports,
             "confidence_ranking": {
@@ -542,9 +564,10 @@ def evaluate(
     return result
 
 
-def _answer_record(res, row: Row, radius_m: float) -> dict:
-    """What the answer-quality figures need of one answer: confident or not and then right, its reason
-    code, and the first candidates' p_within_25m with whether each lies within the radius."""
+def _answer_record(res, row: Row, radius_m: float, nearest_m: float | None = None) -> dict:
+    """What the answer-quality figures need of one answer: an estimate or not and then right, its reason
+    code, the first candidates' p_within_25m with whether each lies within the radius, and how far the truth
+    lies from the nearest reference searched (``nearest_m``: whether a no_match's place was absent)."""
     e = res.estimate
     cands = [c for c in res.candidates[:ESTIMATE_CANDIDATES] if c.p_within_25m is not None]
     d = haversine_m(row.lat, row.lon, np.array([c.lat for c in cands]), np.array([c.lon for c in cands]))
@@ -561,10 +584,18 @@ def _answer_record(res, row: Row, radius_m: float) -> dict:
         "strength": res.answer_p if res.answer_p is not None else e.confidence,
         "p": [c.p_within_25m for c in cands],
         "within": [bool(x) for x in np.atleast_1d(d <= radius_m)] if cands else [],
+        "nearest_m": nearest_m,
     }
 
 
-def answer_quality(present: list[dict], absent: list[dict], absent_radius_m: float | None) -> dict:
+def answer_quality(
+    present: list[dict], absent: list[dict], absent_radius_m: float | None, radius_m: float = 25.0
+) -> dict:
+    """The answers' figures: the estimate share (``coverage``) and its precision at ``radius_m``, the stated
+    discs (``stated_radius_quality``), the Brier score and reliability of ``p_within_25m``, the reason codes,
+    how often a no_match's place was absent (``no_match_absent``), and, with simulated absent places
+    (``absent_radius_m``), how they were answered."""
+
     def codes(records):
         out: dict[str, int] = {}
         for r in records:
@@ -583,7 +614,9 @@ def answer_quality(present: list[dict], absent: list[dict], absent_radius_m: flo
         "coverage": len(conf) / max(len(present), 1),
         "precision": float(np.mean(conf)) if conf else None,
         "precision_at_2x_radius": float(np.mean(near)) if near else None,
+        "estimate_share": len(conf) / max(len(present), 1),
         **stated_radius_quality([r for r in present if r["confident"]]),
+        **no_match_absent(present + absent, absent_radius_m or radius_m),
         "brier": b,
         "reliability": reliability(p, y),
         "reason_codes": codes(present),
@@ -602,6 +635,17 @@ def answer_quality(present: list[dict], absent: list[dict], absent_radius_m: flo
     return out
 
 
+def no_match_absent(records: list[dict], absent_at_m: float) -> dict:
+    """Of the no_match answers (the present queries' and the simulated absent places'), the share whose place
+    is absent: no reference searched within ``absent_at_m`` of the truth. What no_match's words may claim."""
+    rows = [r for r in records if r["code"] == "no_match" and r.get("nearest_m") is not None]
+    return {
+        "no_match_answers": len(rows),
+        "no_match_absent_share": float(np.mean([r["nearest_m"] > absent_at_m for r in rows])) if rows else None,
+        "no_match_absent_at_m": absent_at_m,
+    }
+
+
 def stated_radius_quality(confident: list[dict]) -> dict:
     """Whether the confident answers' stated radii hold: the share whose truth lies within the radius stated,
     overall and in the quartile with the weakest evidence (lowest ``strength``, ties broken by order), the
@@ -616,6 +660,7 @@ def stated_radius_quality(confident: list[dict]) -> dict:
         "radius_coverage": float(held.mean()),
         "radius_coverage_weakest_quartile": float(held[weakest].mean()),
         "median_radius_m": float(np.median([r["radius_m"] for r in rows])),
+        "p90_radius_m": float(np.percentile([r["radius_m"] for r in rows], 90)),
         "radius_rate": rates.pop() if len(rates) == 1 else None,
     }
 
@@ -652,7 +697,9 @@ def format_summary(result: EvalResult | dict) -> str:
     ms = result["ms_per_query"]
     e = result["estimate_error_m"]
     lines = [
-        f"config {result['config']}  db {result['n_db']}  queries {result['n_query']}  folds {result['folds']}  "
+        f"config {result['config']}  db {result['n_db']}  queries {result['n_query']}  folds {result['folds']}"
+        + (f" (fold {result['fold']} only)" if result.get("fold") is not None else "")
+        + "  "
         f"radius {result['radius_m']:.0f} m  mode {result['mode']}"
         + ("  rerank" if result.get("rerank") else "")
         + (f"  region {result['region_radius_m']:.0f} m" if result.get("region_radius_m") else ""),
@@ -699,6 +746,10 @@ def _pct(x) -> str:
     return "n/a" if x is None else f"{x:.1%}"
 
 
+def _num0(x) -> str:
+    return "n/a" if x is None else f"{x:.0f}"
+
+
 def _num(x) -> str:
     return "n/a" if x is None else f"{x:.3f}"
 
@@ -709,7 +760,7 @@ def _quality_lines(result: dict) -> list[str]:
     if not a:
         return []
     out = [
-        "answers (confident: within the radius / share of queries; Brier of p_within_25m"
+        "answers (estimates: within the radius / share of queries; Brier of p_within_25m"
         + ("; absent places: confident, mean best p, Brier" if a.get("absent_radius_m") else "")
         + "):"
     ]
@@ -722,7 +773,12 @@ def _quality_lines(result: dict) -> list[str]:
             line += (
                 f"; truth within the stated radius {_pct(q['radius_coverage'])} (weakest quartile "
                 f"{_pct(q['radius_coverage_weakest_quartile'])}, median radius {q['median_radius_m']:.0f} m, "
-                f"rate stated {_pct(q.get('radius_rate'))})"
+                f"p90 {_num0(q.get('p90_radius_m'))} m, rate stated {_pct(q.get('radius_rate'))})"
+            )
+        if q.get("no_match_answers"):
+            line += (
+                f"; no_match {q['no_match_answers']}, of which the place was absent (no reference within "
+                f"{q['no_match_absent_at_m']:.0f} m) {_pct(q['no_match_absent_share'])}"
             )
         if q.get("absent_radius_m"):
             line += (

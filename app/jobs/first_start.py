@@ -81,6 +81,7 @@ def run_first_start(
     workers: int = 1,
     seed: int = 0,
     backend: StorageBackend | None = None,
+    disc: dict[str, float] | None = None,
 ) -> bool:
     """Fit and ingest when the data dir needs it (``needed``); ``say`` gets each progress line (the loader
     shows the latest on /ready and logs it). Returns whether anything was done.
@@ -95,7 +96,7 @@ def run_first_start(
     with _FirstStartLock(Path(data_dir) / "first_start.lock", say):
         if not needed(data_dir, backend):  # another process did it while this one waited
             return False
-        return _run_first_start(data_dir, models_dir, config, photos, say, limits, workers, seed, backend)
+        return _run_first_start(data_dir, models_dir, config, photos, say, limits, workers, seed, backend, disc)
 
 
 class _FirstStartLock:
@@ -128,6 +129,7 @@ def _run_first_start(
     workers: int,
     seed: int,
     backend: StorageBackend,
+    disc: dict[str, float] | None = None,
 ) -> bool:
     limits = limits or ImageLimits()
     t0 = time.perf_counter()
@@ -140,7 +142,7 @@ def _run_first_start(
         if store.get_meta(STATE_KEY) is None:
             store.set_meta(STATE_KEY, "started")  # from here on, a restart continues this first start
         if store.get_meta("pipeline") is None:
-            _fit(store, models_dir, config, source, say, limits, workers, seed)
+            _fit(store, models_dir, config, source, say, limits, workers, seed, disc)
     finally:
         store.close()
     added = _ingest(data_dir, models_dir, config, source, say, limits, workers, backend)
@@ -209,6 +211,7 @@ def _fit(
     limits: ImageLimits,
     workers: int,
     seed: int,
+    disc: dict[str, float] | None = None,
 ) -> None:
     """Fit (``app.usecases.fitting.fit_pipeline``) on a seeded sample of the photos, with the positions of their rows
     else of their EXIF (those with neither, or unreadable, are left out here and reported by the ingest
@@ -231,6 +234,7 @@ def _fit(
         limits=limits,
         workers=workers,
         skip_unreadable=True,
+        **(disc or {}),  # the disc every answer states: Settings.radius_rate, max_radius_m
     )
     pipe = Pipeline(cfg, models_dir=Path(models_dir))
     try:

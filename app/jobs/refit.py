@@ -61,6 +61,8 @@ class RefitOptions:
     workers: int = 1  # extraction threads for the fit, encoding threads (or Ray workers) for the re-index
     batch: int = 32  # references re-encoded per transaction
     fresh: bool = False  # discard an interrupted re-index instead of continuing it
+    radius_rate: float = 0.9  # the disc every answer states (Settings.radius_rate, Settings.max_radius_m)
+    max_radius_m: float = 100.0
 
 
 @dataclass(frozen=True)
@@ -134,6 +136,8 @@ def fit_generation(
         limits=limits or ImageLimits(),
         workers=options.workers,
         skip_unreadable=True,  # a stored image gone or damaged: fit on the others (`geoloc check` reports it)
+        radius_rate=options.radius_rate,
+        max_radius_m=options.max_radius_m,
     )
     pipe = Pipeline(cfg, models_dir=Path(models_dir))
     try:

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from app.domain import LocateAnswer, LocateOptions, RefInfo, Region
-from app.engine.calibration import MIN_QUERIES, Calibration, Sample, fit_calibration
+from app.engine.calibration import MAX_RADIUS_M, MIN_QUERIES, RADIUS_RATE, Calibration, Sample, fit_calibration
 from app.engine.configs import PipelineConfig
 from app.engine.geo import haversine_m
 from app.engine.imageio import ImageLimits
@@ -156,6 +156,8 @@ class FitOptions:
     skip_unreadable: bool = False
     keep_index: bool = False
     fixed_threads: bool = True
+    radius_rate: float = RADIUS_RATE
+    max_radius_m: float = MAX_RADIUS_M
 
 
 @dataclass
@@ -271,6 +273,8 @@ def fit_pipeline(
             images=images if options.calibrate_verified or pipe.config.stored_features else None,
             hashes=hashes,
             stored=stored,
+            radius_rate=options.radius_rate,
+            max_radius_m=options.max_radius_m,
         )
         seconds["calibration"] = time.perf_counter() - t0
     return FittedPipeline(pipe, refs, source, seconds, index)
@@ -399,6 +403,14 @@ def calibration_sample(
     return Sample(ev, within, members, error_m <= radius_m, absent, error_m, group)
 
 
+def collection_extent_m(refs: dict[int, Geotagged]) -> float:
+    """The collection's extent: the diagonal of the box its references lie in (a disc is informative only
+    when it is small against it)."""
+    lats = np.array([r.lat for r in refs.values()])
+    lons = np.array([r.lon for r in refs.values()])
+    return float(haversine_m(lats.min(), lons.min(), lats.max(), lons.max())) if len(lats) else 0.0
+
+
 def near_ids(refs: dict[int, Geotagged], lat: float, lon: float, radius_m: float) -> list[int]:
     ids = np.array(sorted(refs), np.int64)
     lats = np.array([refs[i].lat for i in ids])
@@ -440,6 +452,8 @@ def calibrate_collection(
     verify_sample: int = VERIFY_CALIBRATION_SAMPLE,
     hashes: Mapping[int, str] | None = None,
     stored: PhotoStoredFeatures | None = None,
+    radius_rate: float = RADIUS_RATE,
+    max_radius_m: float = MAX_RADIUS_M,
 ) -> Calibration:
     """The confidence rule and ``p_within_25m`` for ``pipe`` (fitted, with its bank), fitted on the collection
     ``refs`` itself.
@@ -468,7 +482,11 @@ def calibrate_collection(
     cost of one extraction per reference located or retrieved and the matching (``report["verified_seconds"]``).
 
     ``hashes`` (reference id -> the sha256 of its photo): recorded as ``Calibration.references`` (those of the
-    located sample), so that a data dir judged by this pipeline can tell whether the figures are its own."""
+    located sample), so that a data dir judged by this pipeline can tell whether the figures are its own.
+
+    The disc every answer states (``fit_disc``) is fitted on the same answers, the absent ones counting as
+    held by no disc, at ``radius_rate``, an estimate stated up to ``max_radius_m`` and a share of the
+    collection's extent (``collection_extent_m``)."""
     from app.usecases.locate import ESTIMATE_CANDIDATES, MIN_LOCAL_FEATURES, Excluding, locate_features
 
     ids = sorted(refs)
@@ -480,8 +498,10 @@ def calibrate_collection(
             {"sampled": len(held), "too_small": True},
         )
     by_group: dict[str, list[int]] = {}
+    by_spot: dict[str, list[int]] = {}  # a manifest without groups names each crop its own group
     for i in ids:
         by_group.setdefault(refs[i].group, []).append(i)
+        by_spot.setdefault(capture_group(refs[i].lat, refs[i].lon), []).append(i)
     source = GeotaggedReferences(refs, dict(images) if images else None)
     options = LocateOptions(top_k=ESTIMATE_CANDIDATES, rerank=False)  # the unverified rule, whatever the default
     verified_options = LocateOptions(top_k=ESTIMATE_CANDIDATES, rerank=True)
@@ -518,7 +538,8 @@ def calibrate_collection(
             if aux.config.local is not None and r.features.n_local < MIN_LOCAL_FEATURES:
                 continue
             codes = aux.encode_features(r.features, aux.select(r.features))  # once for both searches
-            own = by_group[r.group]
+            # Its capture left out: its group, and every reference taken at the same spot (``capture_group``).
+            own = sorted(set(by_group[r.group]) | set(by_spot[capture_group(r.lat, r.lon)]))
             t0 = time.perf_counter()
             rgb = query = None
             if i in to_verify and stored is not None:
@@ -553,13 +574,14 @@ def calibrate_collection(
                 s = calibration_sample(answer, r.lat, r.lon, absent, group=r.group)
                 if s is not None:
                     verified_samples.append(s)
-    cal = fit_calibration(samples, seed)
+    extent_m = collection_extent_m(refs)
+    cal = fit_calibration(samples, seed, radius_rate, max_radius_m, extent_m)
     cal.references = sorted({hashes[i] for i in held if i in hashes}) if hashes else []
     cal.report["absent_radius_m"] = absent_radius_m
     cal.report["sampled"] = len(held)
     cal.report["auxiliary_fits"] = len(parts)
     if to_verify:
-        verified = fit_calibration(verified_samples, seed)
+        verified = fit_calibration(verified_samples, seed, radius_rate, max_radius_m, extent_m)
         cal.report["verified_sampled"] = verified_refs  # those whose photo could be read
         # What locating them verified added to the calibration's time (the stored records made, included).
         cal.report["verified_seconds"] = round(verified_seconds, 1)

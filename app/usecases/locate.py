@@ -342,14 +342,16 @@ def locate_features(
         # in binary mode) are on another scale, and reading them through it would invent probabilities.
         calibration = Calibration.conservative(f"this collection is calibrated for {index.check_mode(None)} search")
     decision = calibration.decide(evidence, estimate)
-    if allowed is not None and decision.code == NO_MATCH:  # absent from the region, not the collection
-        decision = replace(decision, reason=decision.reason.replace("in this collection", "in the requested region"))
+    if allowed is not None and decision.code == NO_MATCH:  # the references searched: the region's only
+        decision = replace(
+            decision, reason=decision.reason.replace("no reference looks", "no reference in the requested region looks")
+        )
     probability = {} if decision.p_within is None else dict(zip(fused_ids, decision.p_within, strict=True))
     t["estimate"] = (time.perf_counter() - t0) * 1000
     region_empty = allowed is not None and len(allowed) == 0
     if region_empty:
         decision = Decision(False, NO_REFERENCES, "no references in the requested region", None, None)
-    if decision.confident and decision.radius_m is not None:  # the collection's stated radius, and its rate
+    if decision.confident and decision.radius_m is not None:  # the collection's disc, and its rate
         estimate = replace(estimate, radius_m=decision.radius_m, radius_rate=decision.radius_rate)
     reason = decision.reason if not decision.confident else None
     confident = estimate if decision.confident else None

@@ -253,7 +253,7 @@ def test_an_answer_without_estimate(browser, server, tile_png, viewport, tmp_pat
     page.click("#locate-btn")
     page.wait_for_selector("#answer:not([hidden])", timeout=60_000)
     assert page.inner_text("#level") == "Possible"
-    assert "candidates disagree" in page.inner_text("#headline")
+    assert page.inner_text("#headline") == "Possible places only: no small disc holds for evidence this strong."
     assert re.search(r"spread over \d", page.inner_text("#explain"))
     assert "from candidate 1" in page.locator("#candidates li").nth(1).inner_text()
     assert page.locator("#map path.leaflet-interactive").count() == 0  # no estimate circle
@@ -415,8 +415,8 @@ def test_calibrated_probabilities_in_words(browser, server, tile_png):
 
 
 def test_a_stated_radius_and_its_rate_in_words(browser, server, tile_png):
-    """A confident answer whose radius the collection calibrated (``radius_rate``) says it in words: "Within
-    35 m: 9 in 10 such answers are"; served by the test, in the service's shape (the page's collection is
+    """An answer whose disc the collection calibrated (``radius_rate``) says it in words: "Taken within 35 m
+    of ...: 9 in 10 such answers are"; served by the test, in the service's shape (the page's collection is
     too small to calibrate), with a label that is HTML, rendered as text."""
     refs = server.client.get("/references?limit=2").json()["items"]
     label = "<b>bold</b><img src=x onerror=alert(1)>"
@@ -452,9 +452,10 @@ def test_a_stated_radius_and_its_rate_in_words(browser, server, tile_png):
     page.click("#locate-btn")
     page.wait_for_selector("#answer:not([hidden])")
     assert page.inner_text("#level") == "Likely"
-    assert page.inner_text("#headline").startswith("Taken within 35 m of ")
+    headline = page.inner_text("#headline")
+    assert headline.startswith("Taken within 35 m of ") and headline.endswith(": 9 in 10 such answers are."), headline
     explain = page.inner_text("#explain")
-    assert "Within 35 m: 9 in 10 such answers are, on this collection's own references." in explain, explain
+    assert "smallest that held the truth for 9 in 10 of this collection's own answers" in explain, explain
     assert "not calibrated" not in explain
     assert label in page.locator("#candidates li").first.inner_text()  # the label as text
     assert page.locator("#candidates b, #candidates img[src='x']").count() == 0
@@ -462,9 +463,10 @@ def test_a_stated_radius_and_its_rate_in_words(browser, server, tile_png):
 
 
 @pytest.mark.parametrize("viewport", ["desktop", "phone"])
-def test_not_found_in_this_collection(browser, server, tile_png, viewport):
-    """reason_code no_match (the calibrated rule says the place is absent): the page says "Not found in this
-    collection" in words and outlines the collection's extent on the map. Served by the test in the service's
+def test_no_reference_looks_like_this_photo(browser, server, tile_png, viewport):
+    """reason_code no_match (no candidate has a 10 % chance of lying within 25 m): the page says what that
+    measures, "No reference looks like this photo", never that the place is absent, and outlines the
+    collection's extent on the map. Served by the test in the service's
     shape (the tests' collection is too small to calibrate; tests/api/test_answers.py calibrates one)."""
     refs = server.client.get("/references?limit=3").json()["items"]
     lats, lons = [r["lat"] for r in refs], [r["lon"] for r in refs]
@@ -476,7 +478,8 @@ def test_not_found_in_this_collection(browser, server, tile_png, viewport):
             for r, s, p in zip(refs, (0.58, 0.57, 0.55), (0.03, 0.02, 0.02), strict=True)
         ],
         "estimate": None,
-        "reason": "not in this collection: no candidate has a 10% chance of lying within 25 m (best 3%)",
+        "reason": "no reference looks like this photo: no candidate has a 10% chance of lying within 25 m of "
+        "where it was taken (best 3%)",
         "reason_code": "no_match",
         "mode": "float",
         "config": "hybrid-bin",
@@ -489,15 +492,16 @@ def test_not_found_in_this_collection(browser, server, tile_png, viewport):
     page.set_input_files("#locate-file", str(UNRELATED))
     page.click("#locate-btn")
     page.wait_for_selector("#answer:not([hidden])")
-    assert page.inner_text("#level") == "Not found"
-    assert page.inner_text("#headline") == "Not found in this collection."
+    assert page.inner_text("#level") == "Unrecognised"
+    assert page.inner_text("#headline") == "No reference looks like this photo."
     explain = page.inner_text("#explain")
-    assert "probably not in this collection" in explain and "only a 3 % chance" in explain
+    assert "not in this collection" not in page.inner_text("#answer") and "not that the place is missing" in explain
+    assert "only a 3 % chance" in explain
     assert f"{len(server.rows)} references lie between" in explain and "outlined on the map" in explain
     assert page.locator("#map path.extent").count() == 1  # the collection's extent, drawn
     assert page.locator("#map path.leaflet-interactive").count() == 0  # and no estimate circle
     assert "no_match" in page.text_content("#tech")  # in the closed technical details
-    screenshot(page, f"locate-not-found-{viewport}.png")
+    screenshot(page, f"locate-unrecognised-{viewport}.png")
     if viewport == "phone":
         no_horizontal_scroll(page)
     assert not page.errors, page.errors

@@ -11,6 +11,7 @@ import shutil
 import pytest
 
 from app.engine.calibration import CONFIDENT_FROM_REFERENCES
+from app.manifests import read_manifest
 from app.usecases.service import GeolocService
 from tests.api.conftest import CONFIG, Server
 from tests.conftest import PENN
@@ -21,7 +22,7 @@ from tests.test_fit_reproducible import _manifest
 @pytest.fixture(scope="module")
 def calibrated(tmp_path_factory, models_dir, penn_index):
     """A models dir whose hybrid-bin pipeline is fitted and calibrated by `geoloc fit` on 40 penn captures
-    (120 photos and crops); and that manifest."""
+    (120 photos and crops), with GEOLOC_MAX_RADIUS_M=90; and that manifest."""
     root = tmp_path_factory.mktemp("calibrated")
     models = root / "models"
     models.mkdir()
@@ -29,9 +30,12 @@ def calibrated(tmp_path_factory, models_dir, penn_index):
         if f.is_file():
             (models / f.name).symlink_to(f)
     manifest, _ = _manifest(root, penn_index)
-    geoloc("fit", "--manifest", str(manifest), "--config", CONFIG, "--models-dir", str(models))
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("GEOLOC_MAX_RADIUS_M", "90")  # the widest disc that counts as an estimate, read by the fit
+        geoloc("fit", "--manifest", str(manifest), "--config", CONFIG, "--models-dir", str(models))
     cal = json.loads((models / "pipelines" / CONFIG / "calibration.json").read_text())
     assert cal["source"] == "collection" and len(cal["references"]) == 120, cal["note"]
+    assert cal["disc"]["max_radius_m"] == 90 and cal["disc"]["limit_m"] <= 90, cal["disc"]
     return models, manifest
 
 
@@ -68,9 +72,13 @@ def test_a_new_collection_is_judged_by_its_own_calibration_or_by_none(tmp_path, 
 
     # A refit calibrates it on itself; 20 photos are too few for a confident answer, and both the refit's
     # summary and /ready say what it needs.
-    out = geoloc("refit", "--data-dir", str(mine), *where).stdout
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("GEOLOC_RADIUS_RATE", "0.8")  # the discs' rate, read by the refit
+        out = geoloc("refit", "--data-dir", str(mine), *where).stdout
     needs = f"no answer can be confident in this collection yet: it needs about {CONFIDENT_FROM_REFERENCES} references"
     assert needs in out and "(it has 20)" in out, out
+    refitted = json.loads(next(mine.glob("pipelines/*-g1/calibration.json")).read_text())
+    assert refitted["disc"]["rate"] == 0.8, refitted
     with Server(mine, models) as s:
         ready = s.client.get("/ready").json()
     assert needs in ready["calibration"], ready
@@ -97,3 +105,51 @@ def test_a_refit_counts_a_photo_and_its_crops_as_one_capture(tmp_path, calibrate
     assert cal["source"] == "collection", cal["note"]
     positions = {(r.lat, r.lon) for r in rows}  # 40 captures, a few of them taken at one spot
     assert cal["report"]["captures"] == len(positions) <= 40
+
+
+def test_an_answer_states_its_disc_and_its_rate_and_says_it_in_words(tmp_path, calibrated):
+    """The disc every answer states, through a real server reading the persisted calibration: this
+    40-capture collection's strongest disc (about 90 m) is wider than its limit (a quarter of its extent), so
+    no answer has an estimate and none claims the place is absent; the same pipeline with that limit raised
+    in its calibration.json states the disc: ``radius_m`` (the persisted bin's) and ``radius_rate`` (0.9), and
+    `geoloc locate --brief` says "Taken within R m of ...: 9 in 10 such answers are"."""
+    models, manifest = calibrated
+    disc = json.loads((models / "pipelines" / CONFIG / "calibration.json").read_text())["disc"]
+    assert disc is not None and disc["rate"] == 0.9 and disc["limit_m"] <= 90, disc
+    own = tmp_path / "own"
+    where = ["--models-dir", str(models), "--config", CONFIG]
+    geoloc("ingest", "--manifest", str(manifest), "--split", "db", "--data-dir", str(own), *where)
+    photos = [r.image for r in read_manifest(manifest)][::3][:6]  # each capture's photo, a reference itself
+
+    def answers(models_dir):
+        out = {}
+        with Server(own, models_dir) as s:
+            for photo in photos:
+                r = s.client.post("/locate", files=[("image", (photo.name, photo.read_bytes(), "image/jpeg"))])
+                assert r.status_code == 200, r.text
+                out[photo] = r.json()
+        return out
+
+    informative = [r for r in disc["radius_m"] if r is not None and r <= disc["limit_m"]]
+    assert not informative, disc  # this collection's own limit keeps every disc from counting
+    for a in answers(models).values():
+        assert a["estimate"] is None and a["reason_code"] in ("ambiguous", "no_match")
+        assert "not in this collection" not in a["reason"]
+
+    # The same pipeline, its persisted disc's limit raised: the server states the disc it reads.
+    wide = tmp_path / "models"
+    shutil.copytree(models, wide, symlinks=True)
+    path = wide / "pipelines" / CONFIG / "calibration.json"
+    data = json.loads(path.read_text())
+    data["disc"]["limit_m"] = 1000.0
+    path.write_text(json.dumps(data))
+    estimated = {p: a for p, a in answers(wide).items() if a["estimate"] is not None}
+    assert estimated
+    for a in estimated.values():
+        e = a["estimate"]
+        assert e["radius_rate"] == 0.9 and e["radius_m"] in disc["radius_m"], e
+        assert a["reason"] is None and a["reason_code"] is None
+    photo, a = next(iter(estimated.items()))
+    brief = _locate(photo, own, wide, "--brief")
+    e = a["estimate"]
+    assert brief.startswith(f"Taken within {e['radius_m']:.0f} m of ") and ": 9 in 10 such answers are" in brief, brief

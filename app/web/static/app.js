@@ -250,13 +250,14 @@ $("region-from-map").addEventListener("click", () => {
 $("region-clear").addEventListener("click", () => REGION.forEach(([id]) => { $(id).value = ""; }));
 
 // -- locate: the answer in words --------------------------------------------------------------------
-// The level comes from the answer itself: the service gives an estimate only when it is confident
-// (likely); reason_code no_match says the place is not in the collection (notfound); other candidates
-// without an estimate point at different places (possible); none is no match (no features, no references).
-const LEVELS = { likely: "Likely", possible: "Possible", notfound: "Not found", none: "No match" };
+// The level comes from the answer itself: the service gives an estimate only when a disc small enough holds
+// at its stated rate (likely); reason_code no_match says no reference looks like the photo (unlike: it does
+// not say the place is absent); other candidates without an estimate are possible places only (possible);
+// none is no match (no features, no references).
+const LEVELS = { likely: "Likely", possible: "Possible", unlike: "Unrecognised", none: "No match" };
 function levelOf(res) {
   if (res.estimate) return "likely";
-  if (res.reason_code === "no_match") return "notfound";
+  if (res.reason_code === "no_match") return "unlike";
   return res.candidates.length ? "possible" : "none";
 }
 
@@ -283,8 +284,8 @@ function radiusInWords(est) {
   if (est.radius_rate == null) {
     return " How often the truth lies within that radius is not calibrated on this collection.";
   }
-  return ` Within ${metres(est.radius_m)}: ${rateInWords(est.radius_rate)} such answers are, on this ` +
-    "collection's own references.";
+  return ` The disc is the smallest that held the truth for ${rateInWords(est.radius_rate)} of this ` +
+    "collection's own answers with evidence as strong.";
 }
 
 function verdict(res, level) {
@@ -294,9 +295,10 @@ function verdict(res, level) {
     const inside = cands.filter((c) => c.distance_m != null && c.distance_m <= est.radius_m).length;
     const outside = cands.filter((c) => c.distance_m != null && c.distance_m > est.radius_m);
     const nearest = outside.length ? Math.min(...outside.map((c) => c.distance_m)) : null;
+    const where = `Taken within ${metres(est.radius_m)} of ${position(est.lat, est.lon)}`;
     return {
-      headline: `Taken within ${metres(est.radius_m)} of ${position(est.lat, est.lon)}.`,
-      explain: `The best matches agree on this spot. ${inside} of the ${cands.length} candidates lie ` +
+      headline: est.radius_rate == null ? `${where}.` : `${where}: ${rateInWords(est.radius_rate)} such answers are.`,
+      explain: `${inside} of the ${cands.length} candidates lie ` +
         `within that radius` + (nearest == null ? "." : `; the nearest one outside it is ${metres(nearest)} away.`) +
         radiusInWords(est) + " Each candidate's distance is listed below.",
     };
@@ -308,20 +310,21 @@ function verdict(res, level) {
       ` The service gives it a ${Math.round(best.p_within_25m * 100)} % chance of lying within 25 m of where ` +
       "your photo was taken.";
     return {
-      headline: "The candidates disagree: no single place stands out.",
-      explain: `The best match (candidate 1) is at ${position(best.lat, best.lon)}, but the top ` +
+      headline: "Possible places only: no small disc holds for evidence this strong.",
+      explain: `The best match (candidate 1) is at ${position(best.lat, best.lon)}; the top ` +
         `${top.length} candidates are spread over ${metres(spread(top))}.${chance} Compare their photos ` +
         "with yours below before trusting any of them.",
     };
   }
-  if (level === "notfound") {
+  if (level === "unlike") {
     const best = cands[0];
     const chance = best && best.p_within_25m != null ?
       ` Even the best match has only a ${Math.round(best.p_within_25m * 100)} % chance of lying within 25 m of it.` : "";
     return {
-      headline: "Not found in this collection.",
-      explain: "None of the references looks enough like your photo: the place is probably not in this " +
-        `collection.${chance}${extentInWords(res)} The closest matches are listed below for comparison.`,
+      headline: "No reference looks like this photo.",
+      explain: "None of the references looks enough like your photo to say where it was taken. This is what " +
+        `was measured, not that the place is missing: a place the collection holds can look unlike its photos.${chance}` +
+        `${extentInWords(res)} The closest matches are listed below for comparison.`,
     };
   }
   if (res.reason_code === "no_features") {
@@ -346,8 +349,8 @@ function featuresInWords(f) {
 
 function technical(res) {
   const rows = [
-    ["Confidence", res.estimate ? `${Math.round(res.estimate.confidence * 100)} % of the candidates' weight agrees` : "no confident estimate"],
-    ["Service's reason", res.reason ? `${res.reason_code || "?"}: ${res.reason}` : "none (confident)"],
+    ["Confidence", res.estimate ? `${Math.round(res.estimate.confidence * 100)} % of the candidates' weight agrees` : "no estimate"],
+    ["Service's reason", res.reason ? `${res.reason_code || "?"}: ${res.reason}` : "none (an estimate)"],
     ["Search", `${res.mode}, configuration ${res.config}, ${res.index.size} references`],
     ["Time", `${Math.round(res.timings_ms.total)} ms`],
   ];
