@@ -9,11 +9,15 @@ single-photo answer, so it costs a few K x K arrays per photo whatever the colle
 - **States** per step: the step's candidate places (its candidates grouped within ``PLACE_RADIUS_M``), plus
   one state "not in this collection" (``ABSENT``).
 - **Emissions**: the calibrated probability each place lies within 25 m of the truth, as the single-photo
-  answer states it (``p_within_25m``); the absent state emits the chance that none of the places is right.
+  answer states it (``p_within_25m``), read as odds against "elsewhere" (the absent state emits 1). Why
+  odds: a photo's candidates' probabilities are each a marginal, not exclusive (several wrong places may
+  each hold 0.3), and as odds a photo with one place gets exactly its probability back as its posterior,
+  while a photo with several places shares it among them.
 - **Transitions** (a motion model): two consecutive places are compatible when their distance is within
   what the time gap times a speed bound allows (or a step bound where there are no times), plus both
   places' own uncertainty; beyond it the compatibility falls off exponentially. Entering or leaving the
-  absent state has a fixed weight (``ABSENT_LINK``): a walk may leave the collection's area.
+  absent state has a fixed weight (``ABSENT_LINK``): a walk may leave the collection's area; staying out
+  of it weighs 1, and two compatible places ``CONTINUITY_GAIN``.
 - **Bursts**: photos of one place close in time are one step; its emissions are the product of its
   photos' (each photo's evidence about the same place counts once per photo).
 - **Viterbi** gives the most likely path; **forward-backward** gives each step's own posterior, what a
@@ -45,8 +49,14 @@ BURST_S = 10.0
 SLACK_M = 2 * PLACE_RADIUS_M
 #: Beyond the allowed distance, the compatibility falls by e for every this many metres.
 FALLOFF_M = 50.0
-#: The weight of a transition into, out of or within the absent state, against 1 for two compatible places.
-ABSENT_LINK = 0.3
+#: The weight of a transition between two compatible places, against 1 for staying absent: what continuity is
+#: worth. Why above 1: next to a known place, the next photo lies in a small reachable disc, not anywhere in
+#: the collection's extent; a run of places that line up along a feasible path is unlikely by chance, so
+#: photos each too weak alone (p below 0.5, odds below 1) may together outweigh "elsewhere throughout".
+CONTINUITY_GAIN = 3.0
+#: The weight of a transition into or out of the absent state, against 1 for two compatible places (and for
+#: staying absent).
+ABSENT_LINK = 0.5
 #: A photo of a burst whose candidates hold no place near a step's state: its probability that the state is
 #: right anyway (its candidates can all miss a place another photo of the burst shows).
 MISSING_P = 0.02
@@ -139,15 +149,15 @@ def _photo_places(obs: Observation) -> tuple[np.ndarray, np.ndarray, np.ndarray]
     return lats, lons, pp
 
 
-def absent_probability(p: np.ndarray) -> float:
-    """The chance none of a photo's places is right, reading each place's probability as independent."""
-    return float(np.clip(np.prod(1.0 - np.asarray(p, np.float64)), P_FLOOR, 1 - P_FLOOR))
+def log_odds(p: np.ndarray) -> np.ndarray:
+    p = np.clip(np.asarray(p, np.float64), P_FLOOR, 1 - P_FLOOR)
+    return np.log(p) - np.log1p(-p)
 
 
 def step_places(observations: Sequence[Observation], radius_m: float = PLACE_RADIUS_M) -> Places:
     """The states of one step (one photo, or a burst's photos): their places pooled and grouped again; each
     state's emission is the product over the photos of that photo's probability for it (its nearest place
-    within ``radius_m``, else ``MISSING_P``); the absent state's is the product of the photos' own."""
+    within ``radius_m``, else ``MISSING_P``), as odds; the absent state's is 1."""
     per = [_photo_places(o) for o in observations]
     lats = np.concatenate([q[0] for q in per])
     lons = np.concatenate([q[1] for q in per])
@@ -168,8 +178,7 @@ def step_places(observations: Sequence[Observation], radius_m: float = PLACE_RAD
                 near = np.where(d <= radius_m, pp[None, :], 0.0).max(axis=1)
             else:
                 near = np.zeros(k)
-            log_e[:k] += np.log(np.maximum(near, MISSING_P))
-        log_e[k] += np.log(absent_probability(pp)) if len(pp) else 0.0
+            log_e[:k] += log_odds(np.maximum(near, MISSING_P))
     return Places(c_lat, c_lon, log_e, spread)
 
 
@@ -207,10 +216,11 @@ def log_transition(a: Places, b: Places, gap_s: float | None, motion: Motion) ->
     """Log compatibility of each state of ``a`` with each of ``b`` ((ka + 1) x (kb + 1), absent last)."""
     ka, kb = len(a.lats), len(b.lats)
     out = np.full((ka + 1, kb + 1), np.log(ABSENT_LINK))
+    out[ka, kb] = 0.0
     if ka and kb:
         d = haversine_m(a.lats[:, None], a.lons[:, None], b.lats[None, :], b.lons[None, :])
         excess = np.maximum(d - motion.allowed_m(gap_s) - SLACK_M, 0.0)
-        out[:ka, :kb] = -excess / FALLOFF_M
+        out[:ka, :kb] = np.log(CONTINUITY_GAIN) - excess / FALLOFF_M
     return out
 
 

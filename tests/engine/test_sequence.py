@@ -61,7 +61,7 @@ def test_the_walk_picks_the_true_place_over_an_equally_likely_decoy():
         assert haversine_m(place.lats[k], place.lons[k], *walk[photo]) < 5
         alone = solve([obs[photo]]).posterior[0]
         assert alone[k] < 0.4  # alone: split between the truth, the decoy and "not here"
-        assert result.posterior[s][k] > 0.65  # the sequence settles it
+        assert result.posterior[s][k] > (0.6 if photo in (0, len(walk) - 1) else 0.7)  # the sequence settles it
 
 
 def test_photos_from_elsewhere_stay_absent():
@@ -85,7 +85,7 @@ def test_a_confident_photo_keeps_its_place_when_its_neighbours_are_absent():
     ]
     result = solve(obs)
     assert list(result.path) == [ABSENT, 0, ABSENT]
-    assert result.posterior[1][0] > 0.8
+    assert result.posterior[1][0] > 0.75
 
 
 def test_a_jump_beyond_the_speed_bound_is_not_a_path():
@@ -114,8 +114,14 @@ def test_transitions_favour_compatible_places_and_link_absent_with_a_fixed_weigh
     b = step_places([_obs([(LAT0 + 30 * M_LAT, LON0, 0.5), (LAT0 + 3000 * M_LAT, LON0, 0.5)])])
     t = log_transition(a, b, None, Motion(step_m=100.0))
     assert t.shape == (2, 3)
-    assert t[0, 0] == 0.0 and t[0, 1] < -40
-    assert t[0, 2] == t[1, 0] == t[1, 2] < 0
+    assert t[0, 0] > 0 and t[0, 1] < -40
+    assert t[0, 2] == t[1, 0] < 0 == t[1, 2]  # leaving or entering the collection costs; staying out does not
+
+
+def test_a_photo_alone_gets_its_own_probability_back():
+    """As odds against elsewhere, one place's posterior is its calibrated probability."""
+    result = solve([_obs([(LAT0, LON0, 0.7), (LAT0 + 5 * M_LAT, LON0, 0.4)])])
+    assert result.posterior[0][0] == pytest.approx(0.7)
 
 
 def test_a_burst_is_one_step_and_its_photos_evidence_is_fused():
