@@ -24,12 +24,12 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from app.domain import LocateAnswer, LocateOptions
+from app.domain import Candidate, LocateAnswer, LocateOptions
 from app.engine.calibration import AMBIGUOUS, NO_MATCH, Calibration
 from app.engine.errors import GeolocError
 from app.engine.estimate import MARGIN_M, RADIUS_FLOOR_M, Estimate
 from app.engine.geo import haversine_m
-from app.engine.sequence import ABSENT, BURST_S, Motion, Observation, solve
+from app.engine.sequence import ABSENT, BURST_S, PLACE_RADIUS_M, Motion, Observation, Places, solve
 from app.errors import InvalidRequest, ServiceError, code_of
 from app.usecases.locate import ESTIMATE_CANDIDATES
 from app.usecases.sequence_inputs import sequence_times
@@ -114,15 +114,16 @@ def sequence_answers(
         return SequenceAnswer(photos, [PathPoint(None, None, False) for _ in singles], times_from, note)
     result = solve([observation(a, t) for a, t in zip(singles, times_s, strict=True)], motion, burst_s)
     photos, path = [], []
-    for n, single in enumerate(singles):
+    for n, alone in enumerate(singles):
         s = result.step_of(n)
         places, post = result.places[s], result.posterior[s]
+        single = replace(alone, candidates=by_posterior(alone.candidates, places, post))
         k = int(result.path[s])
         path.append(PathPoint(None, None, False) if k == ABSENT else PathPoint(places.lats[k], places.lons[k], True))
         best = int(np.argmax(post))
         best_is_place = best < len(places.lats)
         if single.reason is None:
-            photos.append(SequencePhoto(_shown(single, options), PIXELS, _p_near(places, post, single), single))
+            photos.append(SequencePhoto(_shown(single, options), PIXELS, _p_near(places, post, single), alone))
             continue
         p = float(post[best])
         if best_is_place and p >= calibration.confident_p:
@@ -136,8 +137,8 @@ def sequence_answers(
                 None,
                 radius_rate=rate,
             )
-            answer = replace(single, estimate=estimate, reason=None, reason_code=None)
-            photos.append(SequencePhoto(_shown(answer, options), SEQUENCE, p, single))
+            answer = replace(single, estimate=estimate, reason=None, reason_code=None, answer_p=p)
+            photos.append(SequencePhoto(_shown(answer, options), SEQUENCE, p, alone))
             continue
         if best_is_place:
             why = (
@@ -152,8 +153,26 @@ def sequence_answers(
                 f"collection ({p:.0%})",
                 reason_code=NO_MATCH if single.reason_code in (AMBIGUOUS, NO_MATCH) else single.reason_code,
             )
-        photos.append(SequencePhoto(_shown(answer, options), PIXELS, p, single))
+        photos.append(SequencePhoto(_shown(answer, options), PIXELS, p, alone))
     return SequenceAnswer(photos, path, times_from)
+
+
+def by_posterior(candidates: Sequence[Candidate], places: Places, post: np.ndarray) -> list[Candidate]:
+    """The candidates ranked by the sequence's posterior of their place (a candidate without a calibrated
+    probability, or farther than ``PLACE_RADIUS_M`` from every place, counts 0); the single answer's order
+    among equals, so a photo whose sequence says nothing keeps its ranking."""
+    if not len(places.lats) or not candidates:
+        return list(candidates)
+    lats = np.array([c.lat for c in candidates])
+    lons = np.array([c.lon for c in candidates])
+    d = haversine_m(lats[:, None], lons[:, None], places.lats[None, :], places.lons[None, :])
+    nearest = np.argmin(d, axis=1)
+    weight = [
+        float(post[k]) if c.p_within_25m is not None and d[n, k] <= PLACE_RADIUS_M else 0.0
+        for n, (c, k) in enumerate(zip(candidates, nearest, strict=True))
+    ]
+    order = sorted(range(len(candidates)), key=lambda n: (-weight[n], n))
+    return [candidates[n] for n in order]
 
 
 def _p_near(places, post: np.ndarray, answer: LocateAnswer) -> float | None:
