@@ -158,9 +158,11 @@ def sequence_answers(
 
 
 def by_posterior(candidates: Sequence[Candidate], places: Places, post: np.ndarray) -> list[Candidate]:
-    """The candidates ranked by the sequence's posterior of their place (a candidate without a calibrated
-    probability, or farther than ``PLACE_RADIUS_M`` from every place, counts 0); the single answer's order
-    among equals, so a photo whose sequence says nothing keeps its ranking."""
+    """The candidates with the sequence's choice first: the best-ranked candidate of the place the posterior
+    favours most (a candidate without a calibrated probability, or farther than ``PLACE_RADIUS_M`` from every
+    place, counts 0); the others keep the photo's own order. Why only one moves: every candidate of a place
+    shares its posterior, and ranking them all by it filled the first five with one place's candidates,
+    pushing out the other places the photo alone had ranked there."""
     if not len(places.lats) or not candidates:
         return list(candidates)
     lats = np.array([c.lat for c in candidates])
@@ -171,8 +173,8 @@ def by_posterior(candidates: Sequence[Candidate], places: Places, post: np.ndarr
         float(post[k]) if c.p_within_25m is not None and d[n, k] <= PLACE_RADIUS_M else 0.0
         for n, (c, k) in enumerate(zip(candidates, nearest, strict=True))
     ]
-    order = sorted(range(len(candidates)), key=lambda n: (-weight[n], n))
-    return [candidates[n] for n in order]
+    lead = min(range(len(candidates)), key=lambda n: (-weight[n], n))
+    return [candidates[lead], *(c for n, c in enumerate(candidates) if n != lead)]
 
 
 def _p_near(places, post: np.ndarray, answer: LocateAnswer) -> float | None:
