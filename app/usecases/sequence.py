@@ -112,12 +112,14 @@ def sequence_answers(
         note = f"the sequence could not inform the answers: the collection is not calibrated ({calibration.note})"
         photos = [SequencePhoto(_shown(a, options), PIXELS, None, a) for a in singles]
         return SequenceAnswer(photos, [PathPoint(None, None, False) for _ in singles], times_from, note)
-    result = solve([observation(a, t) for a, t in zip(singles, times_s, strict=True)], motion, burst_s)
+    observations = [observation(a, t) for a, t in zip(singles, times_s, strict=True)]
+    result = solve(observations, motion, burst_s)
     photos, path = [], []
     for n, alone in enumerate(singles):
         s = result.step_of(n)
         places, post = result.places[s], result.posterior[s]
-        single = replace(alone, candidates=by_posterior(alone.candidates, places, post))
+        by_itself = favoured_alone(observations[n])
+        single = replace(alone, candidates=by_posterior(alone.candidates, places, post, by_itself))
         k = int(result.path[s])
         path.append(PathPoint(None, None, False) if k == ABSENT else PathPoint(places.lats[k], places.lons[k], True))
         best = int(np.argmax(post))
@@ -157,24 +159,39 @@ def sequence_answers(
     return SequenceAnswer(photos, path, times_from)
 
 
-def by_posterior(candidates: Sequence[Candidate], places: Places, post: np.ndarray) -> list[Candidate]:
+def by_posterior(
+    candidates: Sequence[Candidate], places: Places, post: np.ndarray, alone: tuple[float, float] | None = None
+) -> list[Candidate]:
     """The candidates with the sequence's choice first: the best-ranked candidate of the place the posterior
     favours most (a candidate without a calibrated probability, or farther than ``PLACE_RADIUS_M`` from every
-    place, counts 0); the others keep the photo's own order. Why only one moves: every candidate of a place
-    shares its posterior, and ranking them all by it filled the first five with one place's candidates,
-    pushing out the other places the photo alone had ranked there."""
-    if not len(places.lats) or not candidates:
+    place, counts 0); the others keep the photo's own order. ``alone``: the place the model favours for the
+    photo by itself; when the sequence favours the same one, nothing moves.
+
+    Why only one moves: every candidate of a place shares its posterior, and ranking them all by it filled
+    the first five with one place's candidates, pushing out the other places the photo alone had ranked
+    there. Why nothing moves when the sequence agrees with the photo alone: the model ranks by calibrated
+    probability, the photo's own order by verified score; only what the sequence adds should reorder."""
+    if not len(places.lats) or not candidates or int(np.argmax(post)) == len(places.lats):
+        return list(candidates)
+    best = int(np.argmax(post[:-1]))
+    if alone is not None and haversine_m(places.lats[best], places.lons[best], *alone) <= PLACE_RADIUS_M:
         return list(candidates)
     lats = np.array([c.lat for c in candidates])
     lons = np.array([c.lon for c in candidates])
-    d = haversine_m(lats[:, None], lons[:, None], places.lats[None, :], places.lons[None, :])
-    nearest = np.argmin(d, axis=1)
-    weight = [
-        float(post[k]) if c.p_within_25m is not None and d[n, k] <= PLACE_RADIUS_M else 0.0
-        for n, (c, k) in enumerate(zip(candidates, nearest, strict=True))
-    ]
-    lead = min(range(len(candidates)), key=lambda n: (-weight[n], n))
+    d = haversine_m(lats, lons, places.lats[best], places.lons[best])
+    near = [n for n, c in enumerate(candidates) if c.p_within_25m is not None and d[n] <= PLACE_RADIUS_M]
+    if not near:
+        return list(candidates)
+    lead = near[0]
     return [candidates[lead], *(c for n, c in enumerate(candidates) if n != lead)]
+
+
+def favoured_alone(observation: Observation) -> tuple[float, float] | None:
+    """The place the model favours for one photo by itself (None: "not in this collection")."""
+    result = solve([observation])
+    places, post = result.places[0], result.posterior[0]
+    k = int(np.argmax(post))
+    return None if k == len(places.lats) else (float(places.lats[k]), float(places.lons[k]))
 
 
 def _p_near(places, post: np.ndarray, answer: LocateAnswer) -> float | None:
