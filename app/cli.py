@@ -351,7 +351,10 @@ def _region_option(lat: float | None, lon: float | None, radius_m: float | None,
 
 @app.command()
 def locate(
-    image: Annotated[Path, typer.Argument(help="the photo to geolocate")],
+    images: Annotated[
+        list[Path] | None,
+        typer.Argument(help="the photo to geolocate; with --sequence, several photos in order, or one folder"),
+    ] = None,
     top_k: Annotated[int, typer.Option("--top-k", "-k")] = 10,
     mode: Annotated[str | None, typer.Option(help="float, binary or two-stage")] = None,
     rerank: Annotated[
@@ -371,21 +374,48 @@ def locate(
         bool, typer.Option("--compare-exif", help="say how far the answer is from the photo's own EXIF GPS")
     ] = False,
     brief: Annotated[bool, typer.Option("--brief", help="the answer in words, one paragraph, instead of JSON")] = False,
+    sequence: Annotated[
+        bool,
+        typer.Option(
+            "--sequence",
+            help="the photos (or a folder's, in EXIF time order) are a walk or a drive: locate them as one path "
+            "(the same answer as POST /locate/sequence)",
+        ),
+    ] = False,
+    video: Annotated[
+        Path | None, typer.Option("--video", help="locate a video's frames as one path (with --every)")
+    ] = None,
+    every: Annotated[float, typer.Option("--every", help="with --video: one frame every this many seconds")] = 1.0,
+    max_speed_mps: Annotated[
+        float, typer.Option("--max-speed-mps", help="sequence: the fastest the camera moves, where there are times")
+    ] = 2.0,
+    max_step_m: Annotated[
+        float,
+        typer.Option("--max-step-m", help="sequence: the farthest apart two consecutive photos are, without times"),
+    ] = 150.0,
     data_dir: DataDir = _S.data_dir,
     models_dir: ModelsDir = _S.models_dir,
     config: ConfigOpt = _S.config,
 ) -> None:
     """Print ranked candidates and the fused estimate as JSON (the same answer as POST /locate), or with
-    --brief what it means in words."""
+    --brief what it means in words. With --sequence or --video, one answer per photo or frame and the path."""
     from app.api.schemas import LocateOut
     from app.domain import LocateOptions
     from app.policies import IndexSizing
     from app.usecases.service import GeolocService
 
-    data = image.read_bytes()  # a missing photo is said before the model loads
     options = LocateOptions(
         top_k=top_k, mode=mode, rerank=rerank, region=_region_option(lat, lon, radius_m, bbox), min_score=min_score
     )
+    if sequence or video is not None:
+        _locate_sequence(
+            images or [], video, every, options, max_speed_mps, max_step_m, brief, data_dir, models_dir, config
+        )
+        return
+    if not images or len(images) != 1:
+        _fail("give one photo (several, or a folder, with --sequence)")
+    image = images[0]
+    data = image.read_bytes()  # a missing photo is said before the model loads
     # one query, then the process ends: no switch of kind by size started for it (IndexSizing(0))
     service = GeolocService.open(data_dir, models_dir, config, backend=_S.backend(data_dir), sizing=IndexSizing(0))
     answer = service.locate(data, options)
@@ -398,6 +428,57 @@ def locate(
         typer.echo(json.dumps(out, indent=1))
     if compare_exif:
         typer.echo(out["exif_check"]["sentence"], err=not brief)
+
+
+def _locate_sequence(
+    images: list[Path],
+    video: Path | None,
+    every: float,
+    options,
+    max_speed_mps: float,
+    max_step_m: float,
+    brief: bool,
+    data_dir: Path,
+    models_dir: Path,
+    config: str,
+) -> None:
+    """`geoloc locate --sequence` and `--video`: the sequence use case over files, a folder or a video's
+    frames; its JSON is POST /locate/sequence's."""
+    from app.api.schemas import SequenceOut
+    from app.engine.sequence import Motion
+    from app.policies import IndexSizing
+    from app.usecases.sequence import MAX_PHOTOS, check_count, locate_sequence
+    from app.usecases.sequence_inputs import folder_photos, video_frames
+    from app.usecases.service import GeolocService
+
+    if video is not None and images:
+        _fail("give --video or photos, not both")
+    motion = Motion(speed_mps=max_speed_mps, step_m=max_step_m)
+    times = None
+    if video is not None:
+        if not video.is_file():
+            _fail(f"no such video: {video}")
+        frames, times = video_frames(video, every, MAX_PHOTOS)
+        readers = [lambda f=f: f for f in frames]
+    else:
+        if len(images) == 1 and images[0].is_dir():
+            images = folder_photos(images[0])
+        for p in images:
+            if not p.is_file():
+                _fail(f"no such photo: {p}")
+        readers = [p.read_bytes for p in images]
+    check_count(len(readers))  # said before the model loads
+    service = GeolocService.open(data_dir, models_dir, config, backend=_S.backend(data_dir), sizing=IndexSizing(0))
+    result = locate_sequence(service, readers, options, motion, times_s=times)
+    names = [f"frame at {t:.1f} s" for t in times] if times is not None else [str(p) for p in images]
+    out = {"photos": names, **SequenceOut.of(result).model_dump()}  # which photo each answer is for
+    if brief:
+        for name, a in zip(names, out["answers"], strict=True):
+            typer.echo(f"{name} ({a['rests_on']}): {_in_words(a)}")
+        if out["note"]:
+            typer.echo(out["note"])
+    else:
+        typer.echo(json.dumps(out, indent=1))
 
 
 def rate_in_words(rate: float) -> str:
@@ -535,6 +616,23 @@ def eval_cmd(
             "a no_match's place counts as absent when no reference lies within R m (else --radius-m) of it",
         ),
     ] = None,
+    sequence_window: Annotated[
+        int | None,
+        typer.Option(
+            "--sequence-window",
+            help="also answer each query with the N photos around it in its sequence (the manifest's sequence and "
+            "time columns); recall and answers are then the sequence's, the photos alone beside them",
+        ),
+    ] = None,
+    online: Annotated[
+        bool, typer.Option("--online", help="with --sequence-window: only the photos before each one")
+    ] = False,
+    max_speed_mps: Annotated[
+        float, typer.Option("--max-speed-mps", help="with --sequence-window: the speed bound where there are times")
+    ] = 2.0,
+    max_step_m: Annotated[
+        float, typer.Option("--max-step-m", help="with --sequence-window: the step bound where there are none")
+    ] = 150.0,
 ) -> None:
     """Fit, index the db rows in memory, query the query rows through the core; print Recall@N, time, bytes."""
     from app.evaluation.evaluate import evaluate, format_summary, write_report
@@ -548,6 +646,14 @@ def eval_cmd(
     if fold is not None and not 0 <= fold < max(folds, 1):
         _fail(f"--fold must be from 0 to {max(folds, 1) - 1} (of --folds {folds}), not {fold}")
     cfg = named_config(config, models_dir).with_overrides(_parse_overrides(overrides or []))
+    window = None
+    if sequence_window is not None:
+        from app.engine.sequence import Motion
+        from app.evaluation.sequences import SequenceWindow
+
+        if sequence_window < 1:
+            _fail(f"--sequence-window must be at least 1, not {sequence_window}")
+        window = SequenceWindow(sequence_window, online, Motion(speed_mps=max_speed_mps, step_m=max_step_m))
     result = evaluate(
         manifest,
         cfg,
@@ -566,6 +672,7 @@ def eval_cmd(
         absent_radius_m=absent_radius,
         partial=json_out.with_suffix(".partial.json") if json_out else None,
         fold=fold,
+        sequence=window,
     )
     typer.echo(format_summary(result))
     if json_out:

@@ -1,4 +1,5 @@
-"""The manifest format: a CSV with ``image,lat,lon,split[,group]``, image paths relative to the manifest.
+"""The manifest format: a CSV with ``image,lat,lon,split[,group][,sequence,time]``, image paths relative to
+the manifest.
 
 ``group`` ties the rows of one capture (a photo and its crops): a query is never matched against its own
 group, and a group always sits on one side of a split, otherwise a crop of the query in the database
@@ -29,6 +30,10 @@ class Row:
     lon: float
     split: str
     group: str
+    #: Query rows of one walk, drive or video share a ``sequence`` (``geoloc eval --sequence-window``), in
+    #: ``time`` order (ISO 8601) where given, else in row order. Optional columns; None when absent.
+    sequence: str | None = None
+    time: str | None = None
 
 
 def read_manifest(path: Path) -> list[Row]:
@@ -53,7 +58,9 @@ def read_manifest(path: Path) -> list[Row]:
                 raise ManifestError(f"{path}:{n}: split {split!r} is not one of {SPLITS}")
             image = (path.parent / r["image"]).resolve()
             group = (r.get("group") or "").strip() or r["image"]
-            rows.append(Row(image, lat, lon, split, group))
+            sequence = (r.get("sequence") or "").strip() or None
+            time = (r.get("time") or "").strip() or None
+            rows.append(Row(image, lat, lon, split, group, sequence, time))
     return rows
 
 
@@ -61,8 +68,10 @@ def write_manifest(path: Path, rows: list[Row]) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     with path.open("w", newline="") as f:
         w = csv.writer(f)
-        w.writerow(["image", "lat", "lon", "split", "group"])
+        sequences = any(r.sequence is not None or r.time is not None for r in rows)
+        w.writerow(["image", "lat", "lon", "split", "group"] + (["sequence", "time"] if sequences else []))
         for r in rows:
             w.writerow(
                 [os.path.relpath(r.image, path.parent.resolve()), f"{r.lat:.8f}", f"{r.lon:.8f}", r.split, r.group]
+                + ([r.sequence or "", r.time or ""] if sequences else [])
             )

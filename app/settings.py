@@ -54,6 +54,9 @@ class Settings(StorageSettings):
     max_upload_bytes: int = Field(30 * 1024 * 1024, description="per image; 12 MP phone photos are 2-8 MB")
     max_image_pixels: int = Field(50_000_000, description="declared pixels; refuses decompression bombs")
     max_files_per_request: int = Field(50, description="images in one POST /references request")
+    max_sequence_images: int = Field(
+        20, ge=2, description="images in one POST /locate/sequence (each is located as /locate locates one)"
+    )
     max_request_bytes: int = Field(
         512 * 1024 * 1024,
         description="a whole POST /references body (with max_upload_bytes x max_files_per_request, the smaller)",

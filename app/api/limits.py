@@ -31,6 +31,9 @@ def body_limit(settings: Settings, method: str, path: str | None) -> int:
     """The most bytes a body may have on this route (``path``: the route's template; None: no route)."""
     if method == "POST" and path == "/locate":
         return settings.max_upload_bytes + FORM_OVERHEAD
+    if method == "POST" and path == "/locate/sequence":
+        images = min(settings.max_upload_bytes * settings.max_sequence_images, settings.max_request_bytes)
+        return images + FORM_OVERHEAD
     if method == "POST" and path == "/references":
         images = min(settings.max_upload_bytes * settings.max_files_per_request, settings.max_request_bytes)
         return images + FORM_OVERHEAD

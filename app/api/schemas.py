@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from pydantic import BaseModel, Field, field_validator
 
 from app.domain import LocateAnswer, ReferenceEdit
 from app.text import iso_or_as_stored
+
+if TYPE_CHECKING:
+    from app.usecases.sequence import SequenceAnswer
 
 #: How answers round: metres to 0.1 m, scores, probabilities and shares to 4 digits, an estimate's
 #: position to 7 decimals (1 cm). More digits would be noise (``distance_m: 1.2e-09``), fewer would hide a
@@ -264,3 +267,56 @@ class ReadyOut(BaseModel):
     #: references, 118 written, 2 already there, 0 failed``, ending ``(done)``); answers meanwhile verify
     #: the candidates whose file exists. None when there was nothing to back-fill.
     features_backfill: str | None = None
+
+
+# -- POST /locate/sequence -----------------------------------------------------------------------------------
+class SequencePhotoOut(LocateOut):
+    """One photo's answer in its sequence: /locate's answer, and what it rests on."""
+
+    rests_on: str = Field(
+        description="pixels: the photo's own answer (confident alone, or not confident even with the sequence); "
+        "sequence: the estimate comes from the path through the photos around it"
+    )
+    sequence_p: float | None = Field(
+        None,
+        description="the sequence's posterior probability of the place the answer names (its estimate's, else the "
+        "most probable state, which may be 'not in this collection'); null when the collection is not calibrated",
+    )
+
+    @field_validator("sequence_p")
+    @classmethod
+    def _p_digits(cls, v: float | None) -> float | None:
+        return _round(v, SCORE_DIGITS)
+
+
+class PathPointOut(BaseModel):
+    lat: float | None = Field(None, description="the most likely path's place at this photo (null: none)")
+    lon: float | None = None
+    in_collection: bool = Field(description="false where the path says the photo shows no place of this collection")
+
+    @field_validator("lat", "lon")
+    @classmethod
+    def _degrees(cls, v: float | None) -> float | None:
+        return _round(v, DEGREES_DIGITS)
+
+
+class SequenceOut(BaseModel):
+    answers: list[SequencePhotoOut] = Field(description="one /locate-shaped answer per image, in the order sent")
+    path: list[PathPointOut] = Field(description="the most likely path (Viterbi), one point per image")
+    times_from: str = Field(
+        description="given (taken_at), exif (the photos' DateTimeOriginal), video (the frames' times) or order "
+        "(no times)"
+    )
+    note: str | None = Field(None, description="why the sequence could not inform the answers, when it could not")
+
+    @classmethod
+    def of(cls, result: SequenceAnswer) -> SequenceOut:
+        return cls(
+            answers=[
+                SequencePhotoOut(**LocateOut.of(p.answer).model_dump(), rests_on=p.rests_on, sequence_p=p.sequence_p)
+                for p in result.photos
+            ],
+            path=[PathPointOut(lat=q.lat, lon=q.lon, in_collection=q.in_collection) for q in result.path],
+            times_from=result.times_from,
+            note=result.note,
+        )

@@ -21,7 +21,7 @@ from pydantic import BaseModel
 
 from app.domain import LocateOptions, RefInfo, Region
 from app.engine.artifacts import atomic_write_bytes
-from app.engine.calibration import reliability
+from app.engine.calibration import Calibration, reliability
 from app.engine.configs import PipelineConfig
 from app.engine.geo import haversine_m
 from app.engine.imageio import ImageLimits
@@ -33,6 +33,7 @@ from app.engine.stored_features import decode as decode_stored
 from app.engine.stored_features import encode as encode_stored
 from app.errors import ManifestCannotBeEvaluated
 from app.evaluation.confidence_ranking import query_record, rank_confidence, ranking_lines
+from app.evaluation.sequences import SequenceWindow, answer_in_windows
 from app.manifests import Row, read_manifest
 from app.usecases.extraction import Extracted, extract_batch
 from app.usecases.fitting import EVAL_BANK_SOURCES, FitOptions, FitPhoto, fit_pipeline, near_ids
@@ -142,6 +143,12 @@ class EvalResult(BaseModel):
     confidence_ranking: ConfidenceRankings | None = None
     config_definition: dict
     queries: list[dict]  # per query: image, group, fold, position, candidates, estimate (the report's rows)
+    #: With ``--sequence-window``: ``recall_at`` and ``answers`` are the sequences'; these, the same photos
+    #: answered alone; ``sequence``, the window, the motion bounds, per-fold recall and how many answers rest
+    #: on the sequence.
+    single_recall_at: dict[str, float] | None = None
+    single_answers: AnswerQuality | None = None
+    sequence: dict | None = None
 
 
 def extract_cached(pipeline: Pipeline, rows: list[Row], cache_dir: Path | None, workers: int = 2) -> list[Extracted]:
@@ -290,6 +297,7 @@ def evaluate(
     absent_radius_m: float | None = None,
     partial: Path | None = None,
     fold: int | None = None,
+    sequence: SequenceWindow | None = None,
 ) -> EvalResult:
     """``models_dir``: where the built models are (the global model through the registry, XFeat).
     ``svm_bank``: off (all features), positive (features the bank predicts useful) or negative (only
@@ -309,7 +317,10 @@ def evaluate(
 
     Each answer is judged as /locate states it: its estimate's disc (``radius_m`` at ``radius_rate``), and,
     for ``no_match``, whether its place is absent: no reference of the fold (less those removed, for a
-    simulated absent place) within ``absent_radius_m`` of the truth, else within ``radius_m``."""
+    simulated absent place) within ``absent_radius_m`` of the truth, else within ``radius_m``.
+    ``sequence``: each query also answered with the photos around it in its
+    sequence (``app.evaluation.sequences``); ``recall_at`` and ``answers`` are then the sequence's, and the
+    same photos answered alone sit beside them (``single_recall_at``, ``single_answers``)."""
     if svm_bank not in ("off", "positive", "negative"):
         raise ValueError(f"svm_bank must be off, positive or negative, not {svm_bank!r}")
     if bank_source not in EVAL_BANK_SOURCES:
@@ -334,6 +345,7 @@ def evaluate(
     bank_reports, kept_fractions, per_query = [], [], []
     quality, all_present, all_absent, calibration_reports = [], [], [], []
     ranked_served, ranked_plain = [], []  # per present query: confidence_ranking.query_record
+    seq_per_fold, seq_present, rests_on = [], [], []  # with ``sequence``: the sequences' answers
     n_db = n_query = 0
     bytes_per_ref = 0.0
     for f in chosen:
@@ -388,6 +400,7 @@ def evaluate(
         refs = RowReferences(rows, db_idx)
         hits, hits_plain = [], []
         fold_present, fold_absent = [], []
+        singles = {}  # with ``sequence``: each query's single answer, for its windows
         for i in q_idx:
             region = Region(rows[i].lat, rows[i].lon, region_radius_m) if region_radius_m else None
             options = LocateOptions(top_k=top_n, mode=mode, rerank=verify, region=region)
@@ -429,6 +442,8 @@ def evaluate(
                 }
             to_refs = haversine_m(rows[i].lat, rows[i].lon, lat[db_idx], lon[db_idx])
             fold_present.append(_answer_record(res, rows[i], radius_m, float(to_refs.min(initial=np.inf))))
+            if sequence is not None:
+                singles[i] = res
             if absent_radius_m:
                 gone = near_ids(geotagged, rows[i].lat, rows[i].lon, absent_radius_m)
                 left = to_refs[~np.isin(np.asarray(db_idx), gone)]
@@ -470,6 +485,16 @@ def evaluate(
                 per_query[-1]["confidence_without_verification"] = ranked_plain[-1]
             if res.features_extracted:
                 kept_fractions.append(res.features_kept / res.features_extracted)
+        if sequence is not None:
+            # The rule the fold's single answers were judged by (``locate_features``'s choice).
+            rule = pipe.calibration.for_answer(verify)
+            if mode not in (None, config.modes[0]):
+                rule = Calibration.conservative("the calibration judges the default search mode only")
+            answered = answer_in_windows(rows, q_idx, singles, rule, sequence, LocateOptions(top_k=top_n, mode=mode))
+            seq_hits = np.array([_hits(rows, i, lat, lon, answered[i][0].candidates, top_n, radius_m) for i in q_idx])
+            seq_per_fold.append({str(n): float(seq_hits[:, n - 1].mean()) for n in RECALL_AT})
+            seq_present += [_answer_record(answered[i][0], rows[i], radius_m) for i in q_idx]
+            rests_on += [answered[i][1] for i in q_idx]
         quality.append(answer_quality(fold_present, fold_absent, absent_radius_m, radius_m))
         all_present += fold_present
         all_absent += fold_absent
@@ -561,6 +586,19 @@ def evaluate(
             "queries": per_query,
         }
     )
+    if sequence is not None:
+        result.single_recall_at, result.single_answers = result.recall_at, result.answers
+        result.recall_at = {str(n): float(np.mean([p[str(n)] for p in seq_per_fold])) for n in RECALL_AT}
+        result.answers = AnswerQuality.model_validate(answer_quality(seq_present, [], None))
+        result.sequence = {
+            "window": sequence.window,
+            "online": sequence.online,
+            "max_speed_mps": sequence.motion.speed_mps,
+            "max_step_m": sequence.motion.step_m,
+            "recall_at_per_fold": seq_per_fold,
+            "rests_on_sequence": rests_on.count("sequence"),
+            "photos": len(rests_on),
+        }
     return result
 
 
@@ -727,8 +765,28 @@ def format_summary(result: EvalResult | dict) -> str:
         + (f"{e['confident_within_radius']:.0%}" if e["confident_within_radius"] is not None else "n/a"),
         *_quality_lines(result),
         *_ranking_lines(result),
+        *_sequence_lines(result),
     ]
     return "\n".join(lines)
+
+
+def _sequence_lines(result: dict) -> list[str]:
+    """With ``--sequence-window``: the sequences' answers beside the same photos answered alone."""
+    seq = result.get("sequence")
+    if not seq:
+        return []
+    r, r1 = result["recall_at"], result["single_recall_at"]
+    a, a1 = result["answers"], result["single_answers"]
+    how = "online (the photos before each)" if seq["online"] else "centred"
+    return [
+        f"sequences: windows of {seq['window']} photos, {how}; max {seq['max_speed_mps']:g} m/s with times, "
+        f"{seq['max_step_m']:g} m a step without; {seq['rests_on_sequence']} of {seq['photos']} answers rest on "
+        "the sequence",
+        f"  Recall@1/5, sequence vs alone: {r['1']:.3f} / {r['5']:.3f}  vs  {r1['1']:.3f} / {r1['5']:.3f}",
+        f"  estimates (share of photos): {_pct(a['coverage'])} vs {_pct(a1['coverage'])}; within 25 m "
+        f"{_pct(a['precision'])} vs {_pct(a1['precision'])}; truth within the stated radius "
+        f"{_pct(a.get('radius_coverage'))} vs {_pct(a1.get('radius_coverage'))}",
+    ]
 
 
 def _ranking_lines(result: dict) -> list[str]:

@@ -16,6 +16,7 @@ from contextlib import AbstractContextManager, nullcontext
 from pathlib import Path
 
 from app.domain import Accepted, LocateAnswer, LocateOptions, ReferenceEdit, Upload
+from app.engine.calibration import Calibration
 from app.engine.errors import InvalidPosition
 from app.engine.geo import valid_position
 from app.engine.imageio import ImageLimits, LoadedImage
@@ -163,6 +164,16 @@ class GeolocService:
         timings["total"] = (time.perf_counter() - t0) * 1000
         answer.timings_ms = timings
         return answer
+
+    def answer_calibration(self, options: LocateOptions) -> Calibration:
+        """The rule that judges this collection's answers located with ``options``, as ``locate_features``
+        picks it: the verified one for verified answers, the conservative one in a non-default mode."""
+        view = self.collection.view()
+        verify = options.rerank if options.rerank is not None else view.pipeline.config.stored_features is not None
+        calibration = self.collection.calibration(view.pipeline).for_answer(verify)
+        if view.check_mode(options.mode) != view.check_mode(None) and calibration.calibrated:
+            return Calibration.conservative(f"this collection is calibrated for {view.check_mode(None)} search")
+        return calibration
 
     def keep_query(self, data: bytes, img: LoadedImage) -> None:
         if not self.keep_queries:

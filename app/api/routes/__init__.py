@@ -3,7 +3,7 @@ parses the request, calls the service, shapes JSON. ``ROUTERS`` in the order the
 order of /openapi.json); ``ROUTES``, their routes, is where the body-limit middleware (app/api/limits.py)
 finds the route a request is for: an included router is not a list of routes it can match one by one."""
 
-from app.api.routes import library, locate, ops, references
+from app.api.routes import library, locate, ops, references, sequence
 
-ROUTERS = (locate.router, references.router, ops.router, library.router)
+ROUTERS = (locate.router, sequence.router, references.router, ops.router, library.router)
 ROUTES = tuple(route for router in ROUTERS for route in router.routes)

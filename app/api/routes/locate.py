@@ -14,7 +14,7 @@ from app.domain import LocateOptions, Region
 router = APIRouter()
 
 
-def _region(lat, lon, radius_m, bbox) -> Region | None:
+def region_of(lat, lon, radius_m, bbox) -> Region | None:
     if bbox is not None:
         return Region(lat=lat, lon=lon, radius_m=radius_m, bbox=parse_bbox(bbox))
     if lat is None and lon is None and radius_m is None:
@@ -49,7 +49,7 @@ def locate(
     min_score: Annotated[float, Form(ge=0, le=1)] = 0.0,
 ) -> LocateOut:
     options = LocateOptions(
-        top_k=top_k, mode=mode, rerank=rerank, region=_region(lat, lon, radius_m, bbox), min_score=min_score
+        top_k=top_k, mode=mode, rerank=rerank, region=region_of(lat, lon, radius_m, bbox), min_score=min_score
     )
     answer = core.locate(lambda: read_upload(request, image), options)
     stage = request.app.state.metrics.stage

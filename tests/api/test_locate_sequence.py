@@ -1,0 +1,116 @@
+"""POST /locate/sequence through a real uvicorn server: a held-out penn walk located as one path, and bad
+input refused with a clear 4xx JSON body (nothing located, nothing stored)."""
+
+from __future__ import annotations
+
+import pytest
+
+from tests.api.conftest import Server
+from tests.conftest import PENN
+from tests.walks import CONFIG, walk_collection  # noqa: F401  (the fixture)
+
+ELSEWHERE = sorted((PENN.parent / "sf-streetview-toy").glob("*/*.jpg"))  # the 22 images: San Francisco
+
+
+@pytest.fixture(scope="module")
+def server(walk_collection):  # noqa: F811
+    models, data, _ = walk_collection
+    s = Server(data, models, extra_env={"GEOLOC_MAX_SEQUENCE_IMAGES": "10", "GEOLOC_MAX_UPLOAD_BYTES": "3000000"})
+    assert s.config == CONFIG
+    s.wait_ready()
+    yield s
+    s.stop()
+
+
+def _files(paths):
+    return [("image", (p.name, p.read_bytes(), "image/jpeg")) for p in paths]
+
+
+def _count(server) -> int:
+    return server.client.get("/references", params={"limit": 1}).json()["total"]
+
+
+def test_a_walk_is_located_as_one_path(server, walk_collection):  # noqa: F811
+    _, _, walk = walk_collection
+    r = server.client.post("/locate/sequence", files=_files(walk), data={"top_k": 3}, timeout=300)
+    assert r.status_code == 200, r.text
+    out = r.json()
+    assert out["times_from"] == "exif"  # the penn photos carry DateTimeOriginal
+    assert out["note"] is None  # the collection is calibrated on itself: the sequence informs the answers
+    assert len(out["answers"]) == len(out["path"]) == len(walk)
+    for a in out["answers"]:
+        assert a["rests_on"] in ("pixels", "sequence")
+        assert len(a["candidates"]) <= 3
+        assert a["config"] == CONFIG
+        assert (a["estimate"] is None) == (a["reason_code"] is not None)
+        if a["rests_on"] == "sequence":
+            assert a["estimate"] is not None and a["sequence_p"] is not None
+    # The same photos one by one: each single answer is what the sequence's "pixels" answers say.
+    for photo, a in zip(walk, out["answers"], strict=True):
+        if a["rests_on"] != "pixels" or a["estimate"] is None:
+            continue
+        alone = server.client.post("/locate", files=_files([photo]), data={"top_k": 3}).json()
+        assert alone["estimate"] == a["estimate"]
+
+
+def test_given_times_and_bounds_are_read(server, walk_collection):  # noqa: F811
+    _, _, walk = walk_collection
+    times = [f"2024-09-23T16:{10 + n:02d}:00-04:00" for n in range(3)]
+    data = {"taken_at": times, "max_speed_mps": "1.5", "max_step_m": "80"}
+    r = server.client.post("/locate/sequence", files=_files(walk[:3]), data=data, timeout=300)
+    assert r.status_code == 200, r.text
+    assert r.json()["times_from"] == "given"
+
+
+def test_photos_from_elsewhere_get_no_estimate(server):
+    r = server.client.post("/locate/sequence", files=_files(ELSEWHERE[:10]), timeout=300)
+    assert r.status_code == 200, r.text
+    assert all(a["estimate"] is None for a in r.json()["answers"])
+
+
+@pytest.mark.parametrize(
+    "n, data, status, words",
+    [
+        (1, {}, 422, "at least 2 images"),
+        (11, {}, 422, "at most 10 images"),
+        (2, {"taken_at": ["yesterday", "2024-09-23T16:10:00"]}, 422, "taken_at of image 0"),
+        (2, {"taken_at": ["2024-09-23T16:10:00"]}, 422, "one per image"),
+        (2, {"taken_at": ["2024-09-23T16:10:00", "2024-09-23T16:09:00"]}, 422, "go backwards"),
+        (2, {"max_speed_mps": "-1"}, 422, "max_speed_mps"),
+    ],
+)
+def test_bad_sequences_are_refused(server, n, data, status, words):
+    before = _count(server)
+    photo = PENN / "photos" / "img_00001.jpg"
+    r = server.client.post("/locate/sequence", files=_files([photo] * n), data=data)
+    assert r.status_code == status, r.text
+    assert r.headers["content-type"].startswith("application/json")
+    assert words in r.text
+    assert _count(server) == before
+
+
+def test_every_broken_image_is_named(server):
+    good = (PENN / "photos" / "img_00001.jpg").read_bytes()
+    files = [
+        ("image", ("a.jpg", good, "image/jpeg")),
+        ("image", ("notes.txt", b"hello, I am text", "image/jpeg")),
+        ("image", ("b.jpg", good, "image/jpeg")),
+        ("image", ("cut.jpg", good[: len(good) // 3], "image/jpeg")),
+    ]
+    r = server.client.post("/locate/sequence", files=files, timeout=300)
+    assert r.status_code == 400, r.text
+    body = r.json()
+    assert body["error"] == "unreadable_image"
+    assert "2 of the 4 images" in body["message"]
+    assert "image 1:" in body["message"] and "image 3:" in body["message"]
+    assert "image 0:" not in body["message"]
+
+
+def test_a_body_over_the_bound_is_refused_before_it_is_read(server):
+    # 10 images x 3 MB + the form's overhead: a declared length beyond it is refused unread.
+    big = b"\xff" * (1024 * 1024)
+    files = [("image", (f"{n}.jpg", big, "image/jpeg")) for n in range(40)]
+    r = server.client.post("/locate/sequence", files=files)
+    assert r.status_code == 413, r.text
+    assert r.json()["error"] == "too_large"
+    assert str(10 * 3_000_000 + 1024 * 1024) in r.json()["message"]

@@ -1,0 +1,90 @@
+"""`geoloc eval --sequence-window`: a penn walk window held out of a small collection, answered with its
+neighbours beside the same photos alone; the manifest's sequence and time columns; the windows."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from app.evaluation.sequences import SequenceWindow, sequences, window_of
+from app.manifests import Row, read_manifest, write_manifest
+from bench.sequence_walks import walk_rows
+from tests.conftest import PENN
+from tests.test_cli import geoloc
+
+CONFIG = "hybrid-bin"
+
+
+def _row(name: str, split: str = "query", sequence: str | None = None, time: str | None = None) -> Row:
+    return Row(Path(f"/x/{name}.jpg"), 39.95, -75.19, split, name, sequence, time)
+
+
+def test_query_rows_form_sequences_in_time_order_else_row_order(tmp_path):
+    rows = [
+        _row("a", sequence="w1", time="2024-09-23T16:10:00-04:00"),
+        _row("b", sequence="w2"),
+        _row("c", sequence="w1", time="2024-09-23T16:09:00"),  # naive: the sequence's zone
+        _row("d", sequence="w2"),
+        _row("e", split="db"),
+    ]
+    path = tmp_path / "m.csv"
+    write_manifest(path, rows)
+    back = read_manifest(path)
+    assert [(r.sequence, r.time) for r in back] == [(r.sequence, r.time) for r in rows]
+    got = sequences(back, [0, 1, 2, 3])
+    assert got == [([2, 0], [0.0, 60.0]), ([1, 3], [None, None])]
+    # Without a sequence column: one sequence, in row order.
+    plain = [_row(n) for n in "xyz"]
+    write_manifest(path, plain)
+    assert "sequence" not in path.read_text().splitlines()[0]
+    assert sequences(read_manifest(path), [0, 1, 2]) == [([0, 1, 2], [None, None, None])]
+
+
+def test_windows_centred_or_online():
+    centred, online = SequenceWindow(3), SequenceWindow(3, online=True)
+    assert [window_of(p, 5, centred) for p in range(5)] == [(0, 3), (0, 3), (1, 4), (2, 5), (3, 5)]
+    assert [window_of(p, 5, online) for p in range(5)] == [(0, 1), (0, 2), (0, 3), (1, 4), (2, 5)]
+
+
+def test_the_walk_manifest_holds_whole_windows_out():
+    rows = walk_rows(PENN, window=6, part=0, parts=3)
+    queries = [r for r in rows if r.split == "query"]
+    held = {r.group for r in queries}
+    assert queries and all(r.sequence and r.time for r in queries)
+    assert not any(r.group in held for r in rows if r.split == "db")  # neither the photo nor its crops
+    assert all(r.image.parent.name == "photos" for r in queries)
+    for name in {r.sequence for r in queries}:
+        assert 2 <= sum(r.sequence == name for r in queries) <= 6
+
+
+def test_eval_reports_the_sequence_beside_the_photos_alone(tmp_path, models_dir, penn_index):
+    captures = [r for r in penn_index if r["photo"]][:40]
+    walk = captures[12:18]
+    rows = []
+    for r in captures:
+        if r in walk:
+            time = f"2024-09-23T16:{10 + walk.index(r):02d}:00-04:00"
+            rows.append(Row(PENN / r["photo"], float(r["lat"]), float(r["lon"]), "query", r["photo_id"], "w", time))
+            continue
+        for img in [r["photo"]] + r["crops"].split(";")[:2]:
+            rows.append(Row(PENN / img, float(r["lat"]), float(r["lon"]), "db", r["photo_id"]))
+    manifest = tmp_path / "walk.csv"
+    write_manifest(manifest, rows)
+    out = tmp_path / "eval.json"
+    args = ["eval", "-m", str(manifest), "--config", CONFIG, "--models-dir", str(models_dir), "--json", str(out)]
+    p = geoloc(*args, "--sequence-window", "3", "--max-speed-mps", "1.5", "--max-step-m", "100")
+    assert "sequences: windows of 3 photos, centred" in p.stdout
+    assert "Recall@1/5, sequence vs alone" in p.stdout
+    report = json.loads(out.read_text())
+    assert report["n_query"] == 6
+    seq = report["sequence"]
+    assert seq["window"] == 3 and not seq["online"] and seq["photos"] == 6 and seq["max_speed_mps"] == 1.5
+    assert set(report["recall_at"]) == set(report["single_recall_at"]) == {"1", "5", "10", "20"}
+    assert report["answers"] is not None and report["single_answers"] is not None
+    # The photos alone are what a run without sequences reports.
+    alone = tmp_path / "alone.json"
+    geoloc(*args[:-1], str(alone))
+    plain = json.loads(alone.read_text())
+    assert plain["recall_at"] == report["single_recall_at"] and plain["sequence"] is None
+    p = geoloc(*args, "--sequence-window", "3", "--online")
+    assert "centred" not in p.stdout and "online" in p.stdout

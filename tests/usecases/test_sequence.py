@@ -1,0 +1,81 @@
+"""The sequence use case on real photos: a held-out penn walk, the 22 San Francisco images, times."""
+
+from __future__ import annotations
+
+from datetime import datetime
+
+import pytest
+
+from app.domain import LocateOptions
+from app.engine.sequence import Motion
+from app.errors import InvalidRequest
+from app.usecases.sequence import PIXELS, SEQUENCE, locate_sequence, sequence_answers
+from app.usecases.sequence_inputs import seconds, sequence_times
+from app.usecases.service import GeolocService
+from tests.conftest import PENN
+from tests.walks import CONFIG, walk_collection  # noqa: F401  (the fixture)
+
+ELSEWHERE = sorted((PENN.parent / "sf-streetview-toy").glob("*/*.jpg"))
+
+
+@pytest.fixture(scope="module")
+def service(walk_collection):  # noqa: F811
+    models, data, _ = walk_collection
+    return GeolocService.open(data, models, CONFIG)
+
+
+def test_the_walk_answers_each_photo_and_a_confident_one_rests_on_its_pixels(service, walk_collection):  # noqa: F811
+    _, _, walk = walk_collection
+    result = locate_sequence(service, [p.read_bytes for p in walk], LocateOptions(top_k=5), Motion())
+    assert result.times_from == "exif" and result.note is None
+    assert len(result.photos) == len(result.path) == len(walk)
+    for photo in result.photos:
+        alone = photo.alone
+        assert len(alone.candidates) >= 10  # located with every candidate the model reads
+        assert len(photo.answer.candidates) <= 5  # shown as asked
+        assert photo.sequence_p is None or 0 <= photo.sequence_p <= 1
+        if alone.reason is None:  # confident alone: kept as it is
+            assert photo.rests_on == PIXELS and photo.answer.estimate == alone.estimate
+        if photo.rests_on == SEQUENCE:
+            assert (
+                photo.answer.reason is None
+                and photo.sequence_p >= service.answer_calibration(LocateOptions()).confident_p
+            )
+
+
+def test_a_sequence_of_one_photo_is_the_photo_alone(service, walk_collection):  # noqa: F811
+    """Only what the sequence adds reorders: one photo keeps its own ranking and its own answer."""
+    options = LocateOptions(top_k=10)
+    calibration = service.answer_calibration(options)
+    for photo in walk_collection[2][:3]:
+        alone = service.locate(photo.read_bytes(), options)
+        (one,) = sequence_answers([alone], [None], calibration, Motion(), options).photos
+        assert [c.reference_id for c in one.answer.candidates] == [c.reference_id for c in alone.candidates]
+        assert (one.answer.reason is None) == (alone.reason is None) or one.rests_on == SEQUENCE
+
+
+def test_a_sequence_from_elsewhere_gets_no_estimate_in_any_order(service):
+    options = LocateOptions()
+    singles = [service.locate(p.read_bytes(), LocateOptions(top_k=10)) for p in ELSEWHERE]
+    calibration = service.answer_calibration(options)
+    assert calibration.calibrated and calibration.confident_p <= 1  # an estimate is possible here
+    for order in (list(range(22)), list(range(21, -1, -1)), [*range(0, 22, 2), *range(1, 22, 2)]):
+        result = sequence_answers([singles[i] for i in order], [None] * 22, calibration, Motion(step_m=500), options)
+        assert all(p.answer.reason is not None for p in result.photos)
+        assert not any(q.in_collection for q in result.path)  # the path stays out of this collection
+
+
+def test_times_given_exif_or_order():
+    walk = [PENN / "photos" / f"img_0000{n}.jpg" for n in (3, 4, 5)]
+    readers = [p.read_bytes for p in walk]
+    secs, source = sequence_times(readers, None)
+    assert source == "exif" and secs[0] == 0 and secs[1] == 6 and secs[2] == 136
+    secs, source = sequence_times(readers, ["2024-09-23T16:00:00", "2024-09-23 16:00:30", "2024-09-23T16:01:00Z"])
+    assert source == "given" and secs == [0, 30, 60]  # the naive ones read in the sequence's one zone
+    with pytest.raises(InvalidRequest, match="go backwards: image 1"):
+        sequence_times(readers[::-1][:2], None)
+    with pytest.raises(InvalidRequest, match="date without a time"):
+        sequence_times(readers, ["2024-09-23", "2024-09-23", "2024-09-23"])
+    assert seconds([datetime(2024, 1, 1), None]) == [None, None]
+    secs, source = sequence_times([lambda: b"not an image", lambda: b""], None)
+    assert source == "order" and secs == [None, None]

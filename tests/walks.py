@@ -1,0 +1,48 @@
+"""A calibrated collection with a walk held out of it, for the sequence tests (API, CLI, use case).
+
+The penn photos are walks by three phones (EXIF time and camera). The collection: 40 captures (a photo and
+two crops each) around a window of ``WALK`` consecutive captures of one phone, fitted and calibrated on
+itself by `geoloc fit` and ingested by `geoloc ingest`; the window's photos and all their crops are out of
+it, so no photo of the walk can be answered by its own crop."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from tests.conftest import PENN
+
+CONFIG = "hybrid-bin"
+#: The held-out walk: consecutive captures of the first phone, in time order.
+WALK = slice(12, 20)
+AROUND = 48  # the collection: the first 48 captures less the walk's 8
+
+
+@pytest.fixture(scope="session")
+def walk_collection(tmp_path_factory, models_dir, penn_index) -> tuple[Path, Path, list[Path]]:
+    """(models dir, data dir, the walk's photos in order)."""
+    from app.manifests import Row, write_manifest
+    from tests.test_cli import geoloc
+
+    root = tmp_path_factory.mktemp("walk")
+    models = root / "models"
+    models.mkdir()
+    for f in models_dir.iterdir():
+        if f.is_file():
+            (models / f.name).symlink_to(f)
+    captures = [r for r in penn_index if r["photo"]]
+    walk = captures[WALK]
+    kept = [r for r in captures[:AROUND] if r not in walk]
+    rows = [
+        Row((PENN / img).resolve(), float(r["lat"]), float(r["lon"]), "db", r["photo_id"])
+        for r in kept
+        for img in [r["photo"]] + r["crops"].split(";")[:2]
+    ]
+    manifest = root / "collection.csv"
+    write_manifest(manifest, rows)
+    where = ["--models-dir", str(models), "--config", CONFIG]
+    geoloc("fit", "--manifest", str(manifest), *where)
+    data = root / "data"
+    geoloc("ingest", "--manifest", str(manifest), "--split", "db", "--data-dir", str(data), *where)
+    return models, data, [PENN / r["photo"] for r in walk]
