@@ -76,7 +76,9 @@ class IndexSizing:
     shared: SharedIndex | None = None
 
     def due(self, index: ReferenceIndex) -> bool:
-        return self.shared is None and self.switch_at > 0 and index.switches_by_size and index.is_exact and index.size >= self.switch_at
+        if self.shared is not None:
+            return False
+        return self.switch_at > 0 and index.switches_by_size and index.is_exact and index.size >= self.switch_at
 
     def describe(self, index: ReferenceIndex, switching: bool) -> str:
         """How the kind is chosen, for /ready."""

@@ -41,7 +41,14 @@ def fitted_models(models_dir, mini_manifest, tmp_path_factory):
     configs_mod.CONFIGS[CONFIG.name] = CONFIG
     models = tmp_path_factory.mktemp("milvus-models")
     (models / "squeezenet1_1.onnx").symlink_to(models_dir / "squeezenet1_1.onnx")
-    fit(manifest=mini_manifest, config=CONFIG.name, models_dir=models, seed=0, svm_bank=None, svm_bank_kind="contrastive")
+    fit(
+        manifest=mini_manifest,
+        config=CONFIG.name,
+        models_dir=models,
+        seed=0,
+        svm_bank=None,
+        svm_bank_kind="contrastive",
+    )
     yield models
     configs_mod.CONFIGS.pop(CONFIG.name, None)
 
