@@ -156,3 +156,34 @@ def test_milvus_stopped_is_a_503_and_back_by_itself(fitted_models, mini_manifest
     for mode in MODES:
         assert _first(service, db[4].image.read_bytes(), mode) == ids[4], mode
     service.store.close()
+
+
+def test_refit_fills_new_collections_and_both_switch(fitted_models, mini_manifest, milvus_server, tmp_path):
+    """A re-fit's new codes go into the next generation's collections: the writer fills them as it loads the
+    generation, the replica switches once they are filled, and both find a reference's own photo first."""
+    from app.domain import Upload
+    from app.jobs.refit import RefitOptions, refit
+    from app.usecases.service import GeolocService
+
+    sizing = _sizing(milvus_server, "refit")
+    data = tmp_path / "data"
+    writer = GeolocService.open(data, fitted_models, CONFIG.name, sizing=sizing)
+    writer.collection.hold_writer_role(True)
+    db = [r for r in read_manifest(mini_manifest) if r.split == "db"]
+    ids = _indexed(writer, [Upload(r.image.read_bytes(), r.image.name, r.lat, r.lon) for r in db])
+    replica = GeolocService.open(data, fitted_models, CONFIG.name, sizing=sizing)
+
+    refit(data, fitted_models, RefitOptions(svm_bank="none", sample=len(db), calibration_sample=len(db)))
+    writer.collection.catch_up()
+    writer.collection.refresh_generation(wait=True)
+    assert writer.collection.generation == 1, writer.collection.reload_error
+    assert writer.collection.index.stats()["float"]["collection"] == "refit_float_g1"
+    replica.collection.catch_up()
+    replica.collection.refresh_generation(wait=True)
+    assert replica.collection.generation == 1, replica.collection.reload_error
+    for svc in (writer, replica):
+        assert svc.collection.size == len(db)
+        for mode in MODES:
+            assert _first(svc, db[6].image.read_bytes(), mode) == ids[6], mode
+    writer.store.close()
+    replica.store.close()
