@@ -265,6 +265,8 @@ class Collection:
                 return None
             index_from_stream(self.pipeline, stream.chunks, into=index)
             version = stream.version
+        for part in index.parts().values():
+            part.connect_fresh()  # made again by this fill: not lost
         self.store.set_meta(self.shared.version_key(generation), str(version))
         self.stats.full_rebuilds += 1
         log.info("shared index filled with %d references at version %d", index.size, version)
@@ -275,7 +277,8 @@ class Collection:
         (a new server), then apply the log up to ``head`` and record the version they hold."""
         assert self.shared is not None
         recorded = self._shared_version(self.generation)
-        if recorded is None or any(getattr(p, "created", False) for p in self._connected_parts()):
+        fresh = [p.connect_fresh() for p in self.index.parts().values()]  # every part: each may be lost
+        if recorded is None or any(fresh):
             filled = self._fill_shared(self.index, self.generation)
             if filled is None:
                 return 0
@@ -290,13 +293,6 @@ class Collection:
         self.store.set_meta(self.shared.version_key(self.generation), str(self.version))
         self.stats.changes_applied += len(changes)
         return len(changes)
-
-    def _connected_parts(self) -> list:
-        """The parts, each connected (``size`` connects, and makes a collection the server lacks)."""
-        parts = list(self.index.parts().values())
-        for p in parts:
-            _ = p.size
-        return parts
 
     def _wait_for_shared(self, head: int) -> None:
         """As a reader: wait until the writer has applied the log up to ``head`` (bounded)."""
@@ -372,6 +368,8 @@ class Collection:
                     return False
                 index_from_stream(pipeline, stream.chunks, into=index)
                 version = stream.version
+            for part in index.parts().values():
+                part.connect_fresh()  # made by this fill: not lost
             assert self.shared is not None
             self.store.set_meta(self.shared.version_key(generation), str(version))
         with self.lock:

@@ -117,6 +117,7 @@ def test_writer_and_replica_share_one_milvus_index(fitted_models, mini_manifest,
         for mode in MODES:
             assert _first(svc, db[3].image.read_bytes(), mode) != ids[3], mode
     assert writer.collection.size == replica.collection.size == 8
+    assert writer.collection.stats.full_rebuilds == 1  # filled once; every later change applied, not refilled
     writer.store.close()
     replica.store.close()
 

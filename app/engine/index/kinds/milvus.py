@@ -139,6 +139,13 @@ class MilvusIndex:
             self.collection, schema=schema, index_params=params, consistency_level="Strong", timeout=self.timeout
         )
 
+    def connect_fresh(self) -> bool:
+        """Connect now (no call to the server when connected already); True once after this process created
+        the collection because the server lacked it (new, or lost): the caller fills it then."""
+        self._call("connect", lambda c: None)
+        fresh, self.created = self.created, False
+        return fresh
+
     def drop(self) -> None:
         """Remove the collection from the server (a writer refilling it from the store starts here)."""
         self._call("drop the collection", lambda c: c.drop_collection(self.collection, timeout=self.timeout))
