@@ -54,3 +54,41 @@ def test_two_hosts_share_one_milvus_collection(tmp_path, fitted_models, hosts_en
         for s in (b, a):
             if s is not None:
                 s.stop()
+
+
+def test_milvus_stopped_answers_503_loses_nothing_and_comes_back(tmp_path, fitted_models, milvus_server):
+    """A real server (SQLite store, the in-process worker: the writer) serving from Milvus: Milvus stopped,
+    each of several /locate requests (one after another, not concurrent) is a 503 `not_ready` naming the
+    server, an upload is still accepted and encoded into the store; Milvus started again, the same server
+    answers again by itself and finds the upload made during the outage first."""
+    env = {"GEOLOC_MILVUS_URI": milvus_server.uri, "GEOLOC_MILVUS_COLLECTION": "outage"}
+    with Server(tmp_path / "data", fitted_models, extra_env=env) as server:
+        before = []
+        for photo in NEW_PHOTOS[:2]:
+            job_id, ref_id = _upload(server, photo)
+            assert wait_job(server.client, job_id, 60)["status"] == "done"
+            before.append(ref_id)
+        assert _locate(server, NEW_PHOTOS[0])[0]["reference_id"] == before[0]
+
+        milvus_server.stop()
+        try:
+            image = NEW_PHOTOS[1].read_bytes()
+            for _ in range(3):  # /locate keeps coming while the server is away
+                r = server.client.post("/locate", files=[("image", ("q.jpg", image, "image/jpeg"))])
+                assert r.status_code == 503, r.text
+                body = r.json()
+                assert body["error"] == "not_ready" and "Milvus server" in body["message"], body
+            job_id, during = _upload(server, NEW_PHOTOS[2])  # accepted, and encoded into the store
+            assert wait_job(server.client, job_id, 60)["status"] == "done"
+        finally:
+            milvus_server.start()
+
+        deadline = time.monotonic() + 180
+        while True:  # back by itself: the writer's next catch-up reconnects and applies what it missed
+            r = server.client.post("/locate", files=[("image", ("q.jpg", NEW_PHOTOS[2].read_bytes(), "image/jpeg"))])
+            if r.status_code == 200 and r.json()["candidates"][0]["reference_id"] == during:
+                break
+            assert r.status_code in (200, 503) and time.monotonic() < deadline, (r.text, server.read_log())
+            time.sleep(1.0)
+        assert [_locate(server, p)[0]["reference_id"] for p in NEW_PHOTOS[:2]] == before
+        assert server.client.get("/ready").json()["index_size"] == 3
