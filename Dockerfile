@@ -46,9 +46,11 @@ COPY --from=web /web/node_modules/swagger-ui-dist/swagger-ui-bundle.js /web/node
 # installs, PEP 668). With the ray extra: the compose file's ray-head and ray-worker run this same image, so
 # the Python and Ray versions of the driver (geoloc ingest/refit --ray) and of the cluster always match.
 # With the postgres extra (psycopg): the store on PostgreSQL when GEOLOC_DATABASE_URL is set (compose profile).
+# With the milvus extra's client only (pymilvus, its pin read from pyproject.toml; not the embedded server the
+# tests run): the index on Milvus when GEOLOC_MILVUS_URI is set (compose profile milvus, docs/milvus.md).
 # The pip cache mount keeps downloaded wheels between builds (a code change re-installs in seconds).
 RUN --mount=type=cache,target=/root/.cache/pip \
-    python3 -m venv /opt/venv && pip install ".[ray,postgres]"
+    python3 -m venv /opt/venv && pip install ".[ray,postgres]" "$(grep -o 'pymilvus==[0-9.]*' pyproject.toml)"
 
 COPY --from=weights . /tmp/weights
 # Every buildable model of the registry (app/engine/registry.py); `geoloc models list --check` fails the build

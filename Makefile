@@ -34,11 +34,11 @@ $(VENV)/.installed: pyproject.toml
 
 # Leaflet (the page's map) and Swagger UI (/docs) from the npm registry, served by the app itself (never from
 # a CDN). --ignore-scripts: neither needs one, and swagger-ui-dist's dependency @scarf/scarf would phone home.
-# Ray (the optional engine for distributed encoding) and psycopg (the store on PostgreSQL) for the tests;
-# `make run` needs neither.
+# Ray (the optional engine for distributed encoding), psycopg (the store on PostgreSQL) and pymilvus with the
+# embedded Milvus server (the index on Milvus) for the tests; `make run` needs none of them.
 RAY_STAMP := $(VENV)/.ray-installed
 $(RAY_STAMP): $(VENV)/.installed
-	@$(STEP) install-ray -- $(BIN)/python -m pip install -q -e '.[dev,ray,postgres]'
+	@$(STEP) install-ray -- $(BIN)/python -m pip install -q -e '.[dev,ray,postgres,milvus]'
 	@touch $@
 
 $(NPM_STAMP): web/package.json web/package-lock.json

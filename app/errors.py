@@ -85,6 +85,9 @@ ENGINE_CODES: dict[str, str] = {
     # fit: the collection cannot be served until the kind is installed or the data dir is refitted.
     "app.engine.index.base.UnknownIndexKind": "not_ready",
     "app.engine.index.base.IndexNotTrained": "not_ready",
+    # The index's server (GEOLOC_MILVUS_URI) unreachable or refusing: retry once it is back; nothing is lost.
+    "app.engine.index.kinds.milvus.IndexUnavailable": "not_ready",
+    "app.engine.index.kinds.milvus.SharedIndexNotSnapshotted": "not_ready",
     # A configuration naming a stored-features profile no module defines: like an unknown configuration.
     "app.engine.stored_profiles.UnknownProfile": "invalid_request",
     _name(engine.ModelNotReady): "not_ready",

@@ -26,6 +26,31 @@ class SnapshotPolicy:
         return pending_changes >= self.every_changes or (pending_changes > 0 and seconds_pending >= self.every_seconds)
 
 
+@dataclass(frozen=True)
+class SharedIndex:
+    """The index on a server every replica shares (the ``milvus`` kind, ``GEOLOC_MILVUS_URI``) instead of in
+    each process: no per-replica build from the change log and no snapshot; the process holding the writer
+    role alone writes to it, and records in the store the change-log version it holds, so that the others
+    know how far it is. ``collection``: the base name of its collections (one per part and generation).
+    ``wait_seconds``: how long a search waits for the writer to apply changes the store already holds (a
+    finished upload is found first through every replica); past it, it searches what the server has."""
+
+    uri: str
+    collection: str = "geoloc"
+    kind: str = "milvus"
+    wait_seconds: float = 10.0
+
+    def params(self, part: str, generation: int) -> dict:
+        """``build_index`` keyword arguments of one part of one generation (a re-fit's codes get new ones)."""
+        from app.engine.index.kinds.milvus import collection_name
+
+        return {"uri": self.uri, "collection": collection_name(self.collection, part, generation)}
+
+    def version_key(self, generation: int) -> str:
+        """The store's meta key holding the change-log version the server's collections hold."""
+        return f"shared_index_version:{self.kind}:{self.collection}:g{generation}"
+
+
 #: ``IndexSizing.switch_at``'s default (``Settings.index_switch_at``).
 DEFAULT_SWITCH_AT = 200_000
 
@@ -47,14 +72,25 @@ class IndexSizing:
     switch_at: int = DEFAULT_SWITCH_AT
     #: After a failed switch, the next try waits this long (a training that fails fails again at once).
     retry_seconds: float = 600.0
+    #: The index on a shared server instead (``SharedIndex``): its kind at every size, nothing switches.
+    shared: SharedIndex | None = None
 
     def due(self, index: ReferenceIndex) -> bool:
+        if self.shared is not None:
+            return False
         return self.switch_at > 0 and index.switches_by_size and index.is_exact and index.size >= self.switch_at
 
     def describe(self, index: ReferenceIndex, switching: bool) -> str:
         """How the kind is chosen, for /ready."""
         from app.engine.index.references import COMPRESSED_KINDS
 
+        if self.shared is not None:
+            from app.engine.index.kinds.milvus import public_uri
+
+            return (
+                f"{self.shared.kind} at every size: the collections {self.shared.collection}_* on "
+                f"{public_uri(self.shared.uri)}, shared by every replica"
+            )
         if not index.switches_by_size:
             return "the configuration's kinds at every size"
         if self.switch_at <= 0:

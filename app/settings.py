@@ -9,7 +9,7 @@ from pydantic import Field
 from pydantic_settings import SettingsConfigDict
 
 from app.engine.configs import DEFAULT_CONFIG
-from app.policies import IndexSizing, SnapshotPolicy
+from app.policies import IndexSizing, SharedIndex, SnapshotPolicy
 from app.storage.settings import StorageSettings
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
@@ -105,6 +105,23 @@ class Settings(StorageSettings):
         "kinds, ivf-rabitq for floats and binary-ivf for bits, built in the background (0: never; "
         "app/usecases/collection.py, IndexSizing, says why 200,000)",
     )
+    milvus_uri: str | None = Field(
+        None,
+        description="serve the index from this Milvus server (http://host:19530; a cluster's proxy) instead of "
+        "each process's FAISS index: every replica shares it, the writer alone writes (docs/milvus.md; needs "
+        "the milvus extra)",
+    )
+    milvus_collection: str = Field(
+        "geoloc",
+        pattern=r"^[A-Za-z_][A-Za-z0-9_]{0,200}$",
+        description="the base name of the Milvus collections (one per code part and generation)",
+    )
+    milvus_wait_seconds: float = Field(
+        10.0,
+        gt=0,
+        description="with GEOLOC_MILVUS_URI: how long a search waits for the writer to apply a change the "
+        "store holds (a finished upload found first through every replica)",
+    )
     ort_threads: int = Field(
         0,
         ge=0,
@@ -148,7 +165,10 @@ class Settings(StorageSettings):
         return SnapshotPolicy(self.snapshot_every_changes, self.snapshot_every_seconds)
 
     def index_sizing(self) -> IndexSizing:
-        return IndexSizing(self.index_switch_at)
+        shared = None
+        if self.milvus_uri:
+            shared = SharedIndex(self.milvus_uri, self.milvus_collection, wait_seconds=self.milvus_wait_seconds)
+        return IndexSizing(self.index_switch_at, shared=shared)
 
     def image_limits(self):
         from app.engine.imageio import ImageLimits

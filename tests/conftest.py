@@ -145,6 +145,25 @@ def postgres_server():
     server.stop()
 
 
+@pytest.fixture(scope="session")
+def milvus_server():
+    """A Milvus standalone of the session's own, from the ``milvus`` wheel (``tools/milvus_server.py``), on
+    free ports in a temporary directory, stopped and removed at the session's end. Skips, saying why, only
+    where none can run: the ``milvus`` extra not installed (``make test`` installs it)."""
+    from tools.milvus_server import MilvusServer, NoMilvus
+
+    try:
+        import pymilvus  # noqa: F401
+    except ImportError:
+        pytest.skip("pymilvus is not installed: pip install -e '.[milvus]' (make test does)")
+    try:
+        server = MilvusServer().start()
+    except NoMilvus as e:
+        pytest.skip(f"no Milvus server can run here: {e}")
+    yield server
+    server.remove()
+
+
 @pytest.fixture(params=["sqlite", "postgres"])
 def backend(request, monkeypatch) -> str:
     """Runs a test on both engines of the store: with ``postgres``, ``GEOLOC_DATABASE_URL`` names a fresh

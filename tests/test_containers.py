@@ -155,3 +155,25 @@ def test_image_can_dump_the_compose_database():
     compose = yaml.safe_load((REPO / "docker-compose.yml").read_text())
     server = int(re.fullmatch(r"postgres:(\d+)(\.\d+)?(-\w+)?", compose["services"]["postgres"]["image"]).group(1))
     assert server <= DEBIAN_POSTGRES_CLIENT[release], (server, release)
+
+
+def test_compose_milvus_profile_runs_milvus_standalone_and_an_api_on_it():
+    """`--profile milvus`: Milvus standalone with its etcd and MinIO, and an API whose index is on it
+    (GEOLOC_MILVUS_URI) with its own data dir; `up` alone runs none of them. The image has the client the
+    milvus extra pins (read from pyproject.toml, not repeated)."""
+    compose = yaml.safe_load((REPO / "docker-compose.yml").read_text())
+    services = compose["services"]
+    names = ("milvus-etcd", "milvus-minio", "milvus", "api-milvus")
+    assert all(services[n]["profiles"] == ["milvus"] for n in names)
+    milvus, api = services["milvus"], services["api-milvus"]
+    assert milvus["image"] == "milvusdb/milvus:v2.3.5" and milvus["command"] == ["milvus", "run", "standalone"]
+    assert milvus["environment"]["ETCD_ENDPOINTS"] == "milvus-etcd:2379"
+    assert milvus["environment"]["MINIO_ADDRESS"] == "milvus-minio:9000"
+    assert api["image"] == services["api"]["image"]
+    assert api["environment"]["GEOLOC_MILVUS_URI"] == "http://milvus:19530"
+    assert api["depends_on"]["milvus"]["condition"] == "service_healthy"
+    assert "geoloc-milvus-data:/data" in api["volumes"]
+    pyproject = (REPO / "pyproject.toml").read_text()
+    pin = re.search(r'^milvus = \["(pymilvus==[0-9.]+)", "milvus==[0-9.]+"\]', pyproject, re.M)
+    assert pin and re.match(r"pymilvus==[0-9.]+$", pin.group(1))
+    assert any("grep -o 'pymilvus==[0-9.]*' pyproject.toml" in rest for op, rest in _instructions() if op == "RUN")

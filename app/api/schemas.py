@@ -252,7 +252,8 @@ class ReadyOut(BaseModel):
     #: Where the rows are: ``sqlite`` (the data dir) or ``postgres`` (GEOLOC_DATABASE_URL, shared by replicas).
     database: str | None = None
     #: How this process loaded its index: from a ``snapshot`` (plus the changes after it), or ``rebuilt`` from
-    #: the database's codes (a replica starting cold with no snapshot it can trust).
+    #: the database's codes (a replica starting cold with no snapshot it can trust), or ``shared``: the index is
+    #: on a server every replica uses (GEOLOC_MILVUS_URI), nothing loaded here.
     index_loaded: str | None = None
     #: Which index kind serves each part (``float``, ``binary``) and its parameters (``VectorIndex.stats``).
     index: dict[str, dict[str, Any]] | None = None

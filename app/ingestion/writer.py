@@ -109,6 +109,7 @@ class Writer:
         if not self.acquire():
             return False
         assert self.service is not None and self.collection is not None
+        self.collection.hold_writer_role(True)
         worker = self._worker(self.service)
         worker.start()
         self.janitor = Janitor(self.service.store).start()
@@ -159,6 +160,8 @@ class Writer:
 
     def _stop_threads(self) -> None:
         """The role's threads stopped, without a final snapshot (the role may be another process's now)."""
+        if self.collection is not None:
+            self.collection.hold_writer_role(False)
         if self.worker is not None:
             self.worker.stop()
             self.worker = None
@@ -195,6 +198,7 @@ class Writer:
 
     def _run_held(self, service: GeolocService, check_every: float | None) -> bool:
         """The role's work while the lock is held; True when it ended because the lock's session was lost."""
+        service.collection.hold_writer_role(True)
         self.worker = self._worker(service)
         self.snapshots = SnapshotWriter(service.collection)
         self.snapshots.start()
@@ -259,6 +263,7 @@ class Writer:
         self.attach(service)
         if not self.held:
             return 0
+        service.collection.hold_writer_role(True)
         worker = self._worker(service)
         left = 0
         while done := worker.run_once():

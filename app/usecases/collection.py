@@ -14,6 +14,11 @@ Why it is built this way (cost per change independent of the collection's size):
   policy below: on a copy of the index taken under the lock (a memory copy), compacted and written to disk
   with the lock released, then swapped in after replaying what arrived meanwhile. Searches never wait for
   a disk write.
+- With a shared index (``IndexSizing.shared``: the ``milvus`` kind) the index lives on a server every
+  replica uses: no snapshot and no build per process. The process holding the writer role applies the log
+  to it and records in the store the version the server holds; the others read that version and, before a
+  search, wait (up to ``SharedIndex.wait_seconds``) until it reaches the store's, so that a finished upload
+  is found and a deleted reference is gone through every replica.
 """
 
 from __future__ import annotations
@@ -158,6 +163,8 @@ class Collection:
         self._first_pending_at: float | None = None  # when the oldest change not in a snapshot was applied
         self.rebuilt = False  # loaded by a full rebuild: a snapshot is due as soon as a writer can take it
         self._calibration: tuple[tuple[int, int], Calibration] | None = None  # (pipeline, version) -> the rule
+        self.shared = self.sizing.shared  # the index on a shared server (``SharedIndex``), or None
+        self.writes_shared = False  # this process holds the writer role: it alone writes to a shared index
         self.index, self.version = self._load()
 
     @classmethod
@@ -192,6 +199,9 @@ class Collection:
 
     # -- loading --------------------------------------------------------------------------------------
     def _load(self) -> tuple[ReferenceIndex, int]:
+        if self.shared is not None:
+            index = self._shared_index(self.pipeline, self.generation)
+            return index, self._shared_version(self.generation) or 0
         try:
             index, manifest = load_snapshot(self.store.snapshots_dir, self.pipeline, self.store)
         except SnapshotInvalid as e:
@@ -219,6 +229,91 @@ class Collection:
         log.info("index rebuilt from %d stored codes in %.1f s", index.size, time.perf_counter() - t0)
         return index, version
 
+    # -- a shared index (``SharedIndex``) ---------------------------------------------------------------
+    def _shared_index(self, pipeline: Pipeline, generation: int) -> ReferenceIndex:
+        """The generation's index on the shared server (connected on first use)."""
+        shared = self.shared
+        assert shared is not None
+        parts = [p for p, n in (("float", pipeline.float_dim), ("binary", pipeline.bits)) if n]
+        return ReferenceIndex(
+            pipeline.config,
+            pipeline.float_dim,
+            pipeline.bits,
+            kinds={p: shared.kind for p in parts},
+            params={p: shared.params(p, generation) for p in parts},
+        )
+
+    def _shared_version(self, generation: int) -> int | None:
+        """The change-log version the server holds for ``generation`` (None: never filled)."""
+        assert self.shared is not None
+        value = self.store.get_meta(self.shared.version_key(generation))
+        return int(value) if value is not None else None
+
+    def hold_writer_role(self, held: bool) -> None:
+        """Called by the writer role (``app.ingestion.writer``) as it is taken and given up: only its holder
+        writes to a shared index (its next catch-up fills or updates it)."""
+        self.writes_shared = held
+
+    def _fill_shared(self, index: ReferenceIndex, generation: int) -> int | None:
+        """As the writer: the generation's collections emptied and filled from the store's codes, then their
+        version recorded. None when the generation changed meanwhile."""
+        assert self.shared is not None
+        for part in index.parts().values():
+            part.drop()
+        with self.store.code_stream() as stream:
+            if stream.generation != generation:
+                return None
+            index_from_stream(self.pipeline, stream.chunks, into=index)
+            version = stream.version
+        for part in index.parts().values():
+            part.connect_fresh()  # made again by this fill: not lost
+        self.store.set_meta(self.shared.version_key(generation), str(version))
+        self.stats.full_rebuilds += 1
+        log.info("shared index filled with %d references at version %d", index.size, version)
+        return version
+
+    def _writer_catch_up(self, head: int) -> int:
+        """As the writer (under the lock): fill the server's collections if they were never filled or are gone
+        (a new server), then apply the log up to ``head`` and record the version they hold."""
+        assert self.shared is not None
+        recorded = self._shared_version(self.generation)
+        fresh = [p.connect_fresh() for p in self.index.parts().values()]  # every part: each may be lost
+        if recorded is None or any(fresh):
+            filled = self._fill_shared(self.index, self.generation)
+            if filled is None:
+                return 0
+            self.version = filled
+        else:
+            self.version = recorded
+        changes = [c for c in self.store.changes_since(self.version) if c.version <= head]
+        if not changes:
+            return 0
+        apply_changes(self.index, changes)
+        self.version = changes[-1].version
+        self.store.set_meta(self.shared.version_key(self.generation), str(self.version))
+        self.stats.changes_applied += len(changes)
+        return len(changes)
+
+    def _wait_for_shared(self, head: int) -> None:
+        """As a reader: wait until the writer has applied the log up to ``head`` (bounded)."""
+        assert self.shared is not None
+        deadline = time.monotonic() + self.shared.wait_seconds
+        while True:
+            held = self._shared_version(self.generation) or 0
+            if held >= head:
+                self.version = max(self.version, held)
+                return
+            if time.monotonic() >= deadline:
+                log.warning(
+                    "the shared index holds version %d, the store %d: no writer applied the rest within %.0f s",
+                    held,
+                    head,
+                    self.shared.wait_seconds,
+                )
+                self.version = max(self.version, held)
+                return
+            time.sleep(0.02)
+
     # -- switching generation -------------------------------------------------------------------------
     def _load_generation(self) -> bool:
         """Load the data dir's current generation (pipeline, then its snapshot or a rebuild from SQLite)
@@ -230,6 +325,8 @@ class Collection:
             return False
         t0 = time.perf_counter()
         pipeline = pipeline_source(self.store.data_dir, self.models_dir, ref, name or self.pipeline.config.name).load()
+        if self.shared is not None:
+            return self._switch_shared_generation(pipeline, generation, ref, t0)
         try:
             index, manifest = load_snapshot(self.store.snapshots_dir, pipeline, self.store)
             if manifest.generation != generation:
@@ -252,6 +349,33 @@ class Collection:
             if rebuilt:
                 self.stats.full_rebuilds += 1
         release_free_memory()  # the old generation's index and the stream's chunks
+        log.info("switched to generation %d (%s) in %.1f s", generation, ref, time.perf_counter() - t0)
+        self.catch_up()
+        return True
+
+    def _switch_shared_generation(self, pipeline: Pipeline, generation: int, ref, t0: float) -> bool:
+        """``_load_generation`` with a shared index: the writer fills the new generation's collections, the
+        others wait for that (they keep serving the old one; the next catch-up tries again)."""
+        index = self._shared_index(pipeline, generation)
+        version = self._shared_version(generation)
+        if version is None:
+            if not self.writes_shared:
+                return False
+            for part in index.parts().values():
+                part.drop()
+            with self.store.code_stream() as stream:
+                if stream.generation != generation:
+                    return False
+                index_from_stream(pipeline, stream.chunks, into=index)
+                version = stream.version
+            for part in index.parts().values():
+                part.connect_fresh()  # made by this fill: not lost
+            assert self.shared is not None
+            self.store.set_meta(self.shared.version_key(generation), str(version))
+        with self.lock:
+            if self.generation >= generation:
+                return False
+            self.pipeline, self.index, self.version, self.generation = pipeline, index, version, generation
         log.info("switched to generation %d (%s) in %.1f s", generation, ref, time.perf_counter() - t0)
         self.catch_up()
         return True
@@ -360,6 +484,13 @@ class Collection:
         if generation != self.generation:
             self.refresh_generation()
             return 0
+        if self.shared is not None:
+            if self.writes_shared:
+                with self.lock:
+                    return self._writer_catch_up(version) if generation == self.generation else 0
+            if version > self.version:
+                self._wait_for_shared(version)
+            return 0
         if version == self.version:
             return 0
         with self.lock:
@@ -417,6 +548,8 @@ class Collection:
         return self.version - (self.stats.snapshot_version or 0)
 
     def snapshot_due(self) -> bool:
+        if self.shared is not None:  # the server keeps its data: nothing to snapshot
+            return False
         if self.rebuilt:
             return True
         pending = self.pending_changes()
@@ -433,6 +566,10 @@ class Collection:
         compaction due (tombstones of a flat index), a copy is compacted and written without the lock and
         swapped in after replaying whatever was applied meanwhile. Returns False when there was nothing to
         write."""
+        if self.shared is not None:  # only the writer role's holder calls this: it brings the server up to date
+            self.writes_shared = True
+            self.catch_up()
+            return False
         with self._snapshot_lock:
             self.catch_up()
             with self.lock:

@@ -1,0 +1,364 @@
+"""An index held by a Milvus server (standalone or cluster) instead of this process: one shared index for
+every replica, past what one replica's RAM holds.
+
+Why a remote kind: the FAISS kinds keep the whole index in each replica, built from the store's change log.
+Past about 10^8 references, or where one shared index is wanted rather than N copies, the index belongs on
+a distributed vector engine. Milvus fits the codes: float vectors (inner product, HNSW), binary vectors
+(Hamming), filter expressions (the region filter: ``id in [...]``), deletes by primary key, and strong
+consistency (a search sees every write acknowledged before it).
+
+One Milvus collection per part (``float`` / ``binary``): an ``id`` primary key and a ``code`` vector. Writes
+are upserts, so replaying a change the server already holds changes nothing (a new writer replays from the
+last version it recorded). There is nothing to train, compact or snapshot here: the server keeps its data.
+The client connects on first use, so a process starts while Milvus is down and answers ``IndexUnavailable``
+(a 503) until it is back; every call that fails drops the connection and the next one connects again.
+
+pymilvus is an optional dependency (the ``milvus`` extra): this module imports it only when used.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import re
+import threading
+from pathlib import Path
+from typing import Any
+from urllib.parse import urlsplit, urlunsplit
+
+import numpy as np
+
+from app.engine.errors import GeolocError
+from app.engine.index.base import StagedDump, register_index_kind
+
+#: Ids per ``id in [...]`` expression or per upsert: Milvus caps an expression's and a message's size.
+BATCH = 4096
+#: Seconds one call to the server may take before the index counts as unreachable.
+DEFAULT_TIMEOUT = 10.0
+
+
+class IndexUnavailable(GeolocError):
+    """The server holding the index cannot be reached or refused the call: retry once it is back (a 503)."""
+
+
+class SharedIndexNotSnapshotted(GeolocError):
+    """A shared index has no snapshot file: the server keeps its data (a bug if ever raised)."""
+
+
+def public_uri(uri: str) -> str:
+    """``uri`` without a password (what /ready, /metrics and error messages show)."""
+    parts = urlsplit(uri)
+    if parts.password is None:
+        return uri
+    host = parts.hostname or ""
+    netloc = f"{parts.username}:***@{host}" + (f":{parts.port}" if parts.port else "")
+    return urlunsplit(parts._replace(netloc=netloc))
+
+
+def collection_name(base: str, part: str, generation: int) -> str:
+    """The Milvus collection of one part of one generation (a re-fit's codes go into new collections)."""
+    name = re.sub(r"[^A-Za-z0-9_]", "_", f"{base}_{part}_g{generation}")
+    return name if name[0].isalpha() or name[0] == "_" else f"c_{name}"
+
+
+class MilvusIndex:
+    """A ``VectorIndex`` on one Milvus collection. ``shared``: every process that names the same collection
+    sees the same index (the collection layer then lets only the writer write, and writes no snapshot)."""
+
+    kind = "milvus"
+    shared = True
+
+    def __init__(
+        self,
+        dim: int,
+        binary: bool,
+        uri: str = "http://localhost:19530",
+        collection: str = "geoloc",
+        token: str = "",
+        timeout: float = DEFAULT_TIMEOUT,
+        m: int = 32,
+        ef_construction: int = 200,
+        ef_search: int = 256,
+    ):
+        if binary and dim % 8:
+            raise ValueError("binary codes need a multiple of 8 bits")
+        self.dim, self.binary = dim, binary
+        self.uri, self.collection, self.token, self.timeout = uri, collection, token, timeout
+        self.m, self.ef_construction, self.ef_search = m, ef_construction, ef_search
+        self.created = False  # this process made the collection (it was absent: new, or the server lost it)
+        self._client = None
+        self._connect_lock = threading.Lock()
+
+    # -- the connection ---------------------------------------------------------------------------------
+    def _call(self, what: str, fn):
+        """Run ``fn(client)``; any failure of the server or of the connection is ``IndexUnavailable``, and
+        the connection is dropped so that the next call makes a new one."""
+        try:
+            return fn(self._connected())
+        except IndexUnavailable:
+            raise
+        except Exception as e:  # pymilvus raises MilvusException, grpc errors, timeouts...
+            self._client = None
+            raise IndexUnavailable(
+                f"the Milvus server at {public_uri(self.uri)} cannot {what} ({type(e).__name__}: {e}); "
+                "nothing stored is lost: retry once it is reachable"
+            ) from e
+
+    def _connected(self):
+        client = self._client
+        if client is not None:
+            return client
+        with self._connect_lock:
+            if self._client is None:
+                from pymilvus import MilvusClient
+
+                client = MilvusClient(uri=self.uri, token=self.token, timeout=self.timeout)
+                if not client.has_collection(self.collection, timeout=self.timeout):
+                    self._create(client)
+                    self.created = True
+                client.load_collection(self.collection, timeout=self.timeout)
+                self._client = client
+            return self._client
+
+    def _create(self, client) -> None:
+        from pymilvus import DataType, MilvusClient
+
+        schema = MilvusClient.create_schema(auto_id=False, enable_dynamic_field=False)
+        schema.add_field("id", DataType.INT64, is_primary=True)
+        schema.add_field("code", DataType.BINARY_VECTOR if self.binary else DataType.FLOAT_VECTOR, dim=self.dim)
+        params = client.prepare_index_params()
+        if self.binary:  # the codes are small (32 B at 256 bits): an exact Hamming scan of each segment
+            params.add_index(field_name="code", index_type="BIN_FLAT", metric_type="HAMMING")
+        else:
+            params.add_index(
+                field_name="code",
+                index_type="HNSW",
+                metric_type="IP",
+                params={"M": self.m, "efConstruction": self.ef_construction},
+            )
+        client.create_collection(
+            self.collection, schema=schema, index_params=params, consistency_level="Strong", timeout=self.timeout
+        )
+
+    def connect_fresh(self) -> bool:
+        """Connect now (no call to the server when connected already); True once after this process created
+        the collection because the server lacked it (new, or lost): the caller fills it then."""
+        self._call("connect", lambda c: None)
+        fresh, self.created = self.created, False
+        return fresh
+
+    def drop(self) -> None:
+        """Remove the collection from the server (a writer refilling it from the store starts here)."""
+        self._call("drop the collection", lambda c: c.drop_collection(self.collection, timeout=self.timeout))
+        self._client = None
+        self.created = False
+
+    def close(self) -> None:
+        client, self._client = self._client, None
+        if client is not None:
+            with contextlib.suppress(Exception):  # already gone: nothing to close
+                client.close()
+
+    # -- the protocol -----------------------------------------------------------------------------------
+    @property
+    def is_trained(self) -> bool:
+        return True
+
+    def train(self, x: np.ndarray) -> None:
+        """Nothing to train: HNSW and the binary scan learn nothing from the codes."""
+
+    def _prepare(self, x: np.ndarray) -> np.ndarray:
+        x = np.atleast_2d(x)
+        if self.binary:
+            x = np.ascontiguousarray(x, dtype=np.uint8)
+            if x.shape[1] * 8 != self.dim:
+                raise ValueError(f"binary codes of {x.shape[1] * 8} bits for an index of {self.dim}")
+        else:
+            x = np.ascontiguousarray(x, dtype=np.float32)
+            if x.shape[1] != self.dim:
+                raise ValueError(f"vectors of dimension {x.shape[1]} for an index of {self.dim}")
+        return x
+
+    def _vectors(self, x: np.ndarray) -> list:
+        return [row.tobytes() for row in x] if self.binary else x.tolist()
+
+    def add(self, ids: np.ndarray, x: np.ndarray) -> None:
+        """Upserts: an id the server holds already is replaced, so a replayed change is harmless."""
+        ids = np.ascontiguousarray(ids, dtype=np.int64)
+        x = self._prepare(x)
+        for s in range(0, len(ids), BATCH):
+            chunk = zip(ids[s : s + BATCH].tolist(), self._vectors(x[s : s + BATCH]), strict=True)
+            rows = [{"id": int(i), "code": v} for i, v in chunk]
+            self._call("store codes", lambda c, rows=rows: c.upsert(self.collection, rows, timeout=self.timeout))
+
+    def _present(self, ids: list[int]) -> list[int]:
+        found: list[int] = []
+        for s in range(0, len(ids), BATCH):
+            chunk = ids[s : s + BATCH]
+            rows = self._call(
+                "read ids",
+                lambda c, chunk=chunk: c.query(
+                    self.collection, filter=f"id in {chunk}", output_fields=["id"], timeout=self.timeout
+                ),
+            )
+            found += [int(r["id"]) for r in rows]
+        return found
+
+    def remove(self, ids) -> int:
+        """Deleted on the server at once (no tombstones here); returns how many were stored."""
+        ids = sorted({int(i) for i in ids})
+        present = self._present(ids)
+        for s in range(0, len(present), BATCH):
+            chunk = present[s : s + BATCH]
+            self._call(
+                "delete codes", lambda c, chunk=chunk: c.delete(self.collection, ids=chunk, timeout=self.timeout)
+            )
+        return len(present)
+
+    def compact(self) -> None:
+        """The server compacts its own segments."""
+
+    def removed_ids(self) -> np.ndarray:
+        return np.zeros(0, np.int64)
+
+    @property
+    def compaction_due(self) -> bool:
+        return False
+
+    def _to_scores(self, d: np.ndarray) -> np.ndarray:
+        if self.binary:
+            return 1.0 - np.asarray(d, np.float32) / self.dim
+        return np.clip((1.0 + np.asarray(d, np.float32)) / 2.0, 0.0, 1.0).astype(np.float32)
+
+    def search(self, q: np.ndarray, k: int, allowed: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Top ``k`` per query, best first, -1 padded. ``allowed`` (the region filter) becomes the filter
+        expression ``id in [...]``, which the server applies inside the search."""
+        q = self._prepare(q)
+        nq = len(q)
+        scores = np.zeros((nq, k), np.float32)
+        out_ids = np.full((nq, k), -1, np.int64)
+        if k <= 0:
+            return scores, out_ids
+        expr = ""
+        if allowed is not None:
+            allowed = np.unique(np.asarray(allowed, np.int64))
+            if not len(allowed):
+                return scores, out_ids
+            expr = f"id in {allowed.tolist()}"
+        metric = "HAMMING" if self.binary else "IP"
+        params: dict[str, Any] = {"metric_type": metric}
+        if not self.binary:
+            params["params"] = {"ef": max(self.ef_search, k)}
+        hits = self._call(
+            "search",
+            lambda c: c.search(
+                self.collection,
+                data=self._vectors(q),
+                limit=k,
+                filter=expr,
+                search_params=params,
+                output_fields=[],
+                timeout=self.timeout,
+            ),
+        )
+        for r, row in enumerate(hits):
+            row = list(row)[:k]
+            if row:
+                out_ids[r, : len(row)] = [int(h["id"]) for h in row]
+                scores[r, : len(row)] = self._to_scores([h["distance"] for h in row])
+        return scores, out_ids
+
+    def reconstruct(self, ids) -> np.ndarray:
+        """Stored codes of ``ids``, in order (an id not stored: a ``KeyError``)."""
+        ids = [int(i) for i in ids]
+        width = self.dim // 8 if self.binary else self.dim
+        out = np.zeros((len(ids), width), np.uint8 if self.binary else np.float32)
+        if not ids:
+            return out
+        by_id = {}
+        for s in range(0, len(ids), BATCH):
+            chunk = ids[s : s + BATCH]
+            rows = self._call(
+                "read codes",
+                lambda c, chunk=chunk: c.query(
+                    self.collection, filter=f"id in {chunk}", output_fields=["id", "code"], timeout=self.timeout
+                ),
+            )
+            for row in rows:
+                code = row["code"]
+                if self.binary:
+                    code = code[0] if isinstance(code, list) else code
+                    by_id[int(row["id"])] = np.frombuffer(bytes(code), np.uint8)
+                else:
+                    by_id[int(row["id"])] = np.asarray(code, np.float32)
+        for n, i in enumerate(ids):
+            out[n] = by_id[i]
+        return out
+
+    def score_ids(self, q: np.ndarray, ids: np.ndarray) -> np.ndarray:
+        """Exact scores against stored ``ids`` (the two-stage re-rank), computed here from their codes."""
+        codes = self.reconstruct(ids)
+        if self.binary:
+            qb = np.unpackbits(self._prepare(q)[0])
+            return self._to_scores((np.unpackbits(codes, axis=1) != qb).sum(axis=1))
+        return self._to_scores(codes @ self._prepare(q)[0])
+
+    def ids(self) -> np.ndarray:
+        out: list[int] = []
+
+        def read(c) -> None:
+            it = c.query_iterator(self.collection, batch_size=BATCH, filter="id >= 0", output_fields=["id"])
+            try:
+                while batch := it.next():
+                    out.extend(int(r["id"]) for r in batch)
+            finally:
+                it.close()
+
+        self._call("list ids", read)
+        return np.sort(np.array(out, np.int64))
+
+    @property
+    def size(self) -> int:
+        rows = self._call(
+            "count",
+            lambda c: c.query(self.collection, filter="", output_fields=["count(*)"], timeout=self.timeout),
+        )
+        return int(rows[0]["count(*)"]) if rows else 0
+
+    def copy(self) -> MilvusIndex:
+        """The same shared index: there is no copy of a server's collection to take (nothing snapshots it)."""
+        return self
+
+    def dump(self, path: Path) -> None:
+        raise SharedIndexNotSnapshotted(f"the milvus index lives on the server ({self.collection}): no snapshot")
+
+    def stage_dump(self, path: Path) -> StagedDump:
+        self.dump(path)
+        return StagedDump()
+
+    def load(self, path: Path) -> None:
+        raise SharedIndexNotSnapshotted(f"the milvus index lives on the server ({self.collection}): no snapshot")
+
+    def stats(self) -> dict[str, Any]:
+        """Never fails: an unreachable server is reported in the stats (/ready says so instead of erroring)."""
+        try:
+            size = self.size
+            reachable, why = True, None
+        except IndexUnavailable as e:
+            size, reachable, why = -1, False, str(e)
+        return {
+            "kind": self.kind,
+            "binary": self.binary,
+            "dim": self.dim,
+            "trained": True,
+            "size": size,
+            "tombstones": 0,
+            "uri": public_uri(self.uri),
+            "collection": self.collection,
+            "quantizer": "BIN_FLAT" if self.binary else "HNSW",
+            "m": None if self.binary else self.m,
+            "reachable": reachable,
+            **({"error": why} if why else {}),
+        }
+
+
+register_index_kind(MilvusIndex.kind, MilvusIndex)

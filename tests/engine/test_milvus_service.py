@@ -1,0 +1,190 @@
+"""The ``milvus`` index kind through the real service, on a real Milvus server (the ``milvus`` wheel's
+embedded standalone, started once for the module's session) and real penn photos.
+
+A fitted pipeline's codes are served from Milvus (``GEOLOC_MILVUS_URI``: ``IndexSizing.shared``): the
+writer fills and updates the server's collections, a second service on the same store (a replica) builds
+nothing and finds what the writer indexed, in every search mode, with the region filter, and a delete is
+gone at once through both. Milvus stopped: a clear 503 (``not_ready``); started again: the same references,
+served again without a restart of the service."""
+
+from __future__ import annotations
+
+import time
+
+import pytest
+
+from app.engine import configs as configs_mod
+from app.engine.configs import PipelineConfig
+from app.manifests import read_manifest
+
+pytestmark = pytest.mark.milvus
+
+#: Small and fast codes (SqueezeNet GeM, 64-d floats and 64 bits): float, binary and two-stage search.
+CONFIG = PipelineConfig(
+    name="squeezenet-gem-milvus-test",
+    description="SqueezeNet GeM codes, float and binary (test)",
+    local=None,
+    codebook=None,
+    cnn_global_weight=1.0,
+    cnn_short_side=224,
+    pca_dim=64,
+    binary="itq",
+    bits=64,
+)
+MODES = ("two-stage", "float", "binary")
+
+
+@pytest.fixture(scope="module")
+def fitted_models(models_dir, mini_manifest, tmp_path_factory):
+    from app.cli import fit
+
+    configs_mod.CONFIGS[CONFIG.name] = CONFIG
+    models = tmp_path_factory.mktemp("milvus-models")
+    (models / "squeezenet1_1.onnx").symlink_to(models_dir / "squeezenet1_1.onnx")
+    fit(
+        manifest=mini_manifest,
+        config=CONFIG.name,
+        models_dir=models,
+        seed=0,
+        svm_bank=None,
+        svm_bank_kind="contrastive",
+    )
+    yield models
+    configs_mod.CONFIGS.pop(CONFIG.name, None)
+
+
+def _sizing(server, collection: str):
+    from app.policies import IndexSizing, SharedIndex
+
+    return IndexSizing(shared=SharedIndex(server.uri, collection, wait_seconds=5.0))
+
+
+def _indexed(service, uploads) -> list[int]:
+    from app.ingestion.worker import IngestWorker
+
+    accepted = service.accept(uploads)
+    worker = IngestWorker(service, batch_size=16)
+    while worker.run_once():
+        pass
+    return accepted.reference_ids
+
+
+def _first(service, image: bytes, mode: str, region=None) -> int | None:
+    from app.domain import LocateOptions
+
+    answer = service.locate(image, LocateOptions(top_k=5, mode=mode, region=region))
+    return answer.candidates[0].reference_id if answer.candidates else None
+
+
+def test_writer_and_replica_share_one_milvus_index(fitted_models, mini_manifest, milvus_server, tmp_path):
+    from app.domain import Region, Upload
+    from app.usecases.service import GeolocService
+
+    sizing = _sizing(milvus_server, "share")
+    writer = GeolocService.open(tmp_path / "data", fitted_models, CONFIG.name, sizing=sizing)
+    writer.collection.hold_writer_role(True)
+    db = [r for r in read_manifest(mini_manifest) if r.split == "db"]
+    ids = _indexed(writer, [Upload(r.image.read_bytes(), r.image.name, r.lat, r.lon) for r in db[:8]])
+    stats = writer.collection.index.stats()
+    assert {p: (s["kind"], s["size"], s["collection"]) for p, s in stats.items()} == {
+        "float": ("milvus", 8, "share_float_g0"),
+        "binary": ("milvus", 8, "share_binary_g0"),
+    }
+    assert "milvus at every size" in writer.collection.index_choice()
+
+    replica = GeolocService.open(tmp_path / "data", fitted_models, CONFIG.name, sizing=sizing)
+    assert replica.collection.stats.full_rebuilds == 0 and not replica.collection.writes_shared
+    for svc in (writer, replica):
+        for mode in MODES:
+            assert _first(svc, db[3].image.read_bytes(), mode) == ids[3], mode
+
+    # the region filter: a circle around another place leaves only the references inside it
+    other = next(r for r in db[:8] if (r.lat, r.lon) != (db[3].lat, db[3].lon))
+    inside = {i for i, r in zip(ids, db[:8], strict=True) if (r.lat, r.lon) == (other.lat, other.lon)}
+    region = Region(lat=other.lat, lon=other.lon, radius_m=1.0)
+    for mode in MODES:
+        assert _first(replica, db[3].image.read_bytes(), mode, region) in inside, mode
+
+    # an upload indexed by the writer is found first through the replica at once (no catch-up call)
+    (new,) = _indexed(writer, [Upload(db[9].image.read_bytes(), db[9].image.name, db[9].lat, db[9].lon)])
+    for mode in MODES:
+        assert _first(replica, db[9].image.read_bytes(), mode) == new, mode
+
+    # a delete through the replica (which does not write to Milvus) is gone at once once the writer applied it
+    assert replica.delete(ids[3]) is not None
+    writer.collection.catch_up()  # the writer's next catch-up (its worker or its change listener in a server)
+    for svc in (replica, writer):
+        for mode in MODES:
+            assert _first(svc, db[3].image.read_bytes(), mode) != ids[3], mode
+    assert writer.collection.size == replica.collection.size == 8
+    assert writer.collection.stats.full_rebuilds == 1  # filled once; every later change applied, not refilled
+    writer.store.close()
+    replica.store.close()
+
+
+def test_milvus_stopped_is_a_503_and_back_by_itself(fitted_models, mini_manifest, milvus_server, tmp_path):
+    from app.domain import Upload
+    from app.errors import code_of
+    from app.usecases.service import GeolocService
+
+    service = GeolocService.open(tmp_path / "data", fitted_models, CONFIG.name, sizing=_sizing(milvus_server, "rs"))
+    service.collection.hold_writer_role(True)
+    db = [r for r in read_manifest(mini_manifest) if r.split == "db"]
+    ids = _indexed(service, [Upload(r.image.read_bytes(), r.image.name, r.lat, r.lon) for r in db[:6]])
+    image = db[2].image.read_bytes()
+    assert _first(service, image, "float") == ids[2]
+
+    milvus_server.stop()
+    try:
+        with pytest.raises(Exception) as refused:
+            _first(service, image, "float")
+        assert code_of(refused.value) == "not_ready"
+        assert "Milvus server" in str(refused.value) and "retry" in str(refused.value)
+        assert service.collection.index.stats()["float"]["reachable"] is False
+    finally:
+        milvus_server.start()
+    deadline = time.monotonic() + 120
+    while True:  # the server reloads its collections after a restart; the same service answers again
+        try:
+            found = _first(service, image, "float")
+            break
+        except Exception as e:
+            if code_of(e) != "not_ready" or time.monotonic() > deadline:
+                raise
+            time.sleep(1.0)
+    assert found == ids[2]
+    assert service.collection.size == 6  # nothing lost
+    for mode in MODES:
+        assert _first(service, db[4].image.read_bytes(), mode) == ids[4], mode
+    service.store.close()
+
+
+def test_refit_fills_new_collections_and_both_switch(fitted_models, mini_manifest, milvus_server, tmp_path):
+    """A re-fit's new codes go into the next generation's collections: the writer fills them as it loads the
+    generation, the replica switches once they are filled, and both find a reference's own photo first."""
+    from app.domain import Upload
+    from app.jobs.refit import RefitOptions, refit
+    from app.usecases.service import GeolocService
+
+    sizing = _sizing(milvus_server, "refit")
+    data = tmp_path / "data"
+    writer = GeolocService.open(data, fitted_models, CONFIG.name, sizing=sizing)
+    writer.collection.hold_writer_role(True)
+    db = [r for r in read_manifest(mini_manifest) if r.split == "db"]
+    ids = _indexed(writer, [Upload(r.image.read_bytes(), r.image.name, r.lat, r.lon) for r in db])
+    replica = GeolocService.open(data, fitted_models, CONFIG.name, sizing=sizing)
+
+    refit(data, fitted_models, RefitOptions(svm_bank="none", sample=len(db), calibration_sample=len(db)))
+    writer.collection.catch_up()
+    writer.collection.refresh_generation(wait=True)
+    assert writer.collection.generation == 1, writer.collection.reload_error
+    assert writer.collection.index.stats()["float"]["collection"] == "refit_float_g1"
+    replica.collection.catch_up()
+    replica.collection.refresh_generation(wait=True)
+    assert replica.collection.generation == 1, replica.collection.reload_error
+    for svc in (writer, replica):
+        assert svc.collection.size == len(db)
+        for mode in MODES:
+            assert _first(svc, db[6].image.read_bytes(), mode) == ids[6], mode
+    writer.store.close()
+    replica.store.close()
