@@ -151,8 +151,8 @@ def sequence_answers(
         else:
             answer = replace(
                 single,
-                reason=f"not in this collection: with the sequence, the photo most likely shows no place of this "
-                f"collection ({p:.0%})",
+                reason=f"no reference looks like this photo: with the sequence, its most probable state is none of "
+                f"the candidates' places ({p:.0%})",
                 reason_code=NO_MATCH if single.reason_code in (AMBIGUOUS, NO_MATCH) else single.reason_code,
             )
         photos.append(SequencePhoto(_shown(answer, options), PIXELS, p, alone))

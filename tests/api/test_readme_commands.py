@@ -3,7 +3,7 @@
 Each line of the pages' ``sh`` blocks (README.md first, then docs/ by name) that starts with ``curl`` or
 ``geoloc`` runs in bash after the README's own set-up line (``source .venv/bin/activate``, from the checkout;
 ``geoloc`` is not on the PATH before it) and ``KEY=$(geoloc api-key)``. The files the lines name (photo.jpg,
-a.jpg, b.jpg, phone-photo-with-gps.jpg, survey.csv, ~/photos) are real penn-campus-gps photos put under those
+a.jpg, b.jpg, c.jpg, phone-photo-with-gps.jpg, survey.csv, ~/photos) are real penn-campus-gps photos put under those
 names in the shell's folder. A synopsis line runs in its shortest form: its optional ``[...]`` parts left out.
 
 The only rewrites are the ones a reader makes too (``PLACEHOLDERS``): the server's address (a free port
@@ -54,6 +54,14 @@ ELSEWHERE = {
     "geoloc ingest ~/photos --data-dir /var/lib/geoloc": "tests/api/test_postgres_hosts.py (ingest into "
     "PostgreSQL: operations.md's 'Several hosts' block needs a database server)",
     "geoloc serve --data-dir /var/lib/geoloc": "tests/api/test_postgres_hosts.py (two servers on PostgreSQL)",
+    "geoloc locate --sequence walk/": "tests/test_cli_sequence.py (test_a_folder_is_read_in_exif_time_order)",
+    "geoloc locate --sequence walk/ --brief": "tests/test_cli_sequence.py (a folder of real photos)",
+    "geoloc locate --video ride.mp4 --every 2": "tests/test_cli_sequence.py (test_a_video_every_second)",
+    "geoloc eval -m out/walks/penn-walks-0.csv --sequence-window 5 --cache out/cache --json out/walks/eval-0-w5.json": (
+        "tests/test_eval_sequence.py (a walk manifest from bench/sequence_walks.py, evaluated with a window)"
+    ),
+    "geoloc eval -m out/walks/penn-walks-0.csv --sequence-window 5 --svm-bank positive --svm-bank-source collection "
+    "--cache out/cache --json out/walks/eval-0-w5-bank.json": "tests/test_eval_sequence.py (the same, another bank)",
     "geoloc library scan ~/library --data-dir D --geojson out.geojson --csv out.csv": LIBRARY,
     "geoloc library scan ~/library --data-dir D": LIBRARY,
     "geoloc library list ~/library --data-dir D": LIBRARY,
@@ -105,6 +113,7 @@ def _real_photos(folder: Path) -> dict[str, Path]:
         "photo.jpg": PENN / "photos" / "img_00006.jpg",  # a query row of the mini manifest: its db crops are stored
         "a.jpg": PENN / "crops" / "img_00017_4.jpg",
         "b.jpg": PENN / "crops" / "img_00018_4.jpg",
+        "c.jpg": PENN / "crops" / "img_00021_4.jpg",
         "phone-photo-with-gps.jpg": PENN / "photos" / "img_00019.jpg",  # EXIF GPS
     }
     for name, src in names.items():
