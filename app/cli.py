@@ -10,6 +10,7 @@ from typing import Annotated
 
 import typer
 
+from app.engine.calibration import NO_MATCH_WORDS
 from app.engine.errors import GeolocError
 
 try:  # typer's own click (typer 0.29 vendors it); older typers use click itself
@@ -530,7 +531,8 @@ def _in_words(out: dict) -> str:
     spread = max(haversine_m(a["lat"], a["lon"], b["lat"], b["lon"]) for a in cands for b in cands)
     if out.get("reason_code") == "no_match":  # as the page says it: what was measured, not that the place is absent
         return (
-            f"No reference looks like this photo ({out['reason']}): the closest match is {name} at "
+            f"No reference looks like this photo ({out['reason'].removeprefix(NO_MATCH_WORDS)}): the closest match "
+            f"is {name} at "
             f"{best['lat']:.5f},{best['lon']:.5f}, score {best['score']:.3f}, and the {len(cands)} candidates "
             f"shown are spread over {spread:.0f} m. Compare their photos with yours."
         )

@@ -330,7 +330,7 @@ def test_brief_says_what_no_match_measures_and_an_estimate_its_disc():
         "reason_code": "no_match",
     }
     words = _in_words(out)
-    assert words.startswith("No reference looks like this photo (no reference looks") and "reference 3 (a.jpg)" in words
+    assert words.startswith("No reference looks like this photo (no candidate has a") and "reference 3 (a.jpg)" in words
     assert "not in this collection" not in words and "absent" not in words
     assert _in_words({**out, "reason_code": "ambiguous"}).startswith("Possible only")
     estimate = {"lat": 39.95, "lon": -75.19, "radius_m": 60.0, "radius_rate": 0.9, "confidence": 0.8}

@@ -100,6 +100,8 @@ CEILING_Z = 1.2816
 NO_FEATURES = "no_features"
 NO_REFERENCES = "no_references"
 NO_MATCH = "no_match"
+#: How a no_match reason begins: what was measured, never that the place is absent.
+NO_MATCH_WORDS = "no reference looks like this photo: "
 AMBIGUOUS = "ambiguous"
 
 
@@ -308,7 +310,7 @@ class Calibration:
             return Decision(
                 False,
                 NO_MATCH,
-                f"no reference looks like this photo: no candidate has a {self.no_match_p:.0%} chance of lying "
+                f"{NO_MATCH_WORDS}no candidate has a {self.no_match_p:.0%} chance of lying "
                 f"within 25 m of where it was taken (best {best:.0%})",
                 p,
                 answer_p,
