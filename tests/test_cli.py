@@ -301,7 +301,7 @@ def test_every_failure_is_one_line_and_a_documented_exit_code(tmp_path):
     cases = [
         (("locate", str(tmp_path / "missing.jpg"), *empty), 2, "missing.jpg: No such file or directory"),
         (("locate", photo, "--bogus"), 2, "No such option: --bogus"),
-        (("locate",), 2, "Missing argument"),
+        (("locate",), 2, "give one photo (several, or a folder, with --sequence)"),
         (("frobnicate",), 2, "No such command"),
         (("locate", photo, *empty), 3, "no fitted pipeline"),
         (("eval", "--manifest", str(tmp_path / "none.csv"), "--models-dir", str(tmp_path)), 2, "none.csv"),

@@ -37,7 +37,7 @@ def repo_paths(text: str) -> set[str]:
     prose = FENCE.sub("", text)
     found = {t for t in LINK.findall(prose) if not re.match(r"[a-z]+://", t)}
     for span in re.findall(r"`([^`\s]+)`", prose):
-        span = span.rstrip(".,:;)")
+        span = span.rstrip(".,:;)").split("::")[0]  # a pytest node id names its file
         if re.search(r"[*{}<>$]|\.\.\.|[A-Z]{2,}", span):  # a pattern or a placeholder (CONFIG, SHA256, ...)
             continue
         if span.startswith(ROOTS) or ("/" in span and re.search(r"\.(py|md|toml|yml|yaml)$", span)):
