@@ -134,6 +134,21 @@ IndexFactory = Callable[..., VectorIndex]
 _KINDS: dict[str, IndexFactory] = {}
 
 
+def checked_codes(x: np.ndarray, dim: int, binary: bool) -> np.ndarray:
+    """Codes as every kind takes them: 2-D, contiguous, uint8 bytes (binary) or float32, of the index's
+    dimension (a wrong one is refused here rather than by the engine, whose message names nothing of ours)."""
+    x = np.atleast_2d(x)
+    if binary:
+        x = np.ascontiguousarray(x, dtype=np.uint8)
+        if x.shape[1] * 8 != dim:
+            raise ValueError(f"binary codes of {x.shape[1] * 8} bits for an index of {dim}")
+    else:
+        x = np.ascontiguousarray(x, dtype=np.float32)
+        if x.shape[1] != dim:
+            raise ValueError(f"vectors of dimension {x.shape[1]} for an index of {dim}")
+    return x
+
+
 def register_index_kind(name: str, factory: IndexFactory) -> None:
     """Called by the kind's own module when it is imported."""
     _KINDS[name] = factory

@@ -15,7 +15,7 @@ from typing import Any, ClassVar
 import faiss
 import numpy as np
 
-from app.engine.index.base import IndexNotTrained, StagedDump
+from app.engine.index.base import IndexNotTrained, StagedDump, checked_codes
 
 #: FAISS's OpenMP threads when nothing says otherwise. One query at a time is the service's load: more
 #: threads would only fight onnxruntime's and OpenBLAS's for the cores (measured: a flat search right after the
@@ -64,16 +64,7 @@ class FaissIndex:
 
     # -- changes --------------------------------------------------------------------------------------
     def _prepare(self, x: np.ndarray) -> np.ndarray:
-        x = np.atleast_2d(x)
-        if self.binary:
-            x = np.ascontiguousarray(x, dtype=np.uint8)
-            if x.shape[1] * 8 != self.dim:
-                raise ValueError(f"binary codes of {x.shape[1] * 8} bits for an index of {self.dim}")
-        else:
-            x = np.ascontiguousarray(x, dtype=np.float32)
-            if x.shape[1] != self.dim:
-                raise ValueError(f"vectors of dimension {x.shape[1]} for an index of {self.dim}")
-        return x
+        return checked_codes(x, self.dim, self.binary)
 
     def add(self, ids: np.ndarray, x: np.ndarray) -> None:
         ids = np.ascontiguousarray(ids, dtype=np.int64)

@@ -28,7 +28,7 @@ from urllib.parse import urlsplit, urlunsplit
 import numpy as np
 
 from app.engine.errors import GeolocError
-from app.engine.index.base import StagedDump, register_index_kind
+from app.engine.index.base import StagedDump, checked_codes, register_index_kind
 
 #: Ids per ``id in [...]`` expression or per upsert: Milvus caps an expression's and a message's size.
 BATCH = 4096
@@ -167,16 +167,7 @@ class MilvusIndex:
         """Nothing to train: HNSW and the binary scan learn nothing from the codes."""
 
     def _prepare(self, x: np.ndarray) -> np.ndarray:
-        x = np.atleast_2d(x)
-        if self.binary:
-            x = np.ascontiguousarray(x, dtype=np.uint8)
-            if x.shape[1] * 8 != self.dim:
-                raise ValueError(f"binary codes of {x.shape[1] * 8} bits for an index of {self.dim}")
-        else:
-            x = np.ascontiguousarray(x, dtype=np.float32)
-            if x.shape[1] != self.dim:
-                raise ValueError(f"vectors of dimension {x.shape[1]} for an index of {self.dim}")
-        return x
+        return checked_codes(x, self.dim, self.binary)
 
     def _vectors(self, x: np.ndarray) -> list:
         return [row.tobytes() for row in x] if self.binary else x.tolist()
