@@ -220,7 +220,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_middleware(BodyLimits, settings=settings, routes=ROUTES)
     app.add_middleware(MetricsMiddleware, metrics=app.state.metrics)
     app.add_middleware(security.HtmlPolicy)  # outermost: every answer, refusals included, gets its headers
-    errors.install(app, settings.backend(settings.data_dir).exceptions)
+    backend = settings.backend(settings.data_dir)
+    errors.install(app, backend.exceptions, backend.unavailable)
     for router in ROUTERS:
         app.include_router(router)
     app.mount("/static", StaticFiles(directory=WEB_DIR), name="static")
