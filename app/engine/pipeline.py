@@ -15,6 +15,7 @@ from collections.abc import Iterable, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor, wait
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -370,12 +371,19 @@ class Pipeline:
         index.train(*self.encode_vector(vectors))
         return index
 
-    def new_index(self) -> ReferenceIndex:
+    def new_index(
+        self, kinds: dict[str, str] | None = None, params: dict[str, dict[str, Any]] | None = None
+    ) -> ReferenceIndex:
         """An empty index of this pipeline's codes, of the configuration's kinds, trained: the one way the
-        service makes one (live collection, snapshots, the SVM bank's training, the evaluation)."""
-        if self.trained_index is not None:
-            return self.trained_index.copy()
-        return ReferenceIndex(self.config, self.float_dim, self.bits)
+        service makes one (live collection, snapshots, the SVM bank's training, the evaluation). With
+        ``kinds`` (a part's kind where it is not the configuration's: a snapshot of an index that switched by
+        size, a shared index server) and ``params`` (a part's ``build_index`` arguments), an untrained one of
+        those kinds, which its caller loads or fills."""
+        if kinds is None and params is None:
+            if self.trained_index is not None:
+                return self.trained_index.copy()
+            return ReferenceIndex(self.config, self.float_dim, self.bits)
+        return ReferenceIndex(self.config, self.float_dim, self.bits, kinds=kinds, params=params)
 
     def _fit_whitening(
         self, vectors: np.ndarray, places: Sequence[Place | None] | None, seed: int
