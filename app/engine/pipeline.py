@@ -23,7 +23,7 @@ from app.engine.added_models import register_added_models
 from app.engine.artifacts import atomic_write_bytes, library_versions
 from app.engine.calibration import Calibration
 from app.engine.codes import Binariser
-from app.engine.configs import PipelineConfig, get_config
+from app.engine.configs import PipelineConfig, configs_serving, get_config
 from app.engine.dense import join_sampled, pool
 from app.engine.errors import IncompatibleArtifact, ModelNotReady
 from app.engine.imageio import ImageLimits, LoadedImage, load_image
@@ -365,7 +365,7 @@ class Pipeline:
         is fitted again (`geoloc fit`, refit's new generation, each evaluation fold). So every index of those
         codes (a rebuild from the database, another replica, the SVM bank's training) starts from the same
         quantizer, a snapshot's files carry it, and nothing is learnt from whichever batch is added first."""
-        index = ReferenceIndex(self.config, self.float_dim, self.bits)
+        index = ReferenceIndex(self.config, self.float_dim, self.bits, serving=configs_serving)
         if index.is_trained:
             return None
         index.train(*self.encode_vector(vectors))
@@ -382,8 +382,10 @@ class Pipeline:
         if kinds is None and params is None:
             if self.trained_index is not None:
                 return self.trained_index.copy()
-            return ReferenceIndex(self.config, self.float_dim, self.bits)
-        return ReferenceIndex(self.config, self.float_dim, self.bits, kinds=kinds, params=params)
+            return ReferenceIndex(self.config, self.float_dim, self.bits, serving=configs_serving)
+        return ReferenceIndex(
+            self.config, self.float_dim, self.bits, kinds=kinds, params=params, serving=configs_serving
+        )
 
     def _fit_whitening(
         self, vectors: np.ndarray, places: Sequence[Place | None] | None, seed: int
@@ -458,7 +460,7 @@ class Pipeline:
             models_dir=models_dir,
             calibration=Calibration.load(directory),
         )
-        trained = ReferenceIndex(c, pipe.float_dim, pipe.bits)
+        trained = ReferenceIndex(c, pipe.float_dim, pipe.bits, serving=configs_serving)
         if not trained.is_trained:
             trained.load_trained(directory)
             pipe.trained_index = trained if trained.is_trained else None
