@@ -322,7 +322,7 @@ def _print_summary(service, summary, left: int) -> None:
         f"ingested {summary.added} new references ({summary.present} already present"
         + (f", {summary.failed} failed" if summary.failed else "")
         + (f", {skipped} skipped" if skipped else "")
-        + f"); index size {service.collection.size}, config {service.pipeline.config.name}"
+        + f"); index size {service.size}, config {service.config_name}"
     )
     if summary.unchanged:
         typer.echo(f"{summary.unchanged} files unchanged since an earlier run were not read again (journal)")
@@ -765,7 +765,7 @@ def worker_cmd(
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
 
     def ready(service) -> None:
-        typer.echo(f"worker: {data_dir} ({service.pipeline.config.name}), {service.store.count('pending')} pending")
+        typer.echo(f"worker: {data_dir} ({service.config_name}), {service.pending()} pending")
 
     store = ReferenceStore(data_dir, backend=_S.backend(data_dir))
     try:

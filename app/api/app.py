@@ -23,7 +23,6 @@ from app.ingestion.worker import IngestWorker
 from app.ingestion.writer import Writer
 from app.runtime import serving_blas_threads
 from app.settings import Settings, usable_cpus
-from app.storage.shared_images import ImagesNotShared, check_images_shared
 from app.usecases.service import GeolocService
 
 log = logging.getLogger("geoloc.api")
@@ -148,19 +147,19 @@ def _load(app: FastAPI, stop: threading.Event) -> None:
                 s.index_sizing(),
             )
             try:
-                check_images_shared(service.store)  # on PostgreSQL: one images folder for every host
-            except ImagesNotShared:
-                service.store.close()
+                service.check_images_shared()  # on PostgreSQL: one images folder for every host
+            except Exception:  # refused, or the check could not run: this service is not used
+                service.close()
                 raise
             if s.worker == "inprocess":
                 _run_writer(app, service)
             # Where other hosts commit changes (PostgreSQL): catch up as they do, not at the next search.
-            listener = service.store.backend.change_listener(service.collection.catch_up)
+            listener = service.start_change_listener()
             if listener is not None:
-                state.listener = listener.start()
+                state.listener = listener
             state.service = service
             state.load_error = None
-            log.info("ready: config %s, %d references", service.pipeline.config.name, service.collection.size)
+            log.info("ready: config %s, %d references", service.config_name, service.size)
             _backfill(app, stop)
             return
         except Exception as e:  # keep /health up and say what is wrong on /ready
@@ -192,7 +191,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         if app.state.writer is not None:  # the worker, the final snapshot and checkpoint, the lock
             app.state.writer.stop()
         if app.state.service is not None:
-            app.state.service.store.close()  # checkpoints: the rows this process wrote go into the main file
+            app.state.service.close()  # checkpoints: the rows this process wrote go into the main file
 
     app = FastAPI(
         title="geoloc",
@@ -221,7 +220,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_middleware(BodyLimits, settings=settings, routes=ROUTES)
     app.add_middleware(MetricsMiddleware, metrics=app.state.metrics)
     app.add_middleware(security.HtmlPolicy)  # outermost: every answer, refusals included, gets its headers
-    errors.install(app, settings.backend(settings.data_dir).exceptions)
+    backend = settings.backend(settings.data_dir)
+    errors.install(app, backend.exceptions, backend.unavailable)
     for router in ROUTERS:
         app.include_router(router)
     app.mount("/static", StaticFiles(directory=WEB_DIR), name="static")

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import logging
 import re
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Literal
 
@@ -21,7 +22,6 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from app.engine import errors as e
 from app.errors import code_of
-from app.storage.errors import is_storage_error
 
 log = logging.getLogger("geoloc.api")
 
@@ -129,9 +129,12 @@ def error_response(error: str, message: str, status: int | None = None, headers:
 _json = error_response
 
 
-def install(app: FastAPI, storage_exceptions: tuple[type[Exception], ...] = ()) -> None:
+def install(
+    app: FastAPI, storage_exceptions: tuple[type[Exception], ...], is_storage_error: Callable[[BaseException], bool]
+) -> None:
     """Every error answers JSON with its code. ``storage_exceptions``: the storage backend's raw error types
-    (``StorageBackend.exceptions``), a 503 when one escapes ``storage_guard``."""
+    (``StorageBackend.exceptions``), a 503 when one escapes ``storage_guard``; ``is_storage_error``: whether
+    an escaped error is the storage's own (``StorageBackend.unavailable``), a 503 too, else a 500."""
 
     @app.exception_handler(ApiError)
     async def _api(_: Request, exc: ApiError):

@@ -8,6 +8,8 @@ from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, Plat
 from starlette.middleware.base import BaseHTTPMiddleware
 from starlette.requests import Request
 
+from app.usecases.service import Gauges
+
 #: ``VectorIndex.stats`` keys shown as labels of ``geoloc_index_kind`` (None where a kind has no such one).
 KIND_LABELS = ("kind", "nlist", "nprobe", "shortlist", "quantizer", "m")
 
@@ -82,23 +84,21 @@ class Metrics:
             registry=self.registry,
         )
 
-    def observe_collection(self, col) -> None:
-        """Gauges read from the live collection at scrape time."""
-        col.catch_up()
-        idx = col.index
+    def observe(self, g: Gauges) -> None:
+        """The gauges read from the live collection at scrape time (``GeolocService.gauges``)."""
         self.index_kind.clear()  # a new generation may serve another kind
-        for part, stats in idx.stats().items():
+        for part, stats in g.index.items():
             self.index_size.labels(part).set(stats["size"])
             self.index_kind.labels(part, *(str(stats.get(p)) for p in KIND_LABELS)).set(1)
-        self.queue_depth.set(col.store.count("pending"))
-        st = col.stats
-        self.index_version.set(col.version)
+        self.queue_depth.set(g.pending)
+        st = g.upkeep
+        self.index_version.set(g.version)
         self.snapshot_age.set(time.time() - st.snapshot_written_at if st.snapshot_written_at else -1)
         self.snapshot_writes.set(st.snapshot_writes)
         self.replayed_at_start.set(st.replayed_at_start)
         self.full_rebuilds.set(st.full_rebuilds)
-        self.tombstones.set(idx.tombstones)
-        self.index_switching.set(int(col.switching))
+        self.tombstones.set(g.tombstones)
+        self.index_switching.set(int(g.switching))
         self.index_kind_switches.set(st.kind_switches)
 
 

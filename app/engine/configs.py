@@ -408,6 +408,11 @@ def register_config(config: PipelineConfig) -> None:
     CONFIGS[config.name] = config
 
 
+def configs_serving(mode: str) -> list[str]:
+    """The named configurations that can serve search ``mode`` (what a user refused that mode may start)."""
+    return [name for name, c in CONFIGS.items() if mode in c.modes]
+
+
 def get_config(name: str) -> PipelineConfig:
     try:
         return CONFIGS[name]

@@ -15,6 +15,7 @@ from collections.abc import Iterable, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor, wait
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -22,7 +23,7 @@ from app.engine.added_models import register_added_models
 from app.engine.artifacts import atomic_write_bytes, library_versions
 from app.engine.calibration import Calibration
 from app.engine.codes import Binariser
-from app.engine.configs import PipelineConfig, get_config
+from app.engine.configs import PipelineConfig, configs_serving, get_config
 from app.engine.dense import join_sampled, pool
 from app.engine.errors import IncompatibleArtifact, ModelNotReady
 from app.engine.imageio import ImageLimits, LoadedImage, load_image
@@ -364,18 +365,27 @@ class Pipeline:
         is fitted again (`geoloc fit`, refit's new generation, each evaluation fold). So every index of those
         codes (a rebuild from the database, another replica, the SVM bank's training) starts from the same
         quantizer, a snapshot's files carry it, and nothing is learnt from whichever batch is added first."""
-        index = ReferenceIndex(self.config, self.float_dim, self.bits)
+        index = ReferenceIndex(self.config, self.float_dim, self.bits, serving=configs_serving)
         if index.is_trained:
             return None
         index.train(*self.encode_vector(vectors))
         return index
 
-    def new_index(self) -> ReferenceIndex:
+    def new_index(
+        self, kinds: dict[str, str] | None = None, params: dict[str, dict[str, Any]] | None = None
+    ) -> ReferenceIndex:
         """An empty index of this pipeline's codes, of the configuration's kinds, trained: the one way the
-        service makes one (live collection, snapshots, the SVM bank's training, the evaluation)."""
-        if self.trained_index is not None:
-            return self.trained_index.copy()
-        return ReferenceIndex(self.config, self.float_dim, self.bits)
+        service makes one (live collection, snapshots, the SVM bank's training, the evaluation). With
+        ``kinds`` (a part's kind where it is not the configuration's: a snapshot of an index that switched by
+        size, a shared index server) and ``params`` (a part's ``build_index`` arguments), an untrained one of
+        those kinds, which its caller loads or fills."""
+        if kinds is None and params is None:
+            if self.trained_index is not None:
+                return self.trained_index.copy()
+            return ReferenceIndex(self.config, self.float_dim, self.bits, serving=configs_serving)
+        return ReferenceIndex(
+            self.config, self.float_dim, self.bits, kinds=kinds, params=params, serving=configs_serving
+        )
 
     def _fit_whitening(
         self, vectors: np.ndarray, places: Sequence[Place | None] | None, seed: int
@@ -450,7 +460,7 @@ class Pipeline:
             models_dir=models_dir,
             calibration=Calibration.load(directory),
         )
-        trained = ReferenceIndex(c, pipe.float_dim, pipe.bits)
+        trained = ReferenceIndex(c, pipe.float_dim, pipe.bits, serving=configs_serving)
         if not trained.is_trained:
             trained.load_trained(directory)
             pipe.trained_index = trained if trained.is_trained else None

@@ -286,7 +286,7 @@ def _ingest(
             service, source, IngestOptions(workers=workers), say=log.info, progress=_Reported(total, say, what)
         )
     finally:
-        service.store.close()
+        service.close()
     skipped = sum(summary.skipped.values())
     log.info(
         "first start: %d references added, %d already present, %d failed, %d skipped%s",

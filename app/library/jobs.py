@@ -23,8 +23,11 @@ from pathlib import Path
 from app.engine.errors import GeolocError
 from app.engine.imageio import ImageLimits
 from app.ingestion.thumbnails import render_thumbnail
+from app.library.exports import render
+from app.library.review import decide
 from app.library.scan import ScanOptions, scan_library
-from app.storage.library import LibraryJournal
+from app.library.writeback import undo, write_back
+from app.storage.library import LOCATED, PROBLEM, JournalError, LibraryJournal, PhotoRecord
 from app.usecases.service import GeolocService
 from app.user_files import FileTooLarge, is_within, read_regular
 
@@ -41,9 +44,22 @@ class ScanBusy(RuntimeError):
     """A scan, write or undo of this library is in progress."""
 
 
+class LibraryUnavailable(RuntimeError):
+    """The data dir's library journal cannot be used (another layout, damaged, not SQLite)."""
+
+
 class LibraryJobs:
     """The server's library scans over one data dir. Made once per process (``open``), ``close``d at its
     shutdown: the stop flag ends the scan threads between two photos."""
+
+    @classmethod
+    def open(cls, data_dir: Path, root: Path | None) -> LibraryJobs:
+        """``LibraryJobs(data_dir, root)``; a journal that cannot be used raises ``LibraryUnavailable``, which
+        a caller says in a line (the journal's own error is the storage's)."""
+        try:
+            return cls(data_dir, root)
+        except JournalError as e:
+            raise LibraryUnavailable(str(e)) from None
 
     def __init__(self, data_dir: Path, root: Path | None):
         self.journal = LibraryJournal(data_dir)
@@ -130,6 +146,41 @@ class LibraryJobs:
         for t in list(self._threads.values()):
             t.join(STOP_WAIT_S)
         self.journal.close()
+
+    # -- a scan's journal, as the API reads and changes it ------------------------------------------------
+    def scan(self, sid: str) -> dict | None:
+        """The scan's state; None when there is no such scan."""
+        return self.journal.scan(sid)
+
+    def results(self, sid: str) -> list[PhotoRecord]:
+        """The scan's photos that were located or could not be (its references are the collection's)."""
+        return [r for r in self.journal.photos(sid) if r.kind in (LOCATED, PROBLEM)]
+
+    def photo(self, sid: str, photo_id: int) -> PhotoRecord | None:
+        return self.journal.photo(sid, photo_id)
+
+    def photo_thumbnail(self, sid: str, photo_id: int, px: int, limits: ImageLimits) -> bytes | None:
+        """``thumbnail`` of the journalled photo; None when the scan has no such photo."""
+        rec = self.journal.photo(sid, photo_id)
+        return None if rec is None else self.thumbnail(Path(rec.path), px, limits)
+
+    def decide(self, sid: str, photo_id: int, action: str, lat: float | None, lon: float | None) -> PhotoRecord:
+        """``app.library.review.decide`` on this library's journal."""
+        return decide(self.journal, sid, photo_id, action, lat, lon)
+
+    def write_back(self, sid: str, in_file: bool, dry_run: bool) -> dict:
+        """``app.library.writeback.write_back`` under the root, holding the library's lock (``exclusive``)."""
+        with self.exclusive(sid):
+            return write_back(self.journal, sid, self.data_dir, in_file, dry_run, self.root)
+
+    def undo(self, sid: str) -> dict:
+        """``app.library.writeback.undo`` under the root, holding the library's lock (``exclusive``)."""
+        with self.exclusive(sid):
+            return undo(self.journal, sid, self.root)
+
+    def export(self, sid: str, fmt: str, every: bool) -> str:
+        """The scan's accepted positions (every suggestion with ``every``) as ``fmt`` (``app.library.exports``)."""
+        return render(self.journal.photos(sid), fmt, every)
 
     def thumbnail(self, path: Path, px: int, limits: ImageLimits) -> bytes:
         """A JPEG of a journalled photo's pixels only (no EXIF, XMP or comment), upright, at most ``px`` on a

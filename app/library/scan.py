@@ -110,7 +110,7 @@ def scan_library(
     set ends the run between two photos (state "interrupted"); ``files``: ``library_files(folder)`` when
     the caller already checked the folder."""
     folder = Path(folder).resolve()
-    data_dir = Path(service.store.data_dir).resolve()
+    data_dir = Path(service.data_dir).resolve()
     paths, positions = files if files is not None else library_files(folder, data_dir)
     # A folder's files are read only where they are regular files inside it (never through a link): the
     # folder may change between the listing and the reads. A manifest's rows may name files anywhere.
@@ -136,7 +136,7 @@ def scan_library(
         if not todo:
             journal.finish_scan(sid, "done", None)
             return summary
-        if service.collection.size == 0:
+        if service.size == 0:
             raise LibraryError(
                 f"{folder} has no photo with GPS and the data dir holds no references: nothing to locate "
                 "the other photos against (add geotagged photos, or give a --data-dir with a collection)",
@@ -262,7 +262,7 @@ def _ingest(
     summary, _ = ingest(service, source, IngestOptions(workers=workers, ray=ray), say=say)
     say(
         f"collection: {summary.added} new references from {len(refs)} photos with GPS "
-        f"({summary.present} already present); index size {service.collection.size}"
+        f"({summary.present} already present); index size {service.size}"
     )
     return summary.added
 

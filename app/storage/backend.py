@@ -16,6 +16,8 @@ from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
 
+from app.storage.errors import is_storage_error
+
 if TYPE_CHECKING:
     from app.storage.integrity import DatabaseFiles
 
@@ -57,6 +59,13 @@ class StorageBackend(ABC):
         self.data_dir = Path(data_dir)
         self.images_dir = Path(images_dir)
         self.snapshots_dir = Path(snapshots_dir)
+
+    @staticmethod
+    def unavailable(exc: BaseException) -> bool:
+        """Whether ``exc`` is the storage's own failure (an unwritable folder, a full disk, a read-only, locked
+        or unreachable database: ``app.storage.errors.is_storage_error``), which a caller may retry later.
+        Here so that a face given the backend classifies what escapes without importing the storage."""
+        return is_storage_error(exc)
 
     # -- the connection --------------------------------------------------------------------------------
     @abstractmethod

@@ -26,6 +26,7 @@ import json
 import os
 import tempfile
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -256,22 +257,29 @@ def read_manifest(data_dir: Path) -> SnapshotManifest:
     return SnapshotManifest.from_dict(manifest)
 
 
+#: What makes the index a snapshot's files load into (``Pipeline.new_index``): with no kinds, an empty index
+#: of the configuration's kinds; with each part's recorded kind, an empty one of those. Given by the caller:
+#: which kinds an index is built of is the engine's to say, the snapshot only records them.
+IndexFactory = Callable[..., ReferenceIndex]
+
+
 def load_snapshot(
-    data_dir: Path, pipeline: Pipeline, store: Identity | None = None
+    data_dir: Path, pipeline: Pipeline, store: Identity | None = None, *, new_index: IndexFactory
 ) -> tuple[ReferenceIndex, SnapshotManifest]:
     """The snapshot's index and its manifest, every file verified against its checksum and, with ``store``,
-    the snapshot checked to be of that database (every caller that serves or checks it passes one)."""
+    the snapshot checked to be of that database (every caller that serves or checks it passes one).
+    ``new_index``: see ``IndexFactory``."""
     m = read_manifest(data_dir)
     if m.fingerprint != pipeline.fingerprint:
         raise SnapshotInvalid("the snapshot was made with another fitted pipeline")
     if store is not None:
         check_binding(m, store)
-    index = pipeline.new_index()
+    index = new_index()
     recorded = {part: f.kind for part, f in m.files.items() if f.kind}
     try:
         if any(index.kinds().get(part, kind) != kind for part, kind in recorded.items()):
             # the collection switched kind by size (``Collection``): each file holds its trained state
-            index = ReferenceIndex(pipeline.config, pipeline.float_dim, pipeline.bits, kinds=recorded)
+            index = new_index(kinds=recorded)
         for part, idx in index.parts().items():
             entry = m.files[part]
             path = data_dir / entry.file

@@ -203,7 +203,9 @@ class Collection:
             index = self._shared_index(self.pipeline, self.generation)
             return index, self._shared_version(self.generation) or 0
         try:
-            index, manifest = load_snapshot(self.store.snapshots_dir, self.pipeline, self.store)
+            index, manifest = load_snapshot(
+                self.store.snapshots_dir, self.pipeline, self.store, new_index=self.pipeline.new_index
+            )
         except SnapshotInvalid as e:
             if (self.store.snapshots_dir / "index.json").exists():
                 log.warning("snapshot not used (%s): rebuilding the index from the codes in SQLite", e)
@@ -235,12 +237,8 @@ class Collection:
         shared = self.shared
         assert shared is not None
         parts = [p for p, n in (("float", pipeline.float_dim), ("binary", pipeline.bits)) if n]
-        return ReferenceIndex(
-            pipeline.config,
-            pipeline.float_dim,
-            pipeline.bits,
-            kinds={p: shared.kind for p in parts},
-            params={p: shared.params(p, generation) for p in parts},
+        return pipeline.new_index(
+            kinds={p: shared.kind for p in parts}, params={p: shared.params(p, generation) for p in parts}
         )
 
     def _shared_version(self, generation: int) -> int | None:
@@ -328,7 +326,9 @@ class Collection:
         if self.shared is not None:
             return self._switch_shared_generation(pipeline, generation, ref, t0)
         try:
-            index, manifest = load_snapshot(self.store.snapshots_dir, pipeline, self.store)
+            index, manifest = load_snapshot(
+                self.store.snapshots_dir, pipeline, self.store, new_index=pipeline.new_index
+            )
             if manifest.generation != generation:
                 raise SnapshotInvalid("the snapshot is of another generation")
             version, rebuilt = manifest.version, False

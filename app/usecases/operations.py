@@ -125,7 +125,7 @@ def check_data_dir(data_dir: Path, models_dir: Path, config: str | None, backend
     _check_stored_features(store, pipeline.config.stored_features, rows, r)
     indexed = np.array(sorted(row.id for row in rows if row.status == "indexed"), np.int64)
     try:
-        index, manifest = load_snapshot(store.snapshots_dir, pipeline, store)
+        index, manifest = load_snapshot(store.snapshots_dir, pipeline, store, new_index=pipeline.new_index)
     except SnapshotInvalid as e:
         r.lines.append(f"index: no usable snapshot ({e}); the service rebuilds it from the database")
         if (store.snapshots_dir / MANIFEST).exists() and not isinstance(e, SnapshotUnverifiable):

@@ -13,7 +13,9 @@ import threading
 import time
 from collections.abc import Callable, Sequence
 from contextlib import AbstractContextManager, nullcontext
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from app.domain import Accepted, LocateAnswer, LocateOptions, ReferenceEdit, Upload
 from app.engine.calibration import Calibration
@@ -26,11 +28,12 @@ from app.ingestion.thumbnails import THUMBNAIL_PX, thumbnail
 from app.ingestion.uploads import metadata_differences, prepare_upload
 from app.policies import IndexSizing, SnapshotPolicy
 from app.runtime import release_free_memory
-from app.storage.backend import StorageBackend
+from app.storage.backend import Listener, StorageBackend
 from app.storage.feature_files import FeatureFiles, profile_root
 from app.storage.queue import Job
+from app.storage.shared_images import check_images_shared
 from app.storage.store import KeysetPage, NewReference, Reference, ReferenceStore
-from app.usecases.collection import Collection
+from app.usecases.collection import Collection, IndexStats
 from app.usecases.locate import StoredReferenceFeatures, StoreReferences, locate_features
 
 log = logging.getLogger("geoloc.core")
@@ -42,6 +45,33 @@ def extraction_slots(concurrency: int) -> AbstractContextManager:
     limit, concurrent uploads of large photos each hold a full decode at once (bench/locate_memory.py).
     Throughput pays a little (bench/load.py; docs/benchmarks.md)."""
     return threading.BoundedSemaphore(concurrency) if concurrency else nullcontext()
+
+
+@dataclass(frozen=True)
+class Readiness:
+    """What /ready tells a caller with the key about the loaded collection."""
+
+    config: str
+    index_size: int
+    version: int
+    generation: int
+    database: str  # the storage backend's name
+    index_loaded: str  # "shared" (a shared index server), "rebuilt" (from the database) or "snapshot"
+    index: dict[str, dict[str, Any]]  # each part's kind and parameters
+    index_choice: str
+    calibration: str
+
+
+@dataclass(frozen=True)
+class Gauges:
+    """What /metrics reads from the live collection at scrape time."""
+
+    index: dict[str, dict[str, Any]]  # each part's kind, size and parameters
+    pending: int  # rows accepted and not encoded yet (the queue's depth)
+    version: int
+    tombstones: int
+    switching: bool  # a compressed index is being built in the background
+    upkeep: IndexStats
 
 
 # -- the service ------------------------------------------------------------------------------------------
@@ -90,6 +120,75 @@ class GeolocService:
     @property
     def pipeline(self) -> Pipeline:
         return self.collection.pipeline
+
+    # -- what the faces ask about the data dir and its collection ------------------------------------------
+    @property
+    def data_dir(self) -> Path:
+        return self.store.data_dir
+
+    @property
+    def config_name(self) -> str:
+        """The name of the configuration this collection is served with."""
+        return self.pipeline.config.name
+
+    @property
+    def size(self) -> int:
+        """How many references the index holds (as this process last caught up)."""
+        return self.collection.size
+
+    def pending(self) -> int:
+        """How many accepted rows wait for the worker."""
+        return self.store.count("pending")
+
+    @property
+    def write_refusal(self) -> str | None:
+        """Why the storage refuses writes (its database files changed under this process), or None."""
+        return self.store.write_refusal
+
+    def readiness(self) -> Readiness:
+        """The collection's state for /ready, caught up first."""
+        col = self.collection
+        col.catch_up()
+        return Readiness(
+            config=col.pipeline.config.name,
+            index_size=col.size,
+            version=col.version,
+            generation=col.generation,
+            database=self.store.engine,
+            index_loaded="shared" if col.shared is not None else "rebuilt" if col.stats.full_rebuilds else "snapshot",
+            index=col.index.stats(),
+            index_choice=col.index_choice(),
+            calibration=col.calibration_summary(),
+        )
+
+    def gauges(self) -> Gauges:
+        """The collection's state for /metrics, caught up first; one index read for its parts and tombstones."""
+        col = self.collection
+        col.catch_up()
+        idx = col.index
+        return Gauges(
+            index=idx.stats(),
+            pending=self.pending(),
+            version=col.version,
+            tombstones=idx.tombstones,
+            switching=col.switching,
+            upkeep=col.stats,
+        )
+
+    def check_images_shared(self) -> None:
+        """On a backend that hosts share (PostgreSQL): ``ImagesNotShared`` unless this host's images folder is
+        the one the others use (``app.storage.shared_images``)."""
+        check_images_shared(self.store)
+
+    def start_change_listener(self) -> Listener | None:
+        """Where other hosts commit changes (PostgreSQL): a started listener that catches this collection up
+        as they do, rather than at the next search; None where processes catch up at their next search."""
+        listener = self.store.backend.change_listener(self.collection.catch_up)
+        return listener.start() if listener is not None else None
+
+    def close(self) -> None:
+        """Close the store: on SQLite, a checkpoint puts the rows this process wrote into the main file."""
+        self.store.close()
 
     # -- locate ---------------------------------------------------------------------------------------
     def decode(self, data: bytes) -> LoadedImage:

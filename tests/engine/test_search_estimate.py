@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from app.engine.configs import CONFIGS, get_config
+from app.engine.configs import CONFIGS, configs_serving, get_config
 from app.engine.estimate import MARGIN_M, RADIUS_FLOOR_M, fuse_position
 from app.engine.geo import haversine_m
 from app.engine.index.references import ReferenceIndex, UnsupportedMode
@@ -36,10 +36,12 @@ def test_modes_follow_the_configuration():
     assert get_config("hybrid").modes == ["float"]
     assert get_config("orb-mbvlad-bin").modes == ["binary"]
     assert get_config("hybrid-bin").modes[0] == "two-stage"
-    idx = ReferenceIndex(get_config("orb-mbvlad-bin"), None, 64)
+    idx = ReferenceIndex(get_config("orb-mbvlad-bin"), None, 64, serving=configs_serving)
     assert idx.check_mode(None) == "binary"
     with pytest.raises(UnsupportedMode, match="serves binary; the named configurations that serve float are "):
         idx.check_mode("float")
+    with pytest.raises(UnsupportedMode, match="serves binary; the named configurations that serve float are "):
+        idx.copy().check_mode("float")  # a copy (``Pipeline.new_index``'s) keeps what it was told
 
 
 def test_every_named_configuration_exists():

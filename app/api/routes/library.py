@@ -20,12 +20,11 @@ from app.api import security
 from app.api.deps import Core, write_access
 from app.api.errors import ApiError, error_responses
 from app.engine.errors import GeolocError
-from app.library.exports import FORMATS, MEDIA_TYPES, render
-from app.library.jobs import FolderRefused, LibraryJobs, ScanBusy
-from app.library.review import DecisionError, decide
+from app.library.exports import FORMATS, MEDIA_TYPES
+from app.library.jobs import FolderRefused, LibraryJobs, LibraryUnavailable, ScanBusy
+from app.library.review import DecisionError
 from app.library.scan import ScanOptions
-from app.library.writeback import WriteBackError, undo, write_back
-from app.storage.library import LOCATED, PROBLEM, JournalError, PhotoRecord
+from app.library.writeback import WriteBackError
 
 router = APIRouter()
 #: The Library view: its own page beside index.html, under the same Content-Security-Policy.
@@ -61,8 +60,8 @@ def jobs(request: Request, core: Core) -> LibraryJobs:
     with _MAKING:
         if getattr(state, "library", None) is None:
             try:
-                state.library = LibraryJobs(core.store.data_dir, state.settings.library_root)
-            except JournalError as e:  # a journal of another layout, damaged, not SQLite: said, not a 500
+                state.library = LibraryJobs.open(core.data_dir, state.settings.library_root)
+            except LibraryUnavailable as e:  # a journal of another layout, damaged, not SQLite: said, not a 500
                 raise ApiError(503, "not_ready", str(e)) from None
     return state.library
 
@@ -70,13 +69,14 @@ def jobs(request: Request, core: Core) -> LibraryJobs:
 Jobs = Annotated[LibraryJobs, Depends(jobs)]
 
 
-def _photo_out(rec: PhotoRecord) -> dict:
+def _photo_out(rec) -> dict:
+    """A journalled photo (``LibraryJobs.photo``) as the API shows it."""
     return {"id": rec.id, "kind": rec.kind, "decision": rec.decision, "accepted_lat": rec.lat,
             "accepted_lon": rec.lon, "written": rec.written, **rec.result}  # fmt: skip
 
 
 def _scan(lib: LibraryJobs, sid: str) -> dict:
-    got = lib.journal.scan(sid)
+    got = lib.scan(sid)
     if got is None:
         raise ApiError(404, "not_found", f"no library scan {sid}")
     return got
@@ -124,7 +124,7 @@ def start_scan(body: ScanIn, core: Core, lib: Jobs) -> JSONResponse:
 )
 def get_scan(sid: ScanId, lib: Jobs) -> dict:
     scan = _scan(lib, sid)
-    photos = [_photo_out(r) for r in lib.journal.photos(sid) if r.kind in (LOCATED, PROBLEM)]
+    photos = [_photo_out(r) for r in lib.results(sid)]
     return {**scan, "photos": photos}
 
 
@@ -136,14 +136,13 @@ def get_scan(sid: ScanId, lib: Jobs) -> dict:
     summary="A thumbnail of a library photo (pixels only)",
 )
 def photo_thumbnail(request: Request, sid: ScanId, photo_id: PhotoId, lib: Jobs) -> Response:
-    rec = lib.journal.photo(sid, photo_id)
-    if rec is None:
-        raise ApiError(404, "not_found", f"no photo {photo_id} in library scan {sid}")
     try:
         settings = request.app.state.settings
-        data = lib.thumbnail(FsPath(rec.path), settings.thumbnail_px, settings.image_limits())
+        data = lib.photo_thumbnail(sid, photo_id, settings.thumbnail_px, settings.image_limits())
     except (OSError, GeolocError):  # gone, a link, not an image (a library holds such files), too large
         raise ApiError(404, "image_missing", f"photo {photo_id} cannot be read any more") from None
+    if data is None:
+        raise ApiError(404, "not_found", f"no photo {photo_id} in library scan {sid}")
     # A private photo of the server's disk, fetched with the key: no shared cache may keep it.
     return Response(data, media_type="image/jpeg", headers={"Cache-Control": "private, no-store"})
 
@@ -156,10 +155,10 @@ def photo_thumbnail(request: Request, sid: ScanId, photo_id: PhotoId, lib: Jobs)
 )
 def photo_decision(sid: ScanId, photo_id: PhotoId, body: DecisionIn, lib: Jobs) -> dict:
     _scan(lib, sid)
-    if lib.journal.photo(sid, photo_id) is None:
+    if lib.photo(sid, photo_id) is None:
         raise ApiError(404, "not_found", f"no photo {photo_id} in library scan {sid}")
     try:
-        return _photo_out(decide(lib.journal, sid, photo_id, body.action, body.lat, body.lon))
+        return _photo_out(lib.decide(sid, photo_id, body.action, body.lat, body.lon))
     except DecisionError as e:
         raise ApiError(422, "invalid_request", str(e)) from None
 
@@ -173,8 +172,7 @@ def photo_decision(sid: ScanId, photo_id: PhotoId, body: DecisionIn, lib: Jobs) 
 def write(sid: ScanId, body: WriteIn, lib: Jobs) -> dict:
     _scan(lib, sid)
     try:
-        with lib.exclusive(sid):
-            return write_back(lib.journal, sid, lib.data_dir, body.in_file, body.dry_run, lib.root)
+        return lib.write_back(sid, body.in_file, body.dry_run)
     except (WriteBackError, ScanBusy) as e:
         raise ApiError(503, "not_ready", str(e)) from None
 
@@ -188,8 +186,7 @@ def write(sid: ScanId, body: WriteIn, lib: Jobs) -> dict:
 def undo_writes(sid: ScanId, lib: Jobs) -> dict:
     _scan(lib, sid)
     try:
-        with lib.exclusive(sid):
-            return undo(lib.journal, sid, lib.root)
+        return lib.undo(sid)
     except ScanBusy as e:
         raise ApiError(503, "not_ready", str(e)) from None
 
@@ -208,7 +205,7 @@ def export(
     all: Annotated[bool, Query(description="every suggestion with its radius, not only the accepted")] = False,
 ) -> Response:
     _scan(lib, sid)
-    text = render(lib.journal.photos(sid), format, all)
+    text = lib.export(sid, format, all)
     name = f"library-{sid}.{format}"
     return Response(
         text, media_type=MEDIA_TYPES[format], headers={"Content-Disposition": f'attachment; filename="{name}"'}

@@ -37,25 +37,24 @@ def ready(request: Request, x_api_key: Annotated[str | None, Header()] = None):
     detailed = _may_read(request, x_api_key)
     if state.service is None:
         return error_response("not_ready", (state.load_error or "loading") if detailed else "loading")
-    refusal = state.service.store.write_refusal
+    refusal = state.service.write_refusal
     if refusal is not None:  # the database files changed under this process (app/storage/integrity.py)
         return error_response("storage_unavailable", refusal if detailed else "the storage refuses writes")
     if not detailed:
         return ReadyOut(status="ready")
-    col = state.service.collection
-    col.catch_up()
+    r = state.service.readiness()
     return ReadyOut(
         status="ready",
-        config=col.pipeline.config.name,
-        index_size=col.size,
-        version=col.version,
-        generation=col.generation,
+        config=r.config,
+        index_size=r.index_size,
+        version=r.version,
+        generation=r.generation,
         worker="in-process" if state.worker is not None and (state.writer is None or state.writer.held) else "external",
-        database=state.service.store.engine,
-        index_loaded="shared" if col.shared is not None else "rebuilt" if col.stats.full_rebuilds else "snapshot",
-        index=col.index.stats(),
-        index_choice=col.index_choice(),
-        calibration=col.calibration_summary(),
+        database=r.database,
+        index_loaded=r.index_loaded,
+        index=r.index,
+        index_choice=r.index_choice,
+        calibration=r.calibration,
         features_backfill=state.backfill,
     )
 
@@ -81,5 +80,5 @@ def _may_read(request: Request, key: str | None) -> bool:
 def metrics(request: Request) -> Response:
     state = request.app.state
     if state.service is not None:
-        state.metrics.observe_collection(state.service.collection)
+        state.metrics.observe(state.service.gauges())
     return Response(generate_latest(state.metrics.registry), media_type=CONTENT_TYPE_LATEST)

@@ -7,13 +7,14 @@ both kinds of codes keeps both for every reference, so any of the three modes ca
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from app.engine.artifacts import atomic_write_file
-from app.engine.configs import CONFIGS, PipelineConfig
+from app.engine.configs import PipelineConfig
 from app.engine.errors import GeolocError
 from app.engine.index.base import VectorIndex, build_index
 from app.engine.index.ivf_lists import MAX_POINTS_PER_LIST, default_nlist
@@ -36,17 +37,24 @@ def trained_file(part: str) -> str:
     return f"index-{part}.faiss"
 
 
-def unsupported_mode_message(mode: str, config: PipelineConfig) -> str:
+#: The named configurations that serve a search mode (``app.engine.configs.configs_serving``): given to an
+#: index by whoever builds it, since the registry of named configurations sits above the index kinds.
+Serving = Callable[[str], list[str]]
+
+
+def unsupported_mode_message(mode: str, config: PipelineConfig, serving: Serving | None = None) -> str:
     """Why ``mode`` cannot be served, and what would serve it: the named configurations that can (a user who
-    asks for binary search on the float-only default needs to know which configuration to start instead)."""
+    asks for binary search on the float-only default needs to know which configuration to start instead),
+    when ``serving`` says which."""
     served = ", ".join(config.modes)
     if mode not in SEARCH_MODES:
         return f"mode {mode!r} is not a search mode (float, binary or two-stage); {config.name!r} serves {served}"
-    others = [name for name, c in CONFIGS.items() if mode in c.modes]
+    refused = f"mode {mode!r} is not available for configuration {config.name!r}, which serves {served}"
+    if serving is None:
+        return refused
     return (
-        f"mode {mode!r} is not available for configuration {config.name!r}, which serves {served}; the named "
-        f"configurations that serve {mode} are {', '.join(others)} (fit one with `make fit CONFIG=NAME`, then "
-        "serve it with GEOLOC_CONFIG=NAME or --config NAME)"
+        f"{refused}; the named configurations that serve {mode} are {', '.join(serving(mode))} (fit one with "
+        "`make fit CONFIG=NAME`, then serve it with GEOLOC_CONFIG=NAME or --config NAME)"
     )
 
 
@@ -61,10 +69,14 @@ class ReferenceIndex:
         bits: int | None,
         kinds: dict[str, str] | None = None,
         params: dict[str, dict[str, Any]] | None = None,
+        serving: Serving | None = None,
     ):
         """``kinds``: the part's kind by part name where it is not the configuration's (a snapshot of an index
-        that switched by size, ``compressed``); ``params``: keyword arguments of a part's ``build_index``."""
+        that switched by size, ``compressed``); ``params``: keyword arguments of a part's ``build_index``;
+        ``serving``: which named configurations serve a mode, for the message refusing one this index cannot
+        serve (``unsupported_mode_message``)."""
         self.config = config
+        self.serving = serving
         kinds = {"float": config.float_index, "binary": config.binary_index, **(kinds or {})}
         params = params or {}
         self.float: VectorIndex | None = (
@@ -127,6 +139,7 @@ class ReferenceIndex:
             self.binary.dim if self.binary is not None else None,
             kinds={p: COMPRESSED_KINDS[p] for p in self.parts()},
             params={p: {"nlist": nlist} for p in self.parts()},
+            serving=self.serving,
         )
         twin.train(float_codes, binary_codes)
         return twin
@@ -195,6 +208,7 @@ class ReferenceIndex:
     def copy(self) -> ReferenceIndex:
         twin = object.__new__(ReferenceIndex)
         twin.config = self.config
+        twin.serving = self.serving
         twin.float = self.float.copy() if self.float is not None else None
         twin.binary = self.binary.copy() if self.binary is not None else None
         return twin
@@ -209,7 +223,7 @@ class ReferenceIndex:
         if mode is None:
             return modes[0]
         if mode not in modes:
-            raise UnsupportedMode(unsupported_mode_message(mode, self.config))
+            raise UnsupportedMode(unsupported_mode_message(mode, self.config, self.serving))
         return mode
 
     def search(
