@@ -82,10 +82,9 @@ RADIUS_RATE = 0.9
 MIN_BIN_SAMPLES = 30
 #: At most this many bins (quartiles of the evidence strength): the evaluation reports the weakest quartile.
 RADIUS_BINS = 4
-#: The disc (``fit_disc``): at most this many bins of evidence strength, each of at least ``MIN_DISC_BIN``
-#: sampled answers (with 25, the conformal quantile at 90 % is the 24th smallest error: one more unlucky
-#: error moves it by one rank, not past the end).
-DISC_BINS = 30
+#: The disc (``fit_disc``): a bin of evidence strength holds at least this many answers (with 25, the
+#: conformal quantile at 90 % is the 24th smallest error: one more unlucky error moves it by one rank, not
+#: past the end), and enough captures that one of them may fail (``disc_bin_captures``).
 MIN_DISC_BIN = 25
 #: An answer has an estimate only when its disc is at most this wide (``Settings.max_radius_m``' default;
 #: docs/disc.md says how it was chosen) ...
@@ -507,45 +506,106 @@ def fit_disc(
     max_radius_m: float = MAX_RADIUS_M,
     extent_m: float | None = None,
     floor_m: float = RADIUS_FLOOR_M,
-    bins: int = DISC_BINS,
+    min_captures: int | None = None,
     min_n: int = MIN_DISC_BIN,
 ) -> Disc | None:
     """The smallest disc around the estimate that holds the truth for ``rate`` of the answers, conditional on
-    the evidence strength: split-conformal per quantile bin of ``strength`` (up to ``bins``, each of at least
-    ``min_n`` answers), the conformal quantile (the ceil((n + 1) * rate)-th smallest) of the bin's ``errors``
-    (metres from the estimate to the truth; ``inf`` for a place removed from the collection: no disc holds it),
-    made monotone (a stronger bin never states a wider disc than a weaker one: the running maximum from the
-    strong end), never below ``floor_m``. None when fewer than ``min_n`` answers.
+    the evidence strength: split-conformal per bin of ``strength``, the conformal quantile (the
+    ceil((n + 1) * rate)-th smallest) of the bin's ``errors`` (metres from the estimate to the truth; ``inf``
+    for a place removed from the collection: no disc holds it), never below ``floor_m``. None when fewer than
+    ``min_n`` answers.
 
-    ``groups`` (each answer's capture: a photo and its crops): the quantile is counted in captures, each
-    capture of a bin counting once with its worst error there, and a bin of too few captures for a conformal
-    quantile at ``rate`` (fewer than 9 at 90 %) states no disc. Why: a capture's answers fail together (its
-    crops show the same facade, matched to the same look-alike across the street), so counted one by one
-    they make a bin look surer than its captures allow; counted answer by answer, the discs held for clearly
-    fewer of the held-out queries than the rate stated (docs/disc.md).
+    ``groups`` (each answer's capture: a photo and its crops; every answer its own when None): the quantile
+    is counted in captures, each capture of a bin counting once with its worst error there. Why: a capture's
+    answers fail together (its crops show the same facade, matched to the same look-alike across the
+    street), so counted one by one they make a bin look surer than its captures allow (docs/disc.md). A bin
+    of too few captures for a conformal quantile at ``rate`` (fewer than 9 at 90 %) states no disc.
+
+    The bins (``disc_bins``) are cut from the strongest answer down, each closing once it holds
+    ``min_captures`` captures (by default ``disc_bin_captures(rate)``, the fewest whose quantile at ``rate``
+    survives one capture far off: 19 at 90 %) and ``min_n`` answers. Why by captures, not quantiles of
+    answers: a bin's quantile is only as steady as its number of captures; with the fewest a quantile needs,
+    one look-alike among them left the bin with no disc at all, and with it (monotone) every weaker bin.
+    Monotone by pooling adjacent violators: where a stronger bin states a wider disc than its weaker
+    neighbour, the two are one bin, refitted, until stronger evidence never states a wider disc. Why pooling
+    and not the running maximum: the maximum let one unlucky strong bin widen every weaker bin to its radius
+    (or to none), where pooling spends that bin's failure on the captures beside it.
 
     Why conditional: one disc for all answers holds on average and not for the weak ones; "9 in 10" must
     hold for answers like the one at hand. Why the absent places among them: a disc is then stated only where
     the evidence says the place is held, and evidence that places removed from the collection also reach
-    gets no finite disc at all. Why monotone: a quantile bin's radius is noisy; stronger evidence stating a
-    wider disc than weaker evidence would be that noise, and the running maximum never narrows a bin."""
+    gets no finite disc at all."""
     strength, errors = np.asarray(strength, float), np.asarray(errors, float)
+    groups = list(range(len(strength))) if groups is None else list(groups)
     if len(strength) < max(min_n, 1) or conformal_radius(errors, rate) is None:
         return None
-    edges = strength_bins(strength, bins, min_n)
-    bin_of = np.searchsorted(edges, strength, side="right")
-    raw = np.array([_bin_radius(errors, bin_of == k, groups, rate) for k in range(len(edges) + 1)], float)
-    radii = np.maximum(np.maximum.accumulate(raw[::-1])[::-1], floor_m)
+    if min_captures is None:
+        min_captures = disc_bin_captures(rate)
+    blocks = disc_bins(strength, groups, min_captures, min_n)  # strongest first
+    radii = [_block_radius(errors, groups, b, rate) for b in blocks]
+    k = 0
+    while k < len(blocks) - 1:
+        if radii[k] > radii[k + 1]:  # a violator: pool, refit, and look again at the stronger neighbour
+            blocks[k : k + 2] = [np.concatenate(blocks[k : k + 2])]
+            radii[k : k + 2] = [_block_radius(errors, groups, blocks[k], rate)]
+            k = max(k - 1, 0)
+        else:
+            k += 1
+    blocks, radii = blocks[::-1], np.maximum(radii[::-1], floor_m)  # weakest first, as ``Disc`` reads them
     limit = min(max_radius_m, MAX_EXTENT_SHARE * extent_m) if extent_m else max_radius_m
     return Disc(
         rate=rate,
-        edges=[float(x) for x in edges],  # unrounded: an answer tied with an edge reads the bin it was fitted in
+        # Each inner edge is the weakest strength of the bin above it (unrounded: an answer tied with an edge
+        # reads the bin it was fitted in; one between two bins' strengths reads the weaker bin's disc).
+        edges=[float(strength[b].min()) for b in blocks[1:]],
         radius_m=[round(float(r), 1) if np.isfinite(r) else None for r in radii],
-        n=np.bincount(bin_of, minlength=len(edges) + 1).tolist(),
+        n=[len(b) for b in blocks],
         limit_m=round(float(limit), 1),
         max_radius_m=float(max_radius_m),
         extent_m=None if extent_m is None else round(float(extent_m), 1),
     )
+
+
+def disc_bin_captures(rate: float) -> int:
+    """The fewest captures whose conformal quantile at ``rate`` is not their worst error: the smallest n with
+    ceil((n + 1) * rate) <= n - 1, so that one capture of a bin may lie far off (or be of a place removed
+    from the collection) and the bin still states a disc (19 at 90 %, 39 at 95 %)."""
+    n = 2
+    while int(np.ceil((n + 1) * rate - 1e-9)) > n - 1:
+        n += 1
+    return n
+
+
+def disc_bins(strength: np.ndarray, groups: Sequence[object], min_captures: int, min_n: int) -> list[np.ndarray]:
+    """The answers' indices cut into bins from the strongest down, each closing once it holds ``min_captures``
+    distinct ``groups`` and ``min_n`` answers; answers of equal strength stay in one bin, and what is left
+    at the weak end joins the last bin."""
+    order = np.argsort(-np.asarray(strength, float), kind="stable")
+    bins: list[np.ndarray] = []
+    start, seen = 0, set()
+    for pos, i in enumerate(order):
+        seen.add(groups[i])
+        tied = pos + 1 < len(order) and strength[order[pos + 1]] == strength[i]
+        if not tied and len(seen) >= min_captures and pos + 1 - start >= min_n:
+            bins.append(order[start : pos + 1])
+            start, seen = pos + 1, set()
+    if start < len(order):
+        rest = order[start:]
+        bins[-1:] = [np.concatenate([bins[-1], rest])] if bins else [rest]
+    return bins
+
+
+def _block_radius(errors: np.ndarray, groups: Sequence[object], block: np.ndarray, rate: float) -> float:
+    """A bin's conformal radius over its captures' worst errors; inf when none holds."""
+    r = _capture_radius(errors[block], [groups[i] for i in block], rate)
+    return np.inf if r is None else r
+
+
+def _capture_radius(errors: np.ndarray, groups: Sequence[object], rate: float) -> float | None:
+    worst: dict[object, float] = {}
+    for x, g in zip(errors, groups, strict=True):
+        worst[g] = max(worst.get(g, 0.0), float(x))
+    return conformal_radius(np.array(list(worst.values())), rate)
 
 
 def capture(s: Sample) -> object:
@@ -623,18 +683,6 @@ def fit_radius(cal: Calibration, samples: list[Sample], rate: float = RADIUS_RAT
         "n": np.bincount(bin_of, minlength=len(edges) + 1).tolist() if edges else [len(err)],
         "population": population,
     }
-
-
-def _bin_radius(errors: np.ndarray, in_bin: np.ndarray, groups: Sequence[object] | None, rate: float) -> float:
-    """A bin's conformal radius: over its answers, or over its captures' worst errors; inf when none holds."""
-    if groups is None:
-        r = conformal_radius(errors[in_bin], rate)
-    else:
-        worst: dict[object, float] = {}
-        for x, g in zip(errors[in_bin], (g for g, m in zip(groups, in_bin, strict=True) if m), strict=True):
-            worst[g] = max(worst.get(g, 0.0), float(x))
-        r = conformal_radius(np.array(list(worst.values())), rate)
-    return np.inf if r is None else r
 
 
 def answer_probability(cal: Calibration, s: Sample) -> float:

@@ -17,6 +17,7 @@ from app.engine.calibration import (
     Calibration,
     Disc,
     Sample,
+    disc_bin_captures,
     disc_reason,
     fit_calibration,
     fit_disc,
@@ -66,11 +67,34 @@ def test_stronger_evidence_never_states_a_wider_disc_and_absent_places_get_none(
     radii = [np.inf if r is None else r for r in disc.radius_m]
     assert radii == sorted(radii, reverse=True), radii  # from the weakest bin to the strongest
     assert disc.radius_m[0] is None and disc.radius_m[-1] is not None  # the weak bins hold absent places
-    # A bin whose own quantile is smaller than a stronger one's is raised to it (the running maximum).
+    # A stronger bin wider than its weaker neighbour is pooled with it and refitted: one unlucky strong bin
+    # (11 of its 100 captures far off) spends its failures on the captures beside it, where the running
+    # maximum would have left every weaker bin with no disc.
     s = np.repeat([0.1, 0.5, 0.9], 100)
+    err = np.concatenate([np.full(100, 60.0), np.full(100, 20.0), np.full(89, 10.0), np.full(11, np.inf)])
+    d = fit_disc(s, err, min_captures=100, min_n=100)
+    assert d.edges == [0.5] and d.n == [100, 200] and d.radius_m == [60.0, 20.0]
+    # Pooled until monotone: here into one bin.
     err = np.concatenate([np.full(100, 30.0), np.full(100, 20.0), np.full(100, 40.0)])
-    d = fit_disc(s, err, bins=3, min_n=100)
-    assert len(d.edges) == 2 and d.n == [100, 100, 100] and d.radius_m == [40.0, 40.0, 40.0]
+    d = fit_disc(s, err, min_captures=100, min_n=100)
+    assert d.edges == [] and d.n == [300] and d.radius_m == [40.0]
+
+
+def test_bins_close_at_enough_captures_from_the_strongest_down():
+    """A bin closes once it holds ``min_captures`` captures and ``min_n`` answers, counted from the strongest
+    answer down; ties stay together and the weak remainder joins the last bin."""
+    s = np.linspace(1, 0, 100)
+    groups = [k // 2 for k in range(100)]  # 50 captures of two answers each
+    d = fit_disc(s, np.full(100, 15.0), groups, min_captures=20, min_n=25)
+    # From the strongest: 39 answers reach 20 captures, the next 39 again, the last 22 join that second bin.
+    assert d.n == [61, 39] and d.edges == [s[38]] and d.radius_m == [15.0, 15.0]
+    tied = np.repeat([0.9, 0.2], 50)
+    assert fit_disc(tied, np.full(100, 15.0), min_captures=20, min_n=25).n == [50, 50]
+    # By default a bin holds the fewest captures whose quantile survives one far off: 19 at 90 %.
+    assert [disc_bin_captures(r) for r in (0.8, 0.9, 0.95)] == [9, 19, 39]
+    one_off = np.where(np.arange(100) == 0, 500.0, 15.0)  # the strongest capture 500 m off
+    d = fit_disc(s, one_off, groups)
+    assert d.n == [63, 37] and d.radius_m == [15.0, 15.0]  # 19 captures in 37 answers: the 18th of 19 holds
 
 
 def test_a_bin_counts_its_captures_once_with_their_worst_error():
