@@ -3,7 +3,11 @@
 from __future__ import annotations
 
 import csv
+import fcntl
 import os
+import shutil
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
@@ -13,6 +17,41 @@ SHARED = Path(os.environ.get("GEOLOC_SHARED_DIR", REPO.parent / "shared")).resol
 PENN = SHARED / "data" / "penn-campus-gps"
 SQUEEZENET_IR = SHARED / "models" / "squeezenet1.1" / "caffe-openvino-ir"
 CHECK_IMAGES = SHARED / "models" / "squeezenet1.1" / "check-images"
+
+#: Fixture modules shared by every test module (one fixture each for the whole session; a module that
+#: imported a fixture instead would make it a fixture of its own, built again for that module).
+pytest_plugins = ["tests.walks"]
+
+
+@contextmanager
+def _exclusive(lock: Path) -> Iterator[None]:
+    with lock.open("a") as f:
+        fcntl.flock(f, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(f, fcntl.LOCK_UN)
+
+
+def built_once(tmp_path_factory: pytest.TempPathFactory, name: str, build: Callable[[Path], None]) -> Path:
+    """A directory filled by ``build(dir)`` once for the whole run. Under pytest-xdist the workers share it
+    (pytest-xdist's recipe for a session fixture made once: the first worker to ask builds it under a lock
+    in the run's common temporary directory while the others wait, then read what it built; a build that
+    failed is made again by the next to ask); without xdist it is the session's own. Read it, never write
+    it: a test that changes what it holds works on a copy."""
+    if os.environ.get("PYTEST_XDIST_WORKER") is None:
+        d = tmp_path_factory.mktemp(name)
+        build(d)
+        return d
+    common = tmp_path_factory.getbasetemp().parent
+    d, done = common / f"built-{name}", common / f"built-{name}.done"
+    with _exclusive(common / f"built-{name}.lock"):
+        if not done.exists():
+            shutil.rmtree(d, ignore_errors=True)
+            d.mkdir()
+            build(d)
+            done.touch()
+    return d
 
 
 def pytest_collection_modifyitems(config, items):
