@@ -54,11 +54,34 @@ def built_once(tmp_path_factory: pytest.TempPathFactory, name: str, build: Calla
     return d
 
 
+@pytest.hookimpl(wrapper=True)  # around pytest-xdist's own, which reads the marks this adds
 def pytest_collection_modifyitems(config, items):
     if not PENN.exists():
         raise pytest.UsageError(f"the shared data is missing: expected {PENN} (../shared beside the repo)")
     for item in items:
         item.add_marker(pytest.mark.xdist_group(_worker_group(item)))
+    result = yield
+    if getattr(config.option, "loadgroup", False):  # on a pytest-xdist worker under --dist loadgroup
+        for item in items:
+            _name_group(item)
+    return result
+
+
+def _name_group(item: pytest.Item) -> None:
+    """pytest-xdist (3.8) tells its loadgroup scheduler a test's group by the suffix ``@group`` on the node id
+    it reports, written to the node's legacy ``_nodeid`` field, which pytest 9.2's structured node ids no
+    longer read (pytest-dev/pytest-xdist#1386): the suffix was lost, every test was scheduled alone and a
+    module's tests ran on both workers (each worker built the module's fixtures, its servers and fits, and
+    two Ray tests could run at once). Where the suffix is missing, set it on the structured id."""
+    names = sorted(
+        {str(m.args[0] if m.args else m.kwargs.get("name", "default")) for m in item.iter_markers("xdist_group")}
+    )
+    suffix = "@" + "_".join(names)
+    if not names or item.nodeid.endswith(suffix) or not hasattr(item, "_id"):
+        return
+    from _pytest.nodeid import NodeId
+
+    item._id = NodeId.parse(item.nodeid + suffix)
 
 
 def _worker_group(item: pytest.Item) -> str:
