@@ -88,8 +88,12 @@ def _worker_group(item: pytest.Item) -> str:
     """Which pytest-xdist worker group a test joins under ``--dist loadgroup`` (``make test``): a module's
     tests stay together, so its module-scoped servers and fits are made once; every test that starts Ray
     shares one group, because a second local Ray instance on the same machine would be found by
-    ``address="auto"`` and joined by the wrong test."""
-    return "ray" if item.get_closest_marker("ray") else item.nodeid.split("::")[0]
+    ``address="auto"`` and joined by the wrong test; every test on the session's Milvus server shares one,
+    so one worker starts one server for them all (a first start unpacks and boots Milvus: most of a
+    minute on two cores)."""
+    if item.get_closest_marker("ray"):
+        return "ray"
+    return "milvus" if item.get_closest_marker("milvus") else item.nodeid.split("::")[0]
 
 
 @pytest.fixture(scope="session")
