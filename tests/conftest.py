@@ -3,7 +3,11 @@
 from __future__ import annotations
 
 import csv
+import fcntl
 import os
+import shutil
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
@@ -14,20 +18,82 @@ PENN = SHARED / "data" / "penn-campus-gps"
 SQUEEZENET_IR = SHARED / "models" / "squeezenet1.1" / "caffe-openvino-ir"
 CHECK_IMAGES = SHARED / "models" / "squeezenet1.1" / "check-images"
 
+#: Fixture modules shared by every test module (one fixture each for the whole session; a module that
+#: imported a fixture instead would make it a fixture of its own, built again for that module).
+pytest_plugins = ["tests.walks"]
 
+
+@contextmanager
+def _exclusive(lock: Path) -> Iterator[None]:
+    with lock.open("a") as f:
+        fcntl.flock(f, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(f, fcntl.LOCK_UN)
+
+
+def built_once(tmp_path_factory: pytest.TempPathFactory, name: str, build: Callable[[Path], None]) -> Path:
+    """A directory filled by ``build(dir)`` once for the whole run. Under pytest-xdist the workers share it
+    (pytest-xdist's recipe for a session fixture made once: the first worker to ask builds it under a lock
+    in the run's common temporary directory while the others wait, then read what it built; a build that
+    failed is made again by the next to ask); without xdist it is the session's own. Read it, never write
+    it: a test that changes what it holds works on a copy."""
+    if os.environ.get("PYTEST_XDIST_WORKER") is None:
+        d = tmp_path_factory.mktemp(name)
+        build(d)
+        return d
+    common = tmp_path_factory.getbasetemp().parent
+    d, done = common / f"built-{name}", common / f"built-{name}.done"
+    with _exclusive(common / f"built-{name}.lock"):
+        if not done.exists():
+            shutil.rmtree(d, ignore_errors=True)
+            d.mkdir()
+            build(d)
+            done.touch()
+    return d
+
+
+@pytest.hookimpl(wrapper=True)  # around pytest-xdist's own, which reads the marks this adds
 def pytest_collection_modifyitems(config, items):
     if not PENN.exists():
         raise pytest.UsageError(f"the shared data is missing: expected {PENN} (../shared beside the repo)")
     for item in items:
         item.add_marker(pytest.mark.xdist_group(_worker_group(item)))
+    result = yield
+    if getattr(config.option, "loadgroup", False):  # on a pytest-xdist worker under --dist loadgroup
+        for item in items:
+            _name_group(item)
+    return result
+
+
+def _name_group(item: pytest.Item) -> None:
+    """pytest-xdist (3.8) tells its loadgroup scheduler a test's group by the suffix ``@group`` on the node id
+    it reports, written to the node's legacy ``_nodeid`` field, which pytest 9.2's structured node ids no
+    longer read (pytest-dev/pytest-xdist#1386): the suffix was lost, every test was scheduled alone and a
+    module's tests ran on both workers (each worker built the module's fixtures, its servers and fits, and
+    two Ray tests could run at once). Where the suffix is missing, set it on the structured id."""
+    names = sorted(
+        {str(m.args[0] if m.args else m.kwargs.get("name", "default")) for m in item.iter_markers("xdist_group")}
+    )
+    suffix = "@" + "_".join(names)
+    if not names or item.nodeid.endswith(suffix) or not hasattr(item, "_id"):
+        return
+    from _pytest.nodeid import NodeId
+
+    item._id = NodeId.parse(item.nodeid + suffix)
 
 
 def _worker_group(item: pytest.Item) -> str:
     """Which pytest-xdist worker group a test joins under ``--dist loadgroup`` (``make test``): a module's
     tests stay together, so its module-scoped servers and fits are made once; every test that starts Ray
     shares one group, because a second local Ray instance on the same machine would be found by
-    ``address="auto"`` and joined by the wrong test."""
-    return "ray" if item.get_closest_marker("ray") else item.nodeid.split("::")[0]
+    ``address="auto"`` and joined by the wrong test; every test on the session's Milvus server shares one,
+    so one worker starts one server for them all (a first start unpacks and boots Milvus: most of a
+    minute on two cores)."""
+    if item.get_closest_marker("ray"):
+        return "ray"
+    return "milvus" if item.get_closest_marker("milvus") else item.nodeid.split("::")[0]
 
 
 @pytest.fixture(scope="session")

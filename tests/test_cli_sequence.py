@@ -10,15 +10,15 @@ import numpy as np
 import pytest
 
 from tests.test_cli import geoloc
-from tests.walks import CONFIG, walk_collection  # noqa: F401  (the fixture)
+from tests.walks import CONFIG
 
 
-def _where(walk_collection):  # noqa: F811
+def _where(walk_collection):
     models, data, _ = walk_collection
     return ["--data-dir", str(data), "--models-dir", str(models), "--config", CONFIG]
 
 
-def test_files_in_order(walk_collection):  # noqa: F811
+def test_files_in_order(walk_collection):
     walk = walk_collection[2][:4]
     args = ["--top-k", "2", "--max-speed-mps", "1.5", "--max-step-m", "80"]
     out = json.loads(geoloc("locate", "--sequence", *map(str, walk), *args, *_where(walk_collection)).stdout)
@@ -28,7 +28,7 @@ def test_files_in_order(walk_collection):  # noqa: F811
     assert all(a["rests_on"] in ("pixels", "sequence") and len(a["candidates"]) <= 2 for a in out["answers"])
 
 
-def test_a_folder_is_read_in_exif_time_order(tmp_path, walk_collection):  # noqa: F811
+def test_a_folder_is_read_in_exif_time_order(tmp_path, walk_collection):
     walk = walk_collection[2][:4]
     folder = tmp_path / "walk"
     folder.mkdir()
@@ -52,7 +52,7 @@ def _video(path, photos, fps=2, seconds_each=1):
     writer.release()
 
 
-def test_a_video_every_second(tmp_path, walk_collection):  # noqa: F811
+def test_a_video_every_second(tmp_path, walk_collection):
     video = tmp_path / "walk.avi"
     _video(video, walk_collection[2][:3])
     out = json.loads(geoloc("locate", "--video", str(video), "--every", "1", *_where(walk_collection)).stdout)

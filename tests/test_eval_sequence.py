@@ -71,7 +71,9 @@ def test_eval_reports_the_sequence_beside_the_photos_alone(tmp_path, models_dir,
     manifest = tmp_path / "walk.csv"
     write_manifest(manifest, rows)
     out = tmp_path / "eval.json"
-    args = ["eval", "-m", str(manifest), "--config", CONFIG, "--models-dir", str(models_dir), "--json", str(out)]
+    # The three runs read one extraction of the photos (--cache: the features are the same for each run).
+    where = ["--config", CONFIG, "--models-dir", str(models_dir), "--cache", str(tmp_path / "features")]
+    args = ["eval", "-m", str(manifest), *where, "--json", str(out)]
     p = geoloc(*args, "--sequence-window", "3", "--max-speed-mps", "1.5", "--max-step-m", "100")
     assert "sequences: windows of 3 photos, centred" in p.stdout
     assert "Recall@1/5, sequence vs alone" in p.stdout

@@ -27,7 +27,7 @@ def _every_test() -> tuple[tuple[str, frozenset[str]], ...]:
     out = subprocess.run([sys.executable, "-c", _LIST_ITEMS], cwd=REPO, capture_output=True, text=True, timeout=300)
     line = next((x for x in out.stdout.splitlines() if x.startswith("ITEMS ")), None)
     assert line is not None, out.stdout[-2000:] + out.stderr[-2000:]
-    return tuple((nodeid, frozenset(marks)) for nodeid, marks in json.loads(line[len("ITEMS "):]))
+    return tuple((nodeid, frozenset(marks)) for nodeid, marks in json.loads(line[len("ITEMS ") :]))
 
 
 def _collected(marker_expr: str | None) -> set[str]:

@@ -3,15 +3,20 @@
 The penn photos are walks by three phones (EXIF time and camera). The collection: 40 captures (a photo and
 two crops each) around a window of ``WALK`` consecutive captures of one phone, fitted and calibrated on
 itself by `geoloc fit` and ingested by `geoloc ingest`; the window's photos and all their crops are out of
-it, so no photo of the walk can be answered by its own crop."""
+it, so no photo of the walk can be answered by its own crop.
+
+A plugin of the root conftest (``pytest_plugins``): one fit and ingest for the whole run, shared by the
+xdist workers (``built_once``); each module that asks for ``walk_collection`` gets its own copy of the
+models and data dirs (a server or a service may write to its data dir)."""
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
 import pytest
 
-from tests.conftest import PENN
+from tests.conftest import PENN, built_once
 
 CONFIG = "hybrid-bin"
 #: The held-out walk: consecutive captures of the first phone, in time order.
@@ -20,29 +25,41 @@ AROUND = 48  # the collection: the first 48 captures less the walk's 8
 
 
 @pytest.fixture(scope="session")
-def walk_collection(tmp_path_factory, models_dir, penn_index) -> tuple[Path, Path, list[Path]]:
-    """(models dir, data dir, the walk's photos in order)."""
+def walk_built(tmp_path_factory, models_dir, penn_index) -> Path:
+    """The fitted models dir and the ingested data dir (``models``, ``data`` under the directory returned),
+    made once for the run. Never written: ``walk_collection`` copies them."""
     from app.manifests import Row, write_manifest
     from tests.test_cli import geoloc
 
+    def build(root: Path) -> None:
+        models = root / "models"
+        models.mkdir()
+        for f in models_dir.iterdir():
+            if f.is_file():
+                (models / f.name).symlink_to(f)
+        captures = [r for r in penn_index if r["photo"]]
+        walk = captures[WALK]
+        kept = [r for r in captures[:AROUND] if r not in walk]
+        rows = [
+            Row((PENN / img).resolve(), float(r["lat"]), float(r["lon"]), "db", r["photo_id"])
+            for r in kept
+            for img in [r["photo"]] + r["crops"].split(";")[:2]
+        ]
+        manifest = root / "collection.csv"
+        write_manifest(manifest, rows)
+        where = ["--models-dir", str(models), "--config", CONFIG]
+        geoloc("fit", "--manifest", str(manifest), *where)
+        geoloc("ingest", "--manifest", str(manifest), "--split", "db", "--data-dir", str(root / "data"), *where)
+
+    return built_once(tmp_path_factory, "walk", build)
+
+
+@pytest.fixture(scope="module")
+def walk_collection(tmp_path_factory, walk_built, penn_index) -> tuple[Path, Path, list[Path]]:
+    """(models dir, data dir, the walk's photos in order): the module's own copy of the built collection."""
     root = tmp_path_factory.mktemp("walk")
-    models = root / "models"
-    models.mkdir()
-    for f in models_dir.iterdir():
-        if f.is_file():
-            (models / f.name).symlink_to(f)
+    models, data = root / "models", root / "data"
+    shutil.copytree(walk_built / "models", models, symlinks=True)
+    shutil.copytree(walk_built / "data", data, symlinks=True)
     captures = [r for r in penn_index if r["photo"]]
-    walk = captures[WALK]
-    kept = [r for r in captures[:AROUND] if r not in walk]
-    rows = [
-        Row((PENN / img).resolve(), float(r["lat"]), float(r["lon"]), "db", r["photo_id"])
-        for r in kept
-        for img in [r["photo"]] + r["crops"].split(";")[:2]
-    ]
-    manifest = root / "collection.csv"
-    write_manifest(manifest, rows)
-    where = ["--models-dir", str(models), "--config", CONFIG]
-    geoloc("fit", "--manifest", str(manifest), *where)
-    data = root / "data"
-    geoloc("ingest", "--manifest", str(manifest), "--split", "db", "--data-dir", str(data), *where)
-    return models, data, [PENN / r["photo"] for r in walk]
+    return models, data, [PENN / r["photo"] for r in captures[WALK]]

@@ -7,13 +7,13 @@ import pytest
 
 from tests.api.conftest import Server
 from tests.conftest import PENN
-from tests.walks import CONFIG, walk_collection  # noqa: F401  (the fixture)
+from tests.walks import CONFIG
 
 ELSEWHERE = sorted((PENN.parent / "sf-streetview-toy").glob("*/*.jpg"))  # the 22 images: San Francisco
 
 
 @pytest.fixture(scope="module")
-def server(walk_collection):  # noqa: F811
+def server(walk_collection):
     models, data, _ = walk_collection
     s = Server(data, models, extra_env={"GEOLOC_MAX_SEQUENCE_IMAGES": "10", "GEOLOC_MAX_UPLOAD_BYTES": "3000000"})
     assert s.config == CONFIG
@@ -30,7 +30,7 @@ def _count(server) -> int:
     return server.client.get("/references", params={"limit": 1}).json()["total"]
 
 
-def test_a_walk_is_located_as_one_path(server, walk_collection):  # noqa: F811
+def test_a_walk_is_located_as_one_path(server, walk_collection):
     _, _, walk = walk_collection
     r = server.client.post("/locate/sequence", files=_files(walk), data={"top_k": 3}, timeout=300)
     assert r.status_code == 200, r.text
@@ -53,7 +53,7 @@ def test_a_walk_is_located_as_one_path(server, walk_collection):  # noqa: F811
         assert alone["estimate"] == a["estimate"]
 
 
-def test_given_times_and_bounds_are_read(server, walk_collection):  # noqa: F811
+def test_given_times_and_bounds_are_read(server, walk_collection):
     _, _, walk = walk_collection
     times = [f"2024-09-23T16:{10 + n:02d}:00-04:00" for n in range(3)]
     data = {"taken_at": times, "max_speed_mps": "1.5", "max_step_m": "80"}

@@ -39,21 +39,36 @@ def calibrated(tmp_path_factory, models_dir, penn_index):
     return models, manifest
 
 
+@pytest.fixture(scope="module")
+def ingested(tmp_path_factory, calibrated):
+    """The calibrated manifest's 120 photos and crops ingested by `geoloc ingest` once for the module (the
+    collection the pipeline was calibrated on). Each test works on its own copy (``_copy``)."""
+    models, manifest = calibrated
+    data = tmp_path_factory.mktemp("ingested") / "data"
+    where = ["--models-dir", str(models), "--config", CONFIG]
+    geoloc("ingest", "--manifest", str(manifest), "--split", "db", "--data-dir", str(data), *where)
+    return data
+
+
+def _copy(ingested, dest):
+    shutil.copytree(ingested, dest, symlinks=True)
+    return dest
+
+
 def _locate(photo, data, models, *extra) -> str:
     args = ["locate", str(photo), "--data-dir", str(data), "--models-dir", str(models), "--config", CONFIG]
     return geoloc(*args, *extra).stdout
 
 
-def test_a_new_collection_is_judged_by_its_own_calibration_or_by_none(tmp_path, calibrated, penn_index):
-    models, manifest = calibrated
+def test_a_new_collection_is_judged_by_its_own_calibration_or_by_none(tmp_path, calibrated, ingested, penn_index):
+    models, _ = calibrated
     photos = tmp_path / "photos"
     photos.mkdir()
     captures = [r for r in penn_index if r["photo"]][41:61]  # 20 photos the fit never saw
     for r in captures:
         shutil.copyfile(PENN / r["photo"], photos / r["photo"].split("/")[-1])
-    own, mine = tmp_path / "own", tmp_path / "mine"
+    own, mine = _copy(ingested, tmp_path / "own"), tmp_path / "mine"
     where = ["--models-dir", str(models), "--config", CONFIG]
-    geoloc("ingest", "--manifest", str(manifest), "--split", "db", "--data-dir", str(own), *where)
     geoloc("ingest", str(photos), "--data-dir", str(mine), *where)
     query = PENN / captures[3]["crops"].split(";")[0]  # a crop of a photo of `mine`: its best match is 0 m off
     # The collection the pipeline was calibrated on is judged by it: probabilities.
@@ -85,14 +100,13 @@ def test_a_new_collection_is_judged_by_its_own_calibration_or_by_none(tmp_path, 
     assert "fitted on another collection" not in ready["calibration"]
 
 
-def test_a_refit_counts_a_photo_and_its_crops_as_one_capture(tmp_path, calibrated):
+def test_a_refit_counts_a_photo_and_its_crops_as_one_capture(tmp_path, calibrated, ingested):
     """Penn photos carry an EXIF time and their crops none; a refit groups references by position alone, so
     a photo and its crops are one capture and the calibration never locates a crop against the photo it was
     cut from (issue 32: a 60-reference collection's rule then stated 0.965 for an answer 289 m off)."""
-    models, manifest = calibrated
-    data = tmp_path / "forty"
+    models, _ = calibrated
+    data = _copy(ingested, tmp_path / "forty")
     where = ["--models-dir", str(models), "--config", CONFIG]
-    geoloc("ingest", "--manifest", str(manifest), "--split", "db", "--data-dir", str(data), *where)
     service = GeolocService.open(data, models, CONFIG)
     try:
         rows = service.store.get_many(service.store.indexed_ids().tolist()).values()
@@ -107,7 +121,7 @@ def test_a_refit_counts_a_photo_and_its_crops_as_one_capture(tmp_path, calibrate
     assert cal["report"]["captures"] == len(positions) <= 40
 
 
-def test_an_answer_states_its_disc_and_its_rate_and_says_it_in_words(tmp_path, calibrated):
+def test_an_answer_states_its_disc_and_its_rate_and_says_it_in_words(tmp_path, calibrated, ingested):
     """The disc every answer states, through a real server reading the persisted calibration: this
     40-capture collection's strongest disc (about 90 m) is wider than its limit (a quarter of its extent), so
     no answer has an estimate and none claims the place is absent; the same pipeline with that limit raised
@@ -116,9 +130,7 @@ def test_an_answer_states_its_disc_and_its_rate_and_says_it_in_words(tmp_path, c
     models, manifest = calibrated
     disc = json.loads((models / "pipelines" / CONFIG / "calibration.json").read_text())["disc"]
     assert disc is not None and disc["rate"] == 0.9 and disc["limit_m"] <= 90, disc
-    own = tmp_path / "own"
-    where = ["--models-dir", str(models), "--config", CONFIG]
-    geoloc("ingest", "--manifest", str(manifest), "--split", "db", "--data-dir", str(own), *where)
+    own = _copy(ingested, tmp_path / "own")
     photos = [r.image for r in read_manifest(manifest)][::3][:6]  # each capture's photo, a reference itself
 
     def answers(models_dir):

@@ -21,7 +21,7 @@ from app.engine.configs import DEFAULT_CONFIG
 from app.evaluation.datasets import penn_campus_rows
 from app.manifests import write_manifest
 from bench.library_time_prior import penn_library
-from tests.conftest import PENN, REPO, SHARED
+from tests.conftest import PENN, REPO, SHARED, built_once
 
 SF = SHARED / "data" / "sf-streetview-toy" / "queries"
 ELSEWHERE = ("q1.jpg", "q2.jpg")  # San Francisco: no reference there
@@ -45,32 +45,42 @@ def query_truth() -> dict[str, tuple[float, float]]:
 @pytest.fixture(scope="session")
 def library_models(tmp_path_factory, models_dir, lite2, xfeat) -> Path:
     """The default configuration, fitted as `make fit` fits it: the checkout's when `make fit` ran, else
-    fitted here once (about two minutes) into the session's models dir."""
+    fitted here once for the run (about two minutes; one fit shared by the xdist workers, ``built_once``)
+    in a models dir beside the session's models (linked)."""
     if (REPO / "models" / "pipelines" / DEFAULT_CONFIG / "pipeline.json").exists():
         return REPO / "models"
-    manifest = tmp_path_factory.mktemp("library-manifest") / "penn-campus-gps.csv"
-    write_manifest(manifest, penn_campus_rows(PENN))
-    args = ["fit", "--manifest", str(manifest), "--config", DEFAULT_CONFIG, "--models-dir", str(models_dir)]
-    done = subprocess.run([sys.executable, "-m", "app.cli", *args], capture_output=True, text=True, timeout=900)
-    assert done.returncode == 0, done.stdout + done.stderr
-    return models_dir
+
+    def build(models: Path) -> None:
+        for f in models_dir.iterdir():
+            if f.is_file():
+                (models / f.name).symlink_to(f)
+        manifest = models.parent / f"{models.name}-penn-campus-gps.csv"
+        write_manifest(manifest, penn_campus_rows(PENN))
+        args = ["fit", "--manifest", str(manifest), "--config", DEFAULT_CONFIG, "--models-dir", str(models)]
+        done = subprocess.run([sys.executable, "-m", "app.cli", *args], capture_output=True, text=True, timeout=900)
+        assert done.returncode == 0, done.stdout + done.stderr
+
+    return built_once(tmp_path_factory, "library-models", build)
 
 
 @pytest.fixture(scope="session")
 def penn_collection(tmp_path_factory, library_models, query_truth) -> Path:
     """A data dir holding penn's 65 geotagged photos (the library's references), made by `geoloc library
-    scan` of a folder of them alone (nothing to locate). Copy it (``copy_collection``), never write it."""
-    base = tmp_path_factory.mktemp("penn-collection")
-    refs = base / "refs"
-    refs.mkdir()
-    for src in sorted((PENN / "photos").glob("*.jpg")):
-        if src.name not in query_truth:
-            shutil.copyfile(src, refs / src.name)
-    args = ["library", "scan", str(refs), "--data-dir", str(base / "data"), "--models-dir", str(library_models),
-            "--config", DEFAULT_CONFIG]  # fmt: skip
-    done = subprocess.run([sys.executable, "-m", "app.cli", *args], capture_output=True, text=True, timeout=900)
-    assert done.returncode == 0 and "65 references" in done.stdout, done.stdout + done.stderr
-    return base / "data"
+    scan` of a folder of them alone (nothing to locate), once for the run (shared by the xdist workers,
+    ``built_once``). Copy it (``copy_collection``), never write it."""
+
+    def build(base: Path) -> None:
+        refs = base / "refs"
+        refs.mkdir()
+        for src in sorted((PENN / "photos").glob("*.jpg")):
+            if src.name not in query_truth:
+                shutil.copyfile(src, refs / src.name)
+        args = ["library", "scan", str(refs), "--data-dir", str(base / "data"), "--models-dir",
+                str(library_models), "--config", DEFAULT_CONFIG]  # fmt: skip
+        done = subprocess.run([sys.executable, "-m", "app.cli", *args], capture_output=True, text=True, timeout=900)
+        assert done.returncode == 0 and "65 references" in done.stdout, done.stdout + done.stderr
+
+    return built_once(tmp_path_factory, "penn-collection", build) / "data"
 
 
 def copy_collection(collection: Path, dest: Path) -> Path:

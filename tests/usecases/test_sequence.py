@@ -13,18 +13,18 @@ from app.usecases.sequence import PIXELS, SEQUENCE, locate_sequence, sequence_an
 from app.usecases.sequence_inputs import seconds, sequence_times
 from app.usecases.service import GeolocService
 from tests.conftest import PENN
-from tests.walks import CONFIG, walk_collection  # noqa: F401  (the fixture)
+from tests.walks import CONFIG
 
 ELSEWHERE = sorted((PENN.parent / "sf-streetview-toy").glob("*/*.jpg"))
 
 
 @pytest.fixture(scope="module")
-def service(walk_collection):  # noqa: F811
+def service(walk_collection):
     models, data, _ = walk_collection
     return GeolocService.open(data, models, CONFIG)
 
 
-def test_the_walk_answers_each_photo_and_a_confident_one_rests_on_its_pixels(service, walk_collection):  # noqa: F811
+def test_the_walk_answers_each_photo_and_a_confident_one_rests_on_its_pixels(service, walk_collection):
     _, _, walk = walk_collection
     result = locate_sequence(service, [p.read_bytes for p in walk], LocateOptions(top_k=5), Motion())
     assert result.times_from == "exif" and result.note is None
@@ -43,7 +43,7 @@ def test_the_walk_answers_each_photo_and_a_confident_one_rests_on_its_pixels(ser
             )
 
 
-def test_a_sequence_of_one_photo_is_the_photo_alone(service, walk_collection):  # noqa: F811
+def test_a_sequence_of_one_photo_is_the_photo_alone(service, walk_collection):
     """Only what the sequence adds reorders: one photo keeps its own ranking and its own answer."""
     options = LocateOptions(top_k=10)
     calibration = service.answer_calibration(options)
