@@ -6,7 +6,7 @@ import json
 import httpx
 import pytest
 
-from app.engine.configs import CONFIGS, get_config
+from app.engine.configs import CONFIGS, configs_serving, get_config
 from app.engine.index.references import ReferenceIndex, UnsupportedMode
 from tests.api.conftest import Server, wait_job
 from tests.conftest import PENN
@@ -149,7 +149,8 @@ def test_answers_round_metres_and_scores(server):
 
 
 def test_unsupported_mode_names_the_configurations_that_serve_it():
-    index = ReferenceIndex(get_config("hybrid"), float_dim=8, bits=None)  # float codes only, as the default
+    # float codes only, as the default; told which configurations serve a mode, as the pipeline tells it
+    index = ReferenceIndex(get_config("hybrid"), float_dim=8, bits=None, serving=configs_serving)
     with pytest.raises(UnsupportedMode) as refused:
         index.check_mode("binary")
     message = str(refused.value)
