@@ -127,7 +127,12 @@ def fit_threads():
     spin at every one of mini-batch k-means's small parallel steps, and on 2 loaded cores a fit's k-means
     took several times as long with 2 threads as with one (the same centres).
     Feature extraction (onnxruntime, OpenCV) keeps its own threads: it is per image, and gives the same
-    features with any count (tests/test_fit_reproducible.py)."""
+    features with any count (tests/test_fit_reproducible.py).
+
+    scikit-learn is imported here, before the limit: threadpoolctl limits only the libraries already loaded,
+    and the fit's modules import scikit-learn (its OpenMP runtime) only when they fit, so that serving never
+    pays for that import."""
+    import sklearn.cluster  # noqa: F401  (loads scikit-learn's OpenMP runtime, which the limit must reach)
     from threadpoolctl import threadpool_limits
 
     return threadpool_limits(limits=FIT_THREADS)

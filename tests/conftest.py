@@ -18,6 +18,17 @@ PENN = SHARED / "data" / "penn-campus-gps"
 SQUEEZENET_IR = SHARED / "models" / "squeezenet1.1" / "caffe-openvino-ir"
 CHECK_IMAGES = SHARED / "models" / "squeezenet1.1" / "check-images"
 
+#: Under pytest-xdist every process of the suite (the workers, the servers, fits and ingests they start)
+#: runs onnxruntime on one thread: the workers already keep every core busy, and two onnxruntime threads
+#: per process on shared cores cost about a quarter more CPU for the same work (threads waiting on each
+#: other; a fit's numerics are on one thread already, ``app.runtime.fit_threads``). A test that is about
+#: threads sets its own counts.
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    os.environ.setdefault("GEOLOC_ORT_THREADS", "1")
+    from app.engine.models.ort import set_session_threads
+
+    set_session_threads(int(os.environ["GEOLOC_ORT_THREADS"]))  # the workers' own models, as geoloc's start does
+
 #: Fixture modules shared by every test module (one fixture each for the whole session; a module that
 #: imported a fixture instead would make it a fixture of its own, built again for that module).
 pytest_plugins = ["tests.walks"]
@@ -58,8 +69,9 @@ def built_once(tmp_path_factory: pytest.TempPathFactory, name: str, build: Calla
 def pytest_collection_modifyitems(config, items):
     if not PENN.exists():
         raise pytest.UsageError(f"the shared data is missing: expected {PENN} (../shared beside the repo)")
+    builds = {_module(item): group for item in items for group in _shared_builds(item)}
     for item in items:
-        item.add_marker(pytest.mark.xdist_group(_worker_group(item)))
+        item.add_marker(pytest.mark.xdist_group(_worker_group(item, builds)))
     result = yield
     if getattr(config.option, "loadgroup", False):  # on a pytest-xdist worker under --dist loadgroup
         for item in items:
@@ -86,16 +98,33 @@ def _name_group(item: pytest.Item) -> None:
     item._id = NodeId.parse(item.nodeid + suffix)
 
 
-def _worker_group(item: pytest.Item) -> str:
+def _module(item: pytest.Item) -> str:
+    return item.nodeid.split("::")[0]
+
+
+def _shared_builds(item: pytest.Item) -> list[str]:
+    return [group for group, fixtures in SHARED_BUILDS.items() if fixtures & set(getattr(item, "fixturenames", ()))]
+
+
+def _worker_group(item: pytest.Item, builds: dict[str, str]) -> str:
     """Which pytest-xdist worker group a test joins under ``--dist loadgroup`` (``make test``): a module's
     tests stay together, so its module-scoped servers and fits are made once; every test that starts Ray
     shares one group, because a second local Ray instance on the same machine would be found by
     ``address="auto"`` and joined by the wrong test; every test on the session's Milvus server shares one,
     so one worker starts one server for them all (a first start unpacks and boots Milvus: most of a
-    minute on two cores)."""
+    minute on two cores); the modules with a test that reads one collection built once for the run
+    (``built_once``: the library's fitted pipeline, the walk collection; ``builds``, module -> group) share
+    one group, so no module waits on the lock while another builds it: it comes after it on the same
+    worker, and the other worker goes on."""
     if item.get_closest_marker("ray"):
         return "ray"
-    return "milvus" if item.get_closest_marker("milvus") else item.nodeid.split("::")[0]
+    if item.get_closest_marker("milvus"):
+        return "milvus"
+    return builds.get(_module(item), _module(item))
+
+
+#: The run's shared builds (``built_once``) and the fixtures that read them: one worker group each.
+SHARED_BUILDS = {"library": {"library_models", "penn_collection"}, "walk": {"walk_built"}}
 
 
 @pytest.fixture(scope="session")

@@ -11,7 +11,6 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from sklearn.decomposition import PCA
 
 from app.engine.artifacts import data_hash, load_artifact, save_artifact
 
@@ -46,6 +45,8 @@ class PcaWhitening:
 
     @classmethod
     def fit(cls, x: np.ndarray, dim: int, power: float = 0.5, seed: int = 0) -> PcaWhitening:
+        from sklearn.decomposition import PCA  # fitting only: serving never pays scikit-learn's import
+
         x = np.asarray(x, np.float32)
         dim = min(dim, len(x) - 1, x.shape[1])
         pca = PCA(n_components=dim, svd_solver="randomized" if dim < min(x.shape) // 2 else "full", random_state=seed)

@@ -86,9 +86,9 @@ class _Timer:
 
 #: Runs the global model of a hybrid while the caller's thread extracts local features: OpenCV's SIFT and
 #: onnxruntime release the GIL and neither keeps two cores busy alone, so the two branches overlap (a photo's
-#: extraction takes less time on two cores; bench/locate_normalised.py). Shared by
-#: every pipeline in the process, bounded, so concurrent requests queue here instead of adding threads.
-#: Made per process: a forked child would inherit an executor whose threads it does not have.
+#: extraction takes less time on two cores). Shared by every pipeline in the process, bounded, so concurrent
+#: requests queue here instead of adding threads. Made per process: a forked child would inherit an executor
+#: whose threads it does not have.
 _BRANCHES: tuple[int, ThreadPoolExecutor] | None = None
 _BRANCHES_LOCK = threading.Lock()
 

@@ -22,8 +22,6 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
-from sklearn.cluster import MiniBatchKMeans
-from sklearn.svm import LinearSVC
 
 from app.engine.artifacts import data_hash, load_artifact, save_artifact
 from app.engine.pca import l2_normalize
@@ -146,6 +144,9 @@ class SvmBank:
     def train(cls, x: np.ndarray, labels: np.ndarray, params: BankParams) -> SvmBank:
         """Cluster the labelled features, then one balanced linear SVM per cluster with a few rounds of
         hard-negative mining (start from a sample of negatives, add the ones the SVM gets most wrong)."""
+        from sklearn.cluster import MiniBatchKMeans  # training only: serving never pays scikit-learn's import
+        from sklearn.svm import LinearSVC
+
         keep = labels != 0
         x = np.asarray(x, np.float32)[keep]
         y = labels[keep]

@@ -12,7 +12,6 @@ import math
 from pathlib import Path
 
 import numpy as np
-from sklearn.cluster import KMeans, MiniBatchKMeans
 
 from app.engine.artifacts import data_hash, load_artifact, save_artifact
 
@@ -46,6 +45,8 @@ class Codebook:
     ) -> Codebook:
         """``max_iter`` counts mini-batch steps for ``minibatch`` (the thesis: 100 steps of large batches)
         and Lloyd iterations for ``kmeans``."""
+        from sklearn.cluster import KMeans, MiniBatchKMeans  # fitting only: serving never pays its import
+
         x = np.ascontiguousarray(descriptors, dtype=np.float32)
         k = min(k, len(x))
         if algorithm == "minibatch":
