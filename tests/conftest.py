@@ -19,10 +19,10 @@ SQUEEZENET_IR = SHARED / "models" / "squeezenet1.1" / "caffe-openvino-ir"
 CHECK_IMAGES = SHARED / "models" / "squeezenet1.1" / "check-images"
 
 #: Under pytest-xdist every process of the suite (the workers, the servers, fits and ingests they start)
-#: runs onnxruntime on one thread: the workers already keep every core busy, and two onnxruntime threads
-#: per process on shared cores cost about a quarter more CPU for the same work (threads waiting on each
-#: other; a fit's numerics are on one thread already, ``app.runtime.fit_threads``). A test that is about
-#: threads sets its own counts.
+#: runs onnxruntime on one thread: the workers already keep every core busy, and more onnxruntime threads
+#: per process on shared cores cost more CPU for the same work (threads waiting on each other;
+#: a fit's numerics are on one thread already, ``app.runtime.fit_threads``).
+#: A test that is about threads sets its own counts.
 if os.environ.get("PYTEST_XDIST_WORKER"):
     os.environ.setdefault("GEOLOC_ORT_THREADS", "1")
     from app.engine.models.ort import set_session_threads
