@@ -31,7 +31,7 @@ if os.environ.get("PYTEST_XDIST_WORKER"):
 
 #: Fixture modules shared by every test module (one fixture each for the whole session; a module that
 #: imported a fixture instead would make it a fixture of its own, built again for that module).
-pytest_plugins = ["tests.walks"]
+pytest_plugins = ["tests.walks", "tests.forty"]
 
 
 @contextmanager
@@ -112,10 +112,10 @@ def _worker_group(item: pytest.Item, builds: dict[str, str]) -> str:
     shares one group, because a second local Ray instance on the same machine would be found by
     ``address="auto"`` and joined by the wrong test; every test on the session's Milvus server shares one,
     so one worker starts one server for them all (a first start unpacks and boots Milvus: most of a
-    minute on two cores); the modules with a test that reads one collection built once for the run
-    (``built_once``: the library's fitted pipeline, the walk collection; ``builds``, module -> group) share
-    one group, so no module waits on the lock while another builds it: it comes after it on the same
-    worker, and the other worker goes on."""
+    minute on two cores); the modules with a test that reads one thing built once for the run
+    (``built_once``: the library's fitted pipeline, the walk collection, the 40-capture fit; ``builds``,
+    module -> group) share one group, so no module waits on the lock while another builds it: it comes
+    after it on the same worker, and the other worker goes on."""
     if item.get_closest_marker("ray"):
         return "ray"
     if item.get_closest_marker("milvus"):
@@ -124,7 +124,11 @@ def _worker_group(item: pytest.Item, builds: dict[str, str]) -> str:
 
 
 #: The run's shared builds (``built_once``) and the fixtures that read them: one worker group each.
-SHARED_BUILDS = {"library": {"library_models", "penn_collection"}, "walk": {"walk_built"}}
+SHARED_BUILDS = {
+    "library": {"library_models", "penn_collection"},
+    "walk": {"walk_built"},
+    "forty": {"forty_fitted"},
+}
 
 
 @pytest.fixture(scope="session")

@@ -133,6 +133,8 @@ def test_eval_writes_the_report(workdir, mini_manifest):
         "2",
         "--absent-radius",
         "100",
+        "--cache",
+        str(workdir / "eval-cache"),  # test_eval_runs_one_fold reads the features from it
     )
     assert "Recall@1/5/10/20" in p.stdout and "absent places" in p.stdout and "  fold 2:" in p.stdout
     r = json.loads(out_json.read_text())
@@ -165,7 +167,8 @@ def test_eval_runs_one_fold(workdir, mini_manifest):
     """`geoloc eval --folds 2 --fold 1`: the second fold alone (its queries, its fit), said so."""
     out_json = workdir / "eval" / "fold1.json"
     args = ["eval", "--manifest", str(mini_manifest), "--config", "hybrid", "--models-dir", str(workdir / "models")]
-    p = geoloc(*args, "--folds", "2", "--fold", "1", "--json", str(out_json))
+    cache = ["--cache", str(workdir / "eval-cache")]  # the features test_eval_writes_the_report extracted, if it ran
+    p = geoloc(*args, *cache, "--folds", "2", "--fold", "1", "--json", str(out_json))
     assert "folds 2 (fold 1 only)" in p.stdout and "  fold 2:" not in p.stdout
     r = json.loads(out_json.read_text())
     assert r["folds"] == 2 and r["fold"] == 1 and len(r["answers_per_fold"]) == 1

@@ -1,8 +1,8 @@
 """Crash safety: SIGKILL the worker, or the API process, at random moments during an ingestion.
 
 Afterwards every accepted reference exists exactly once, the index size equals the metadata count, and
-each reference is found first by a query with its own image. CI uses the 224 px crops
-(GEOLOC_CRASH_N=200 by default); `make crash-full` runs the same with 1600 px photos."""
+each reference is found first by a query with its own image. `make test` uses 100 of the 224 px crops
+(GEOLOC_CRASH_N sets another count); `make crash-full` runs the same with 200 photos of 1600 px."""
 
 import io
 import json
@@ -19,14 +19,14 @@ from tests.api.conftest import Server, start_worker, wait_job
 from tests.conftest import PENN
 
 #: Not in `make test-quick`. Each test runs on SQLite and on PostgreSQL (the ``backend`` fixture: the servers
-#: and workers started here inherit its GEOLOC_DATABASE_URL), on PostgreSQL with a quarter of the images (the same
-#: kills, in a quarter of the time: `make test` stays within its budget).
+#: and workers started here inherit its GEOLOC_DATABASE_URL), on PostgreSQL with half of the images (the same
+#: kills, in half the time: `make test` stays within its budget).
 pytestmark = pytest.mark.crash
 
-N = int(os.environ.get("GEOLOC_CRASH_N", "200"))
-#: The images of one run on each engine.
-SHARE = {"sqlite": 1, "postgres": 4}
 FULL = os.environ.get("GEOLOC_CRASH_FULL") == "1"
+N = int(os.environ.get("GEOLOC_CRASH_N", "200" if FULL else "100"))
+#: The images of one run on each engine.
+SHARE = {"sqlite": 1, "postgres": 2}
 
 
 @pytest.fixture(scope="module")

@@ -59,8 +59,9 @@ def test_two_hosts_share_one_milvus_collection(tmp_path, fitted_models, hosts_en
 def test_milvus_stopped_answers_503_loses_nothing_and_comes_back(tmp_path, fitted_models, milvus_server):
     """A real server (SQLite store, the in-process worker: the writer) serving from Milvus: Milvus stopped,
     each of several /locate requests (one after another, not concurrent) is a 503 `not_ready` naming the
-    server, an upload is still accepted and encoded into the store; Milvus started again, the same server
-    answers again by itself and finds the upload made during the outage first."""
+    server and saying to retry, /ready is a 503 that names it, an upload is still accepted and encoded
+    into the store; Milvus started again, the same server answers again by itself in every search mode, has
+    lost nothing and finds the upload made during the outage first."""
     env = {"GEOLOC_MILVUS_URI": milvus_server.uri, "GEOLOC_MILVUS_COLLECTION": "outage"}
     with Server(tmp_path / "data", fitted_models, extra_env=env) as server:
         before = []
@@ -78,6 +79,10 @@ def test_milvus_stopped_answers_503_loses_nothing_and_comes_back(tmp_path, fitte
                 assert r.status_code == 503, r.text
                 body = r.json()
                 assert body["error"] == "not_ready" and "Milvus server" in body["message"], body
+                assert "retry" in body["message"], body
+            ready = server.client.get("/ready")  # not ready, and why (a balancer sends no /locate here)
+            assert ready.status_code == 503 and ready.json()["error"] == "not_ready", ready.text
+            assert "Milvus server" in ready.json()["message"], ready.text
             job_id, during = _upload(server, NEW_PHOTOS[2])  # accepted, and encoded into the store
             assert wait_job(server.client, job_id, 60)["status"] == "done"
         finally:
@@ -91,4 +96,8 @@ def test_milvus_stopped_answers_503_loses_nothing_and_comes_back(tmp_path, fitte
             assert r.status_code in (200, 503) and time.monotonic() < deadline, (r.text, server.read_log())
             time.sleep(1.0)
         assert [_locate(server, p)[0]["reference_id"] for p in NEW_PHOTOS[:2]] == before
-        assert server.client.get("/ready").json()["index_size"] == 3
+        assert server.client.get("/ready").json()["index_size"] == 3  # nothing lost
+        for mode in ("two-stage", "float", "binary"):  # every search mode is served again
+            files = [("image", ("q.jpg", NEW_PHOTOS[1].read_bytes(), "image/jpeg"))]
+            r = server.client.post("/locate", files=files, data={"mode": mode})
+            assert r.status_code == 200 and r.json()["candidates"][0]["reference_id"] == before[1], (mode, r.text)

@@ -16,23 +16,13 @@ from app.usecases.service import GeolocService
 from tests.api.conftest import CONFIG, Server
 from tests.conftest import PENN
 from tests.test_cli import geoloc
-from tests.test_fit_reproducible import _manifest
 
 
 @pytest.fixture(scope="module")
-def calibrated(tmp_path_factory, models_dir, penn_index):
+def calibrated(forty_fitted):
     """A models dir whose hybrid-bin pipeline is fitted and calibrated by `geoloc fit` on 40 penn captures
-    (120 photos and crops), with GEOLOC_MAX_RADIUS_M=90; and that manifest."""
-    root = tmp_path_factory.mktemp("calibrated")
-    models = root / "models"
-    models.mkdir()
-    for f in models_dir.iterdir():
-        if f.is_file():
-            (models / f.name).symlink_to(f)
-    manifest, _ = _manifest(root, penn_index)
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setenv("GEOLOC_MAX_RADIUS_M", "90")  # the widest disc that counts as an estimate, read by the fit
-        geoloc("fit", "--manifest", str(manifest), "--config", CONFIG, "--models-dir", str(models))
+    (120 photos and crops), with GEOLOC_MAX_RADIUS_M=90 (the run's shared fit); and that manifest."""
+    models, manifest, _ = forty_fitted
     cal = json.loads((models / "pipelines" / CONFIG / "calibration.json").read_text())
     assert cal["source"] == "collection" and len(cal["references"]) == 120, cal["note"]
     assert cal["disc"]["max_radius_m"] == 90 and cal["disc"]["limit_m"] <= 90, cal["disc"]
