@@ -20,18 +20,16 @@ HARD_QUERY ?= $(SHARED)/data/penn-campus-gps/photos/img_00008.jpg
 # A photo from elsewhere: San Francisco, a place the demo collection does not hold.
 ELSEWHERE_QUERY ?= $(SHARED)/data/sf-streetview-toy/queries/q1.jpg
 
-.PHONY: demo-queries demo-doc setup browser exiftool postgres model manifests fit demo run serve test test-quick test-container lint eval results bench load fuzz crash-full clean-index
+.PHONY: bytecode demo-queries demo-doc setup browser exiftool postgres model manifests fit demo run serve test test-quick test-container lint eval results bench load fuzz crash-full clean-index
 
 setup: $(VENV)/.installed $(LEAFLET) $(SWAGGER)
 
 # Each step prints one line with its time when not on a terminal (tools/steps.py; logs in out/logs/).
 STEP := $(PYTHON) tools/steps.py
 
-# --no-compile: pip would byte-compile every installed module (most of them never imported here, and about
-# half of the install's time); Python compiles what it imports, once, on first use.
 $(VENV)/.installed: pyproject.toml
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
-	@$(STEP) install -- $(BIN)/python -m pip install -q --no-compile -e '.[dev]'
+	@$(STEP) install -- $(BIN)/python -m pip install -q -e '.[dev]'
 	@touch $@
 
 # Leaflet (the page's map) and Swagger UI (/docs) from the npm registry, served by the app itself (never from
@@ -43,7 +41,7 @@ $(VENV)/.installed: pyproject.toml
 RAY_STAMP := $(VENV)/.ray-installed
 $(RAY_STAMP): pyproject.toml
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
-	@$(STEP) install-test -- $(BIN)/python -m pip install -q --no-compile -e '.[dev,ray,postgres,milvus]'
+	@$(STEP) install-test -- $(BIN)/python -m pip install -q -e '.[dev,ray,postgres,milvus]'
 	@touch $(VENV)/.installed $@
 
 $(NPM_STAMP): web/package.json web/package-lock.json
@@ -146,13 +144,19 @@ serve: fit
 NOT_IN_TEST := not container
 # Tests run on TEST_WORKERS processes (pytest-xdist), a module's tests on one of them (tests/conftest.py).
 TEST_WORKERS ?= 2
-test: $(RAY_STAMP) setup browser exiftool postgres model
+test: $(RAY_STAMP) setup browser exiftool postgres model bytecode
 	$(BIN)/python -m pytest -q -m "$(NOT_IN_TEST)" -n $(TEST_WORKERS) --dist loadgroup --durations=25
+
+# The project's own modules byte-compiled once (pip compiles the installed packages): where
+# PYTHONDONTWRITEBYTECODE is set (the development machines here set it), each of the suite's processes (hundreds of CLI runs, servers and
+# workers) would otherwise compile every module of ours it imports again.
+bytecode: | setup
+	@$(BIN)/python -m compileall -q -j 0 app tools bench tests >/dev/null
 
 # The edit-test loop: engine, store, CLI and API tests (real servers included) without the crash, fuzz,
 # browser, library-scan and container tests (pytest markers); tests/test_quick_selection.py checks that selection.
 QUICK := not crash and not fuzz and not browser and not library and not container
-test-quick: $(RAY_STAMP) setup exiftool postgres
+test-quick: $(RAY_STAMP) setup exiftool postgres bytecode
 	$(BIN)/python -m pytest -q -m "$(QUICK)"
 
 # The Docker image built for real with buildah from a Debian base made by mmdebstrap (no Docker engine or
