@@ -148,8 +148,8 @@ test: $(RAY_STAMP) setup browser exiftool postgres model bytecode
 	$(BIN)/python -m pytest -q -m "$(NOT_IN_TEST)" -n $(TEST_WORKERS) --dist loadgroup --durations=25
 
 # The project's own modules byte-compiled once (pip compiles the installed packages): where
-# PYTHONDONTWRITEBYTECODE is set (the development machines here set it), each of the suite's processes (hundreds of CLI runs, servers and
-# workers) would otherwise compile every module of ours it imports again.
+# PYTHONDONTWRITEBYTECODE is set (the development machines here set it), each of the suite's processes
+# (hundreds of CLI runs, servers and workers) would otherwise compile every module of ours it imports again.
 bytecode: | setup
 	@$(BIN)/python -m compileall -q -j 0 app tools bench tests >/dev/null
 
