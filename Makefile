@@ -35,14 +35,11 @@ $(VENV)/.installed: pyproject.toml
 # Leaflet (the page's map) and Swagger UI (/docs) from the npm registry, served by the app itself (never from
 # a CDN). --ignore-scripts: neither needs one, and swagger-ui-dist's dependency @scarf/scarf would phone home.
 # Ray (the optional engine for distributed encoding), psycopg (the store on PostgreSQL) and pymilvus with the
-# embedded Milvus server (the index on Milvus) for the tests; `make run` needs none of them. On a fresh
-# checkout the test targets make this before `setup`: one pip run installs everything (one resolution and
-# download pass instead of two), and stamps `setup`'s install done too.
+# embedded Milvus server (the index on Milvus) for the tests; `make run` needs none of them.
 RAY_STAMP := $(VENV)/.ray-installed
-$(RAY_STAMP): pyproject.toml
-	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
-	@$(STEP) install-test -- $(BIN)/python -m pip install -q -e '.[dev,ray,postgres,milvus]'
-	@touch $(VENV)/.installed $@
+$(RAY_STAMP): $(VENV)/.installed
+	@$(STEP) install-ray -- $(BIN)/python -m pip install -q -e '.[dev,ray,postgres,milvus]'
+	@touch $@
 
 $(NPM_STAMP): web/package.json web/package-lock.json
 	@$(STEP) npm -- npm ci --prefix web --no-audit --no-fund --silent --ignore-scripts
@@ -144,7 +141,7 @@ serve: fit
 NOT_IN_TEST := not container
 # Tests run on TEST_WORKERS processes (pytest-xdist), a module's tests on one of them (tests/conftest.py).
 TEST_WORKERS ?= 2
-test: $(RAY_STAMP) setup browser exiftool postgres model bytecode
+test: setup browser exiftool postgres model $(RAY_STAMP) bytecode
 	$(BIN)/python -m pytest -q -m "$(NOT_IN_TEST)" -n $(TEST_WORKERS) --dist loadgroup --durations=25
 
 # The project's own modules byte-compiled once (pip compiles the installed packages): where
@@ -156,7 +153,7 @@ bytecode: | setup
 # The edit-test loop: engine, store, CLI and API tests (real servers included) without the crash, fuzz,
 # browser, library-scan and container tests (pytest markers); tests/test_quick_selection.py checks that selection.
 QUICK := not crash and not fuzz and not browser and not library and not container
-test-quick: $(RAY_STAMP) setup exiftool postgres bytecode
+test-quick: setup exiftool postgres $(RAY_STAMP) bytecode
 	$(BIN)/python -m pytest -q -m "$(QUICK)"
 
 # The Docker image built for real with buildah from a Debian base made by mmdebstrap (no Docker engine or
