@@ -1,7 +1,10 @@
 """POST /locate/sequence through a real uvicorn server: a held-out penn walk located as one path, and bad
-input refused with a clear 4xx JSON body (nothing located, nothing stored)."""
+input refused with a clear 4xx JSON body (nothing located, nothing stored); the page sends several photos
+chosen at once there and draws the path (Chromium, as tests/api/test_browser.py drives it)."""
 
 from __future__ import annotations
+
+from pathlib import Path
 
 import pytest
 
@@ -114,3 +117,90 @@ def test_a_body_over_the_bound_is_refused_before_it_is_read(server):
     assert r.status_code == 413, r.text
     assert r.json()["error"] == "too_large"
     assert str(10 * 3_000_000 + 1024 * 1024) in r.json()["message"]
+
+
+@pytest.fixture(scope="module")
+def browser():
+    from tests.api.test_browser import ARGS, CHROMIUM
+
+    if not Path(CHROMIUM).exists():
+        pytest.fail(f"{CHROMIUM} is missing: `make test` installs Debian's chromium (make browser)")
+    from playwright.sync_api import sync_playwright
+
+    with sync_playwright() as p:
+        b = p.chromium.launch(executable_path=CHROMIUM, headless=True, args=ARGS)
+        yield b
+        b.close()
+
+
+@pytest.mark.browser
+@pytest.mark.parametrize("viewport, photos", [("desktop", "collection"), ("phone", "walk")])
+def test_the_page_locates_several_photos_as_one_path(
+    browser, server, walk_collection, penn_index, tmp_path, viewport, photos
+):
+    """Several photos chosen on the page go to /locate/sequence, in the order of their names: the summary,
+    each photo's answer in words (what it rests on), a marker per placed photo and the path on the map, as the
+    API answers the same photos. ``collection``: six captures of one phone the collection holds (placed, a path drawn);
+    ``walk``: the held-out walk (the collection's extent outlined where nothing is placed). One file name is
+    HTML: it stays text."""
+    from tests.api.test_browser import markers, no_horizontal_scroll, open_page, plain_tile, screenshot
+
+    _, _, walk = walk_collection
+    if photos == "collection":
+        walk = [PENN / r["photo"] for r in [r for r in penn_index if r["photo"]][21:27]]
+    names = [p.name for p in walk]
+    names[-1] = "walk <img src=x onerror=alert(1)>.jpg"  # sorts after img_000NN.jpg, as the walk's last photo
+    chosen = []
+    for p, name in zip(walk, names, strict=True):
+        (tmp_path / name).write_bytes(p.read_bytes())
+        chosen.append(str(tmp_path / name))
+    expected = server.client.post("/locate/sequence", files=_files(walk), data={"top_k": 10}, timeout=300).json()
+
+    page = open_page(browser, server, viewport, plain_tile())
+    page.set_input_files("#locate-file", list(reversed(chosen)))  # the page orders them by name
+    assert f"{len(walk)} photos: press Locate" in page.inner_text("#locate-status")
+    page.click("#locate-btn")
+    page.wait_for_selector("#sequence:not([hidden]), #locate-error:not([hidden])", timeout=300_000)
+    assert page.locator("#locate-error").is_hidden(), page.inner_text("#locate-error")
+    assert not page.errors, page.errors
+
+    placed = sum(a["estimate"] is not None for a in expected["answers"])
+    summary = page.inner_text("#sequence-summary")
+    assert summary.startswith(f"{len(walk)} photos located as one path, in the order of the times they were taken")
+    assert f": {placed} placed" in summary and f"{len(walk) - placed} without an estimate" in summary, summary
+    assert page.locator("#sequence-note").is_hidden()  # a calibrated collection: the path informs the answers
+    items = page.locator("#sequence-answers li")
+    assert items.count() == len(walk)
+    for n, (a, name) in enumerate(zip(expected["answers"], names, strict=True)):
+        text = items.nth(n).inner_text()
+        assert text.startswith(f"Photo {n + 1}") and name in text, text
+        assert ("Likely" in text) == (a["estimate"] is not None), text
+        assert ("Placed by the path through the photos around it" in text) == (a["rests_on"] == "sequence"), text
+        if a["estimate"] is not None and a["rests_on"] == "pixels":
+            assert "From this photo alone." in text
+    assert page.locator("#sequence-answers img[src='x']").count() == 0  # the HTML file name stayed text
+
+    shown = [
+        n for n, (a, q) in enumerate(zip(expected["answers"], expected["path"], strict=True))
+        if a["estimate"] is not None or q["in_collection"]
+    ]  # fmt: skip
+    assert sorted(int(m["n"]) for m in markers(page)) == [n + 1 for n in shown]
+    runs, run = 0, 0
+    for q in expected["path"]:
+        run = run + 1 if q["in_collection"] else 0
+        runs += run == 2
+    assert page.locator("#map path.sequence-path").count() == runs
+    assert page.locator("#legend-path").is_visible() == (runs > 0)
+    assert page.locator("#legend-best").is_hidden()
+    assert page.locator("#map path.extent").count() == (0 if shown else 1)
+    if photos == "collection":  # what the map draws is exercised: photos placed, a path through them
+        assert placed >= 2 and runs >= 1, expected["path"]
+        page.focus("#sequence-answers li:nth-child(1) button")
+        page.keyboard.press("Enter")
+        page.wait_for_selector(".leaflet-popup-content")
+        assert page.inner_text(".leaflet-popup-content").startswith("Photo 1")
+    screenshot(page, f"locate-sequence-{photos}-{viewport}.png")
+    if viewport == "phone":
+        no_horizontal_scroll(page)
+    assert not page.errors, page.errors
+    assert page.evaluate("() => window.__csp") == []

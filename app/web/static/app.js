@@ -12,6 +12,7 @@ const LAST_PAGE = "before=9223372036854775807";
 let refsCursor = "after=0";
 let lastPage = null; // the page shown: its next_after / prev_before are the cursors of its neighbours
 let candidateMarkers = []; // the locate map's markers, by rank
+let photoMarkers = []; // a sequence's markers, by photo (none where a photo has no place)
 
 // -- API key: kept for this browser session only --------------------------------------------------
 $("api-key").value = sessionStorage.getItem("geoloc-key") || "";
@@ -151,8 +152,16 @@ TABS.forEach(([t], i) => {
 
 // -- locate: the chosen photo -----------------------------------------------------------------------
 let previewUrl = null;
+let photoUrls = []; // the thumbnails of a sequence's photos, released when others are chosen
+// The photos chosen, in the order they were taken as far as the page can tell: by file name (cameras and
+// phones number their photos), numbers compared as numbers. The service checks their capture times.
+function chosenFiles() {
+  return [...$("locate-file").files].sort((a, b) => a.name.localeCompare(b.name, "en", { numeric: true }));
+}
 function showPreview() {
-  const file = $("locate-file").files[0];
+  const files = chosenFiles();
+  if (files.length > 1) { showSequencePreview(files); return; }
+  const file = files[0];
   if (previewUrl) URL.revokeObjectURL(previewUrl);
   previewUrl = file ? URL.createObjectURL(file) : null;
   $("preview").hidden = false;
@@ -176,6 +185,8 @@ $("preview").addEventListener("error", () => {
 // The answer, the candidates and the markers of the previous photo go as soon as another is chosen.
 function clearAnswer() {
   $("answer").hidden = true;
+  $("sequence").hidden = true;
+  $("sequence-answers").replaceChildren();
   $("candidates").replaceChildren();
   $("legend").hidden = true;
   if (locateMap) locateMap.layer.clearLayers();
@@ -196,7 +207,9 @@ drop.addEventListener("drop", (e) => {
 $("locate-form").addEventListener("submit", (e) => { e.preventDefault(); locate(); });
 
 async function locate() {
-  const file = $("locate-file").files[0];
+  const files = chosenFiles();
+  if (files.length > 1) { locateSequence(files); return; }
+  const file = files[0];
   if (!file) { showError("locate", "Choose a photo first."); return; }
   showError("locate", "");
   clearAnswer();
@@ -227,6 +240,146 @@ async function locate() {
   } finally {
     $("locate-btn").disabled = false;
   }
+}
+
+// -- locate: several photos as one path (POST /locate/sequence) ------------------------------------
+function showSequencePreview(files) {
+  if (previewUrl) URL.revokeObjectURL(previewUrl);
+  previewUrl = null;
+  $("preview-box").hidden = true;
+  clearAnswer();
+  showError("locate", "");
+  status("locate", `${files.length} photos: press Locate to locate them as one path (a walk, a drive, a burst).`);
+}
+
+async function locateSequence(files) {
+  showError("locate", "");
+  clearAnswer();
+  let region;
+  try {
+    region = regionFields();
+  } catch (err) {
+    showError("locate", err.message);
+    return;
+  }
+  status("locate", `Locating ${files.length} photos as one path…`);
+  $("locate-btn").disabled = true;
+  const form = new FormData();
+  files.forEach((f) => form.append("image", f));
+  form.append("top_k", $("top-k").value || "10");
+  for (const [name, value] of Object.entries(region)) form.append(name, value);
+  try {
+    const res = await api("/locate/sequence", { method: "POST", body: form, headers: keyHeaders() });
+    renderSequence(res, files);
+    const ms = res.answers.reduce((t, a) => t + a.timings_ms.total, 0);
+    status("locate", `${res.answers.length} photos located in ${Math.round(ms)} ms.`);
+  } catch (e) {
+    status("locate", "");
+    showError("locate", e.message);
+  } finally {
+    $("locate-btn").disabled = false;
+  }
+}
+
+const TIMES_FROM = {
+  exif: "in the order of the times they were taken (their EXIF)",
+  given: "in the order of the times given",
+  video: "in the order of the video's frames",
+  order: "in the order of their file names (they carry no capture times)",
+};
+
+// What one photo's answer rests on, in words: the path only where the photo alone was not enough.
+function restsOnInWords(a) {
+  if (a.rests_on === "sequence") return "Placed by the path through the photos around it; alone, this photo was not enough.";
+  if (a.estimate) return "From this photo alone.";
+  return a.reason ? `No estimate: ${a.reason.replace(/\.$/, "")}.` : "No estimate.";
+}
+
+function sequenceItem(a, n, file) {
+  const li = el("li", { class: "candidate" });
+  const url = URL.createObjectURL(file);
+  photoUrls.push(url);
+  const img = el("img", { src: url, alt: `Photo ${n + 1}: ${file.name}` });
+  const level = levelOf(a);
+  const words = el("div", { class: "text" }, ...lines(
+    el("span", {}, el("strong", {}, `Photo ${n + 1}`), " ", el("span", { class: `level ${level}` }, LEVELS[level])),
+    verdict(a, level).headline,
+    restsOnInWords(a),
+    el("small", {}, file.name),
+  ));
+  li.append(img, words);
+  if (locateMap && photoMarkers[n]) {
+    const show = el("button", { type: "button", class: "show", "aria-label": `Show photo ${n + 1} on the map` }, "Map");
+    show.addEventListener("click", () => {
+      locateMap.map.setView(photoMarkers[n].getLatLng(), Math.max(locateMap.map.getZoom(), 18));
+      photoMarkers[n].openPopup();
+      $("map").scrollIntoView({ block: "nearest" });
+    });
+    li.append(show);
+  }
+  return li;
+}
+
+function renderSequence(res, files) {
+  photoUrls.forEach((u) => URL.revokeObjectURL(u));
+  photoUrls = [];
+  const placed = res.answers.filter((a) => a.estimate).length;
+  const bySequence = res.answers.filter((a) => a.rests_on === "sequence").length;
+  $("sequence-summary").textContent = `${res.answers.length} photos located as one path, ` +
+    `${TIMES_FROM[res.times_from] || "in the order sent"}: ${placed} placed` +
+    (bySequence ? ` (${bySequence} by the path through the photos around them)` : "") +
+    `, ${res.answers.length - placed} without an estimate.`;
+  $("sequence-note").textContent = res.note ? `The path could not help: ${res.note}.` : "";
+  $("sequence-note").hidden = !res.note;
+  drawSequence(res);
+  $("sequence-answers").replaceChildren(...res.answers.map((a, n) => sequenceItem(a, n, files[n])));
+  $("sequence").hidden = false;
+}
+
+// Each photo's marker is at its estimate, else at the path's place for it; the path is drawn through the
+// places it holds, broken where it leaves the collection.
+function drawSequence(res) {
+  photoMarkers = [];
+  if (!locateMap) return;
+  const { map, layer } = locateMap;
+  layer.clearLayers();
+  const bounds = L.latLngBounds([]);
+  const runs = [[]];
+  res.path.forEach((q) => {
+    if (q.in_collection) runs[runs.length - 1].push([q.lat, q.lon]);
+    else if (runs[runs.length - 1].length) runs.push([]);
+  });
+  const drawn = runs.filter((r) => r.length > 1);
+  drawn.forEach((r) => {
+    L.polyline(r, { color: "#7b2fa8", weight: 3, className: "sequence-path", interactive: false }).addTo(layer);
+    r.forEach((pt) => bounds.extend(pt));
+  });
+  res.answers.forEach((a, n) => {
+    const est = a.estimate;
+    const q = res.path[n];
+    const at = est ? [est.lat, est.lon] : q.in_collection ? [q.lat, q.lon] : null;
+    if (!at) return;
+    if (est) {
+      const circle = L.circle(at, { radius: est.radius_m, color: "#c92a2a", weight: 2, fillOpacity: 0.08 })
+        .bindTooltip(textNode(`Photo ${n + 1}: within ${metres(est.radius_m)}`)).addTo(layer);
+      bounds.extend(circle.getBounds());
+    }
+    photoMarkers[n] = L.marker(at, { icon: numberedIcon(n + 1, false), title: `Photo ${n + 1}`, alt: `Photo ${n + 1}` })
+      .bindPopup(el("div", {}, ...lines(`Photo ${n + 1}`, est ? `Within ${metres(est.radius_m)}` :
+        "On the most likely path (no estimate)"))).addTo(layer);
+    bounds.extend(at);
+  });
+  const shown = photoMarkers.some((m) => m);
+  // No photo placed: the collection's extent shows what it covers, as for one photo without an estimate.
+  const x = !shown && res.answers.length && res.answers[0].index && res.answers[0].index.extent;
+  if (x) bounds.extend(drawExtent(layer, x).getBounds());
+  $("legend").hidden = !shown && !x;
+  ["legend-best", "legend-others"].forEach((id) => { $(id).hidden = true; });
+  $("legend-extent").hidden = !x;
+  $("legend-photos").hidden = !shown;
+  $("legend-path").hidden = !drawn.length;
+  $("legend-est").hidden = !res.answers.some((a) => a.estimate);
+  if (bounds.isValid()) map.fitBounds(bounds, { padding: [30, 30], maxZoom: 18 });
 }
 
 // -- locate: the region (the API's lat, lon and radius_m) -----------------------------------------------
@@ -448,6 +601,13 @@ function sameSpot(cands, i) {
     near.length ? `Overlapping markers (within ${OVERLAP_M} m): ${near.join(", ")}` : ""];
 }
 
+// The collection's extent as a dashed outline (not clickable).
+function drawExtent(layer, x) {
+  return L.rectangle([[x.min_lat, x.min_lon], [x.max_lat, x.max_lon]],
+    { color: "#1c5fa8", weight: 2, dashArray: "6 4", fill: false, interactive: false, className: "extent" })
+    .addTo(layer);
+}
+
 // Marker 1 is drawn last and with the largest z-index offset, so it is on top of any later candidate at
 // the same spot; the others stack by rank too.
 function drawLocate(res) {
@@ -457,6 +617,8 @@ function drawLocate(res) {
   const n = res.candidates.length;
   const est = res.estimate;
   $("legend").hidden = n === 0;
+  ["legend-best", "legend-others"].forEach((id) => { $(id).hidden = false; });
+  ["legend-photos", "legend-path"].forEach((id) => { $(id).hidden = true; });
   $("legend-est").hidden = !est;
   $("legend-extent").hidden = true;
   const bounds = L.latLngBounds(res.candidates.map((c) => [c.lat, c.lon]));
@@ -470,10 +632,7 @@ function drawLocate(res) {
   // Without a confident estimate, the collection's extent shows what it covers (not clickable).
   const x = res.index && res.index.extent;
   if (!est && x) {
-    const box = L.rectangle([[x.min_lat, x.min_lon], [x.max_lat, x.max_lon]],
-      { color: "#1c5fa8", weight: 2, dashArray: "6 4", fill: false, interactive: false, className: "extent" })
-      .addTo(layer);
-    bounds.extend(box.getBounds());
+    bounds.extend(drawExtent(layer, x).getBounds());
     $("legend-extent").hidden = false;
   }
   candidateMarkers = res.candidates.map((c, i) => {
