@@ -1,11 +1,19 @@
-"""What the time prior of a library scan is worth (issue 36): the penn-campus-gps photos as a library, the
-16 query-split photos with their GPS removed (exiftool), the 65 others keeping theirs; located with and
-without the time prior; each answer scored against the true position.
+"""What the time prior and the runs of a library scan are worth: the penn-campus-gps photos as a library,
+the 16 query-split photos with their GPS removed (exiftool), the 65 others keeping theirs; located without
+the time prior, with it alone, and with it and each camera's runs read as walks (``app.library.joint``);
+each answer scored against the true position.
 
-    .venv/bin/python bench/library_time_prior.py [--config lite2-hybrid-384] [--out out/library]
+    .venv/bin/python bench/library_time_prior.py [--config lite2-hybrid-384] [--json out.json]
+    .venv/bin/python bench/library_time_prior.py --data-dir index [--no-anchors]
 
-Prints, with and without the prior: placed, confident, confident and within the stated radius of the truth
-(and within 25 m), and what each answer rests on. ``penn_library`` is also the tests' library folder."""
+Without ``--data-dir`` the collection is the library's 65 geotagged photos (not the collection the pipeline
+was calibrated on, so its answers carry no probabilities and the runs read nothing); ``--data-dir index``
+locates against a copy of the demo collection `make demo` builds (calibrated; it holds the 65 already).
+``--no-anchors``: the library is the 16 photos alone, none with GPS: runs of photos with no geotagged photo
+near them in time, where the time prior has nothing to give.
+
+Prints per mode: placed, confident, confident and within the stated radius of the truth (and within 25 m),
+and what each answer rests on. ``penn_library`` is also the tests' library folder."""
 
 from __future__ import annotations
 
@@ -68,6 +76,13 @@ def score(results: list[dict], truth: dict[str, tuple[float, float]]) -> dict:
     return out
 
 
+MODES = {  # name -> (time prior, runs)
+    "without": (False, False),
+    "time prior": (True, False),
+    "time prior and runs": (True, True),
+}
+
+
 def main() -> None:
     from app.library.scan import ScanOptions, scan_library
     from app.settings import Settings
@@ -81,16 +96,27 @@ def main() -> None:
     ap.add_argument("--penn", type=Path, default=REPO.parent / "shared" / "data" / "penn-campus-gps")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--rerank", action="store_true", help="geometric verification of the top candidates")
+    ap.add_argument("--data-dir", type=Path, default=None, help="locate against a copy of this collection")
+    ap.add_argument("--no-anchors", action="store_true", help="the 16 photos alone (against --data-dir)")
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args()
     truth = query_photos(args.manifest)
     with tempfile.TemporaryDirectory() as tmp:
         folder = penn_library(Path(tmp) / "library", args.penn, truth)
-        service = GeolocService.open(Path(tmp) / "data", args.models_dir, args.config)
+        data = Path(tmp) / "data"
+        if args.no_anchors:
+            if args.data_dir is None:
+                raise SystemExit("--no-anchors locates against a collection: give --data-dir (`make demo`: index)")
+            for f in folder.iterdir():
+                if f.name not in truth:
+                    f.unlink()
+        if args.data_dir is not None:
+            shutil.copytree(args.data_dir, data, ignore=shutil.ignore_patterns("*.lock"))
+        service = GeolocService.open(data, args.models_dir, args.config)
         report = {}
-        for name, prior in (("without", False), ("with", True)):
+        for name, (prior, runs) in MODES.items():
             journal = LibraryJournal(Path(tmp) / f"journal-{name}")
-            options = ScanOptions(workers=args.workers, time_prior=prior, rerank=args.rerank)
+            options = ScanOptions(workers=args.workers, time_prior=prior, runs=runs, rerank=args.rerank)
             scan_library(service, folder, options, journal)
             sid = journal.scan_id_of(folder)
             report[name] = score([r.result for r in journal.photos(sid, LOCATED)], truth)

@@ -286,13 +286,9 @@ class Calibration:
                 None,
             )
         answer_p = float(p[members].max()) if members.any() else float(p.max())
-        disc = Disc(**self.disc) if self.disc is not None else None
-        if disc is not None:
-            radius = disc.estimate_radius(answer_p)
-            if radius is not None:
-                return Decision(True, None, None, p, answer_p, radius, disc.rate)
-        elif answer_p >= self.confident_p:
-            return Decision(True, None, None, p, answer_p, *self.stated_radius(answer_p, estimate.radius_m))
+        stated = self.estimate_disc(answer_p, estimate.radius_m)
+        if stated is not None:
+            return Decision(True, None, None, p, answer_p, *stated)
         best = float(p.max())
         top, seen = self._beyond_range(evidence)
         if top is not None:
@@ -314,8 +310,8 @@ class Calibration:
                 p,
                 answer_p,
             )
-        if disc is not None:
-            return Decision(False, AMBIGUOUS, disc_reason(disc, answer_p), p, answer_p)
+        if self.disc is not None:
+            return Decision(False, AMBIGUOUS, disc_reason(Disc(**self.disc), answer_p), p, answer_p)
         if self.confident_p > 1.0:
             needs = (
                 "and no answer of this collection is confident: its calibration found no level at which its own "
@@ -330,6 +326,22 @@ class Calibration:
             p,
             answer_p,
         )
+
+    def estimate_disc(
+        self, answer_p: float, constant_m: float | None = None
+    ) -> tuple[float | None, float | None] | None:
+        """Whether evidence this strong gets an estimate, and with which disc: (radius, rate) where it does,
+        (None, None) for the constant rule's radius, None where it does not. The fitted disc (``fit_disc``)
+        where the collection has one: its radius at its rate, where that is small enough to inform; else
+        the confident threshold (``confident_p``) and its stated radius. One rule for every answer: a photo
+        alone, a photo in a sequence, a photo in a library's run."""
+        if self.disc is not None:
+            disc = Disc(**self.disc)
+            radius = disc.estimate_radius(answer_p)
+            return None if radius is None else (radius, disc.rate)
+        if answer_p >= self.confident_p:
+            return self.stated_radius(answer_p, constant_m)
+        return None
 
     def stated_radius(self, answer_p: float, constant_m: float | None = None) -> tuple[float | None, float | None]:
         """A confident answer's radius and its rate: the conformal radius of its evidence bin (``fit_radius``),

@@ -92,6 +92,7 @@ def scan(
         typer.echo(
             f"{s.photos} photos: {s.references} references (with a position), {s.located} located now, "
             f"{s.unchanged} done by an earlier run; {s.placed} placed, {s.confident} confident"
+            + (f"; {s.by_sequence} placed by the run of photos around them" if s.by_sequence else "")
         )
         for path, reason in s.problems:
             typer.echo(f"skipped {path}: {reason}")

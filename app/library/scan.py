@@ -10,6 +10,8 @@
 3. The photos without GPS are located (``GeolocService.locate``, /locate's answer) on ``workers`` threads,
    fused with the time prior (``app.library.suggest``) and journalled one by one: a second run, or a run
    after a crash, skips what is done (same path, size and mtime).
+4. With the time prior on, each camera's run of photos close in time is read as one walk
+   (``app.library.joint``): a photo not confident alone that the run places gets the run's position.
 
 A file that cannot be read is journalled as a problem with its reason and the run goes on.
 
@@ -34,12 +36,14 @@ from app.engine.errors import GeolocError
 from app.engine.progress import Progress
 from app.ingestion.bulk import IngestOptions, ingest
 from app.ingestion.sources import Source, SourceItem
+from app.library.joint import joint_suggestions
 from app.library.photos import PhotoMeta, read_meta, same_stat, walk_photos
 from app.library.suggest import suggestion
 from app.library.timeprior import Anchor, time_prior
 from app.manifests import ManifestError, read_manifest
 from app.settings import usable_cpus
 from app.storage.library import LOCATED, PROBLEM, LibraryJournal
+from app.usecases.sequence import SEQUENCE
 from app.usecases.service import GeolocService
 from app.user_files import is_within, read_regular
 
@@ -62,6 +66,7 @@ class LibraryError(ValueError):
 class ScanOptions:
     workers: int = field(default_factory=usable_cpus)  # threads reading and locating (one per usable CPU)
     time_prior: bool = True
+    runs: bool = True  # with the time prior: each camera's runs read as walks (step 4; a bench compares without)
     rerank: bool = False
     ray: str | None = None  # the ingest step's engine (`geoloc ingest --ray`)
 
@@ -76,6 +81,7 @@ class ScanSummary:
     unchanged: int = 0  # located by an earlier run, not read again
     placed: int = 0
     confident: int = 0
+    by_sequence: int = 0  # photos of the scan the run of photos around them placed (``app.library.joint``)
     problems: list[tuple[str, str]] = field(default_factory=list)  # (file, reason)
     workers: int = 1
 
@@ -144,6 +150,7 @@ def scan_library(
             )
         anchors = [Anchor(m.gps[0], m.gps[1], m.taken, m.camera) for m in refs if m.taken and m.gps]
         bar = make_bar(len(todo), f"locate ({workers} threads)")
+        located_now: set[str] = set()
         try:
             locate = lambda m: _locate(service, m, anchors, options, within)  # noqa: E731
             for n, (meta, result) in enumerate(
@@ -154,6 +161,7 @@ def scan_library(
                 if kind == PROBLEM:
                     summary.problems.append((str(meta.path), result["reason"]))
                 else:
+                    located_now.add(str(meta.path))
                     summary.located += 1
                     summary.placed += bool(result["placed"])
                     summary.confident += bool(result["confident"])
@@ -164,6 +172,8 @@ def scan_library(
         if stop is not None and stop.is_set():
             journal.finish_scan(sid, "interrupted", "stopped (the server shut down): scan again to resume")
             return summary
+        if options.time_prior and options.runs:
+            _locate_jointly(service, journal, sid, anchors, options, summary, located_now)
     except BaseException as e:
         journal.finish_scan(sid, "failed", str(e) or type(e).__name__)
         raise
@@ -171,6 +181,32 @@ def scan_library(
         pool.shutdown(wait=True, cancel_futures=True)
     journal.finish_scan(sid, "done", None)
     return summary
+
+
+def _locate_jointly(
+    service: GeolocService,
+    journal: LibraryJournal,
+    sid: str,
+    anchors: list[Anchor],
+    options: ScanOptions,
+    summary: ScanSummary,
+    located_now: set[str],
+) -> None:
+    """Step 4: the runs of the scan's located photos (this run's and earlier runs') read as walks; the
+    suggestions they change journalled again (a decision on a changed suggestion is cleared with it), and
+    this run's counts of placed and confident photos made final."""
+    calibration = service.answer_calibration(LocateOptions(top_k=10, rerank=options.rerank))
+    records = journal.photos(sid, LOCATED)
+    changed = joint_suggestions([r.result for r in records], anchors, calibration)
+    for r in records:
+        new = changed.get(r.result["file"])
+        if new is None:
+            continue
+        journal.record(sid, Path(r.path), r.size, r.mtime_ns, LOCATED, new)
+        if r.path in located_now:
+            summary.placed += int(new["placed"]) - int(r.result["placed"])
+            summary.confident += int(new["confident"]) - int(r.result["confident"])
+    summary.by_sequence = sum((changed.get(r.result["file"]) or r.result).get("basis") == SEQUENCE for r in records)
 
 
 def bounded_map(

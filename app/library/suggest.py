@@ -46,6 +46,11 @@ def suggestion(meta: PhotoMeta, answer: LocateAnswer, prior: Prior | None) -> di
             {"reference_id": c.reference_id, "lat": c.lat, "lon": c.lon, "score": round(c.score, 4), "label": c.label}
             for c in answer.candidates[:SHOWN_CANDIDATES]
         ],
+        # What the joint location of the photo's run reads (``app.library.joint``): every candidate the
+        # calibration gives a probability, as (lat, lon, p_within_25m).
+        "calibrated_candidates": [
+            [c.lat, c.lon, round(float(c.p_within_25m), 4)] for c in answer.candidates if c.p_within_25m is not None
+        ],
     }
     if answer.reason is None and est.lat is not None:
         basis = "pixels+time" if prior is not None and inside(prior, est.lat, est.lon) else "pixels"

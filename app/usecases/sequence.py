@@ -7,10 +7,10 @@ gives a probability. ``sequence_answers`` then reads those answers as observatio
 (``app.engine.sequence``) and turns each photo's posterior back into a /locate-shaped answer:
 
 - a photo confident alone keeps its answer: it rests on ``pixels``;
-- a photo not confident alone whose sequence posterior for one place reaches the collection's own
-  confident threshold (``Calibration.confident_p``, the single-photo rule's) gets that place as its
-  estimate, with the radius the calibration states for that strength (never below the place's own spread
-  plus the constant rule's margin): it rests on ``sequence``;
+- a photo not confident alone whose sequence posterior for one place gets an estimate by the single-photo
+  rule (``Calibration.estimate_disc``: the collection's disc for evidence that strong) gets that place as
+  its estimate, with that disc (never below the place's own spread plus the constant rule's margin): it
+  rests on ``sequence``;
 - any other photo keeps its single-photo answer (no estimate), its reason saying what the sequence found.
 
 The cost per sequence is N single locates plus arrays of ``SEQUENCE_K`` x ``SEQUENCE_K`` per photo: it does
@@ -128,25 +128,13 @@ def sequence_answers(
             photos.append(SequencePhoto(_shown(single, options), PIXELS, _p_near(places, post, single), alone))
             continue
         p = float(post[best])
-        if best_is_place and p >= calibration.confident_p:
-            constant = max(float(places.spread_m[best]) + MARGIN_M, RADIUS_FLOOR_M)
-            radius, rate = calibration.stated_radius(p, constant)
-            estimate = Estimate(
-                float(places.lats[best]),
-                float(places.lons[best]),
-                radius if radius is not None else constant,
-                p,
-                None,
-                radius_rate=rate,
-            )
+        estimate = sequence_estimate(places, post, calibration)
+        if estimate is not None:
             answer = replace(single, estimate=estimate, reason=None, reason_code=None, answer_p=p)
             photos.append(SequencePhoto(_shown(answer, options), SEQUENCE, p, alone))
             continue
         if best_is_place:
-            why = (
-                f"; with the sequence, the most probable place has a {p:.1%} chance, below the "
-                f"{calibration.confident_p:.1%} this collection needs"
-            )
+            why = f"; with the sequence, the most probable place has a {p:.1%} chance: no disc holds for it either"
             answer = replace(single, reason=(single.reason or "") + why)
         else:
             answer = replace(
@@ -157,6 +145,23 @@ def sequence_answers(
             )
         photos.append(SequencePhoto(_shown(answer, options), PIXELS, p, alone))
     return SequenceAnswer(photos, path, times_from)
+
+
+def sequence_estimate(places: Places, post: np.ndarray, calibration: Calibration) -> Estimate | None:
+    """The estimate a step's posterior gives: its most probable state when that is a place whose posterior
+    gets an estimate by the single-photo rule (``Calibration.estimate_disc``), with that rule's disc, never
+    below the place's own spread plus the constant rule's margin."""
+    best = int(np.argmax(post))
+    if best >= len(places.lats):
+        return None
+    p = float(post[best])
+    constant = max(float(places.spread_m[best]) + MARGIN_M, RADIUS_FLOOR_M)
+    disc = calibration.estimate_disc(p, constant)
+    if disc is None:
+        return None
+    radius, rate = disc
+    radius = constant if radius is None else max(radius, constant)
+    return Estimate(float(places.lats[best]), float(places.lons[best]), radius, p, None, radius_rate=rate)
 
 
 def by_posterior(

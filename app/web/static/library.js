@@ -77,7 +77,8 @@ function badge(p) {
 function summary(p) {
   if (p.kind === "problem") return p.reason;
   if (!p.placed) return `${p.reason_code || ""}: ${p.reason || ""}`;
-  return `${p.lat.toFixed(6)}, ${p.lon.toFixed(6)} ± ${p.radius_m} m, from ${p.basis}` + (p.p != null ? `, p ${p.p}` : "");
+  const basis = p.basis === "sequence" ? "the run of photos around it" : p.basis;
+  return `${p.lat.toFixed(6)}, ${p.lon.toFixed(6)} ± ${p.radius_m} m, from ${basis}` + (p.p != null ? `, p ${p.p}` : "");
 }
 
 // photo id -> a promise of its object URL (fetched once with the key header, shown as blob:): the poll
