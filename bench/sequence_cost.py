@@ -22,19 +22,22 @@ from pathlib import Path
 
 from app.engine.configs import DEFAULT_CONFIG
 from app.settings import usable_cpus
-from app.usecases.sequence_inputs import exif_time
+from app.usecases.sequence_inputs import exif_time, seconds
 from bench.common import REPO, is_photo, penn_rows, write_section
 from tools.process_memory import MiB, PeakRss, rss_bytes
 from tools.server_process import ServerProcess
 
 
 def query_photos(n: int) -> list[Path]:
-    """``n`` of the manifest's query photos, in the order they were taken (EXIF)."""
+    """``n`` of the manifest's query photos, in the order they were taken (EXIF, on the one clock the
+    service reads a sequence's times by)."""
     photos = [r.image for r in penn_rows() if r.split == "query" and is_photo(r)]
-    timed = sorted((exif_time(p.read_bytes()).timestamp(), p) for p in photos if exif_time(p.read_bytes()))
+    times = {p: exif_time(p.read_bytes()) for p in photos}
+    timed = [p for p in photos if times[p] is not None]
     if len(timed) < n:
         raise SystemExit(f"only {len(timed)} query photos carry an EXIF time; asked for {n}")
-    return [p for _, p in timed[:n]]
+    secs = seconds([times[p] for p in timed])
+    return [p for _, p in sorted(zip(secs, timed, strict=True))][:n]
 
 
 def files(photos: list[Path]) -> list[tuple[str, tuple[str, bytes, str]]]:

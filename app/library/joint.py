@@ -11,12 +11,17 @@ apart, and each run is read by the sequence model (``app.engine.sequence``, the 
   prior is one more term of the same model.
 
 A photo its own suggestion leaves unconfident (no position, time alone, or an estimate not confident)
-whose posterior for one place reaches the collection's confident threshold gets that place, with the
-radius the calibration states for that strength (``sequence_estimate``, as a sequence answer's): it rests
-on ``sequence``, and what it had before is kept under ``alone``. Confident suggestions are never changed.
+whose posterior for one place gets an estimate by the collection's rule (``Calibration.estimate_disc``,
+read by ``sequence_estimate`` as for a sequence's answers) is placed there with that disc: it rests on
+``sequence``, and what it had before is kept under ``alone``. Confident suggestions are never changed.
+
+Which photos form a run: only photos that name their camera (EXIF Make + Model; a photo without one could
+be anyone's), each camera read as one clock as a sequence's photos are (``sequence_inputs.seconds``: a
+phone writes the zone offset on some photos only, so a time without one takes the camera's zone).
 
 The runs are read from the journal (every photo the scan located, also those an earlier run of it
-located), so a scan resumed after a crash ends as an uninterrupted one does."""
+located), so a scan resumed after a crash ends as an uninterrupted one does; a collection that cannot be
+read so (not calibrated), or a scan without the runs, takes earlier runs' placements back."""
 
 from __future__ import annotations
 
@@ -79,20 +84,31 @@ def runs(members: Sequence[Member]) -> list[list[Member]]:
 
 
 def joint_suggestions(
-    results: Sequence[dict], anchors: Sequence[Anchor], calibration: Calibration, motion: Motion | None = None
+    results: Sequence[dict],
+    anchors: Sequence[Anchor],
+    calibration: Calibration,
+    motion: Motion | None = None,
+    enabled: bool = True,
 ) -> dict[str, dict]:
     """The suggestions the runs change, by file: photos the sequence now places confidently, and photos
-    an earlier joint reading placed that the runs no longer support (their own suggestion back)."""
-    if not calibration.calibrated:
-        return {}
-    by_camera: dict[str | None, list[Member]] = {}
+    an earlier joint reading placed that the runs no longer support (their own suggestion back).
+    ``enabled`` False, or a collection not calibrated: every earlier placement taken back, nothing placed."""
+    changed: dict[str, dict] = {}
+    if not enabled or not calibration.calibrated:
+        for r in results:
+            if r.get("basis") == SEQUENCE:
+                changed[r["file"]] = rested(r, None)
+        return changed
+    by_camera: dict[str, list[Member]] = {}
     for r in results:
-        if r.get("taken"):
-            by_camera.setdefault(r.get("camera"), []).append(Member(datetime.fromisoformat(r["taken"]), observed(r), r))
+        if r.get("taken") and r.get("camera"):
+            member = Member(datetime.fromisoformat(r["taken"]), observed(r), r)
+            by_camera.setdefault(r["camera"], []).append(member)
+        elif r.get("basis") == SEQUENCE:  # no run can hold it
+            changed[r["file"]] = rested(r, None)
     for a in anchors:
         if a.camera in by_camera:
             by_camera[a.camera].append(Member(a.taken, anchored(a)))
-    changed: dict[str, dict] = {}
     for members in by_camera.values():
         for run in runs(members):
             path = solve([m.observation for m in run], motion) if len(run) > 1 else None

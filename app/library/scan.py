@@ -11,7 +11,8 @@
    fused with the time prior (``app.library.suggest``) and journalled one by one: a second run, or a run
    after a crash, skips what is done (same path, size and mtime).
 4. With the time prior on, each camera's run of photos close in time is read as one walk
-   (``app.library.joint``): a photo not confident alone that the run places gets the run's position.
+   (``app.library.joint``): a photo not confident alone that the run places gets the run's position (also
+   when nothing was new to locate: a scan stopped before this step ends it).
 
 A file that cannot be read is journalled as a problem with its reason and the run goes on.
 
@@ -81,7 +82,7 @@ class ScanSummary:
     unchanged: int = 0  # located by an earlier run, not read again
     placed: int = 0
     confident: int = 0
-    by_sequence: int = 0  # photos of the scan the run of photos around them placed (``app.library.joint``)
+    by_sequence: int = 0  # of those located now, placed by the run of photos around them (``app.library.joint``)
     problems: list[tuple[str, str]] = field(default_factory=list)  # (file, reason)
     workers: int = 1
 
@@ -139,7 +140,10 @@ def scan_library(
         refs, todo = _sort_out(metas, journal, sid, summary)
         if refs:
             summary.added = _ingest(service, folder, within, refs, positions, workers, options.ray, say)
-        if not todo:
+        anchors = [Anchor(m.gps[0], m.gps[1], m.taken, m.camera) for m in refs if m.taken and m.gps]
+        located_now: set[str] = set()
+        if not todo:  # nothing new to locate: the runs are read all the same (a scan stopped before them)
+            _locate_jointly(service, journal, sid, anchors, options, summary, located_now)
             journal.finish_scan(sid, "done", None)
             return summary
         if service.size == 0:
@@ -148,9 +152,7 @@ def scan_library(
                 "the other photos against (add geotagged photos, or give a --data-dir with a collection)",
                 summary.problems,
             )
-        anchors = [Anchor(m.gps[0], m.gps[1], m.taken, m.camera) for m in refs if m.taken and m.gps]
         bar = make_bar(len(todo), f"locate ({workers} threads)")
-        located_now: set[str] = set()
         try:
             locate = lambda m: _locate(service, m, anchors, options, within)  # noqa: E731
             for n, (meta, result) in enumerate(
@@ -172,8 +174,7 @@ def scan_library(
         if stop is not None and stop.is_set():
             journal.finish_scan(sid, "interrupted", "stopped (the server shut down): scan again to resume")
             return summary
-        if options.time_prior and options.runs:
-            _locate_jointly(service, journal, sid, anchors, options, summary, located_now)
+        _locate_jointly(service, journal, sid, anchors, options, summary, located_now)
     except BaseException as e:
         journal.finish_scan(sid, "failed", str(e) or type(e).__name__)
         raise
@@ -192,12 +193,14 @@ def _locate_jointly(
     summary: ScanSummary,
     located_now: set[str],
 ) -> None:
-    """Step 4: the runs of the scan's located photos (this run's and earlier runs') read as walks; the
-    suggestions they change journalled again (a decision on a changed suggestion is cleared with it), and
-    this run's counts of placed and confident photos made final."""
+    """Step 4: the runs of the scan's located photos (this run's and earlier runs') read as walks, or, with
+    the runs off, earlier runs' placements taken back. A suggestion they change is journalled again, unless
+    the photo was reviewed already (a decision is never cleared by a neighbour); this run's counts of placed
+    and confident photos made final."""
     calibration = service.answer_calibration(LocateOptions(top_k=10, rerank=options.rerank))
-    records = journal.photos(sid, LOCATED)
-    changed = joint_suggestions([r.result for r in records], anchors, calibration)
+    records = [r for r in journal.photos(sid, LOCATED) if r.decision is None]
+    enabled = options.time_prior and options.runs
+    changed = joint_suggestions([r.result for r in records], anchors, calibration, enabled=enabled)
     for r in records:
         new = changed.get(r.result["file"])
         if new is None:
@@ -206,7 +209,9 @@ def _locate_jointly(
         if r.path in located_now:
             summary.placed += int(new["placed"]) - int(r.result["placed"])
             summary.confident += int(new["confident"]) - int(r.result["confident"])
-    summary.by_sequence = sum((changed.get(r.result["file"]) or r.result).get("basis") == SEQUENCE for r in records)
+    summary.by_sequence = sum(
+        (changed.get(r.result["file"]) or r.result).get("basis") == SEQUENCE for r in records if r.path in located_now
+    )
 
 
 def bounded_map(

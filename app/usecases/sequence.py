@@ -134,7 +134,12 @@ def sequence_answers(
             photos.append(SequencePhoto(_shown(answer, options), SEQUENCE, p, alone))
             continue
         if best_is_place:
-            why = f"; with the sequence, the most probable place has a {p:.1%} chance: no disc holds for it either"
+            needs = (
+                "no disc this collection states holds for evidence that strong"
+                if calibration.disc is not None
+                else f"below the {calibration.confident_p:.1%} this collection needs"
+            )
+            why = f"; with the sequence, the most probable place has a {p:.1%} chance: {needs}"
             answer = replace(single, reason=(single.reason or "") + why)
         else:
             answer = replace(

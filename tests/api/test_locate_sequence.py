@@ -4,6 +4,7 @@ chosen at once there and draws the path (Chromium, as tests/api/test_browser.py 
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import pytest
@@ -199,6 +200,22 @@ def test_the_page_locates_several_photos_as_one_path(
         page.keyboard.press("Enter")
         page.wait_for_selector(".leaflet-popup-content")
         assert page.inner_text(".leaflet-popup-content").startswith("Photo 1")
+        # An answer that rests on the sequence, said so (these photos are each confident alone: the service's
+        # own answer, with its second photo's marked as the path's).
+        by_path = json.loads(json.dumps(expected))
+        by_path["answers"][1]["rests_on"] = "sequence"
+        page.route("**/locate/sequence", lambda route: route.fulfill(status=200, json=by_path))
+        page.click("#locate-btn")
+        page.wait_for_function("() => document.querySelector('#sequence-summary').textContent.includes('by the path')")
+        assert "(1 by the path through the photos around them)" in page.inner_text("#sequence-summary")
+        assert "Placed by the path through the photos around it" in items.nth(1).inner_text()
+        # A refusal names the photos as the list does: by their number from 1 and their file name.
+        refusal = {"error": "unreadable_image", "message": "1 of the 6 images cannot be located (image 2: not a JPEG)"}
+        page.unroute("**/locate/sequence")
+        page.route("**/locate/sequence", lambda route: route.fulfill(status=400, json=refusal))
+        page.click("#locate-btn")
+        page.wait_for_selector("#locate-error:not([hidden])")
+        assert f"(photo 3 ({names[2]}): not a JPEG)" in page.inner_text("#locate-error")
     screenshot(page, f"locate-sequence-{photos}-{viewport}.png")
     if viewport == "phone":
         no_horizontal_scroll(page)

@@ -16,10 +16,11 @@ from app.engine.sequence import Motion
 from app.library.joint import ANCHOR_P, RUN_GAP_S, joint_suggestions, rested
 from app.library.scan import ScanOptions, scan_library
 from app.library.timeprior import Anchor
-from app.storage.library import LOCATED, LibraryJournal
+from app.storage.library import ACCEPTED, LOCATED, LibraryJournal
 from app.usecases.sequence import SEQUENCE, sequence_answers
 from app.usecases.sequence_inputs import sequence_times
 from app.usecases.service import GeolocService
+from tests.conftest import PENN
 from tests.library.conftest import exiftool_ready
 from tests.walks import CONFIG
 
@@ -83,6 +84,8 @@ def test_only_photos_close_in_time_of_one_camera_form_a_run():
     assert joint_suggestions(cameras, [], CALIBRATION) == {}
     untimed = [suggestion(n, 0.6, 0.3, 60 * n, taken=None) for n in range(3)]
     assert joint_suggestions(untimed, [], CALIBRATION) == {}
+    nameless = [suggestion(n, 0.6, 0.3, 60 * n, camera=None) for n in range(3)]  # could be anyone's
+    assert joint_suggestions(nameless, [], CALIBRATION) == {}
 
 
 def test_a_run_that_cannot_walk_between_its_places_places_nothing():
@@ -120,6 +123,12 @@ def test_confident_suggestions_are_never_changed_and_a_lost_placement_reverts():
     assert earlier["basis"] == SEQUENCE
     assert joint_suggestions([earlier], [], CALIBRATION) == {own["file"]: own}
     assert rested(earlier, None) == own
+    # The runs off, or a collection no longer calibrated: every placement of theirs goes back.
+    placed = joint_suggestions(run, [], CALIBRATION)
+    assert len(placed) == 3
+    assert joint_suggestions(list(placed.values()), [], CALIBRATION, enabled=False) == {r["file"]: r for r in run}
+    uncalibrated = Calibration.conservative("too small")
+    assert joint_suggestions(list(placed.values()), [], uncalibrated) == {r["file"]: r for r in run}
 
 
 def test_an_uncalibrated_collection_changes_nothing():
@@ -161,3 +170,62 @@ def test_a_scanned_walk_ends_as_the_sequence_use_case_answers_it(walk_collection
             e = photo.answer.estimate
             assert (r["lat"], r["lon"], r["radius_m"]) == (round(e.lat, 7), round(e.lon, 7), round(e.radius_m, 1))
     assert summary.by_sequence == sum(photo.rests_on == SEQUENCE for photo in answered)
+
+
+def _results(journal: LibraryJournal, folder) -> dict[str, dict]:
+    return {r.path.rsplit("/", 1)[-1]: r.result for r in journal.photos(journal.scan_id_of(folder), LOCATED)}
+
+
+def test_a_walk_between_geotagged_photos_is_placed_by_its_run_and_a_resumed_scan_ends_alike(
+    walk_collection, penn_index, tmp_path
+):
+    """The held-out walk without GPS between two geotagged photos of its phone (the captures just before and
+    after it, in the collection): a scan stopped before its runs (``runs=False``, as a crash after the last
+    photo leaves it) and scanned again, with nothing new to locate, places by the run what a fresh scan
+    places; a reviewed photo keeps its decision; a scan without the time prior takes the placements back."""
+    exiftool_ready()
+    models, data, walk = walk_collection
+    captures = [r for r in penn_index if r["photo"]]
+    anchors = [PENN / captures[11]["photo"], PENN / captures[20]["photo"]]
+    folder = tmp_path / "library"
+    folder.mkdir()
+    for p in walk:
+        shutil.copyfile(p, folder / p.name)
+    subprocess.run(["exiftool", "-q", "-overwrite_original", "-gps:all=", *map(str, folder.iterdir())], check=True)
+    for p in anchors:
+        shutil.copyfile(p, folder / p.name)
+    service = GeolocService.open(data, models, CONFIG)
+    calibration = service.answer_calibration(LocateOptions(top_k=10, rerank=False))
+
+    journal = LibraryJournal(tmp_path / "resumed")
+    scan_library(service, folder, ScanOptions(workers=1, runs=False), journal)
+    before = _results(journal, folder)
+    assert len(before) == len(walk) and not any(r["basis"] == SEQUENCE for r in before.values())
+    again = scan_library(service, folder, ScanOptions(workers=1), journal)
+    assert again.located == 0 and again.references == 2
+    after = _results(journal, folder)
+    placed = sorted(n for n, r in after.items() if r["basis"] == SEQUENCE)
+    assert placed, {n: (r["basis"], r["p"]) for n, r in after.items()}
+    for name in placed:
+        r, own = after[name], before[name]
+        assert r["confident"] and r["placed"] and calibration.estimate_disc(r["p"]) is not None
+        assert not own["confident"] and r["alone"] == {k: own.get(k) for k in r["alone"]}
+    for name in set(after) - set(placed):
+        assert after[name] == before[name]
+
+    fresh = LibraryJournal(tmp_path / "fresh")
+    summary = scan_library(service, folder, ScanOptions(workers=1), fresh)
+    assert _results(fresh, folder) == after and summary.by_sequence == len(placed)
+
+    # A reviewed photo keeps its decision through later scans; without the time prior the runs' placements
+    # go back to the photos' own suggestions (the reviewed one stays as reviewed).
+    sid = journal.scan_id_of(folder)
+    decided = next(r for r in journal.photos(sid, LOCATED) if r.path.endswith(placed[0]))
+    journal.decide(decided.id, ACCEPTED, after[placed[0]]["lat"], after[placed[0]]["lon"])
+    scan_library(service, folder, ScanOptions(workers=1, time_prior=False), journal)
+    final = _results(journal, folder)
+    assert final[placed[0]] == after[placed[0]]
+    assert all(final[n] == before[n] for n in placed[1:])
+    assert next(r for r in journal.photos(sid, LOCATED) if r.id == decided.id).decision == ACCEPTED
+    journal.close()
+    fresh.close()

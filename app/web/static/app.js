@@ -187,6 +187,9 @@ function clearAnswer() {
   $("answer").hidden = true;
   $("sequence").hidden = true;
   $("sequence-answers").replaceChildren();
+  photoUrls.forEach((u) => URL.revokeObjectURL(u));
+  photoUrls = [];
+  photoMarkers = [];
   $("candidates").replaceChildren();
   $("legend").hidden = true;
   if (locateMap) locateMap.layer.clearLayers();
@@ -259,6 +262,7 @@ async function locateSequence(files) {
   try {
     region = regionFields();
   } catch (err) {
+    status("locate", "");
     showError("locate", err.message);
     return;
   }
@@ -275,10 +279,17 @@ async function locateSequence(files) {
     status("locate", `${res.answers.length} photos located in ${Math.round(ms)} ms.`);
   } catch (e) {
     status("locate", "");
-    showError("locate", e.message);
+    showError("locate", namePhotos(e.message, files));
   } finally {
     $("locate-btn").disabled = false;
   }
+}
+
+// The service numbers a sequence's images from 0 in the order sent ("image 3: ..."): the page says which
+// photo that is, numbered from 1 as its list does, with its file name.
+function namePhotos(message, files) {
+  return message.replace(/\bimage (\d+)\b/g, (whole, n) =>
+    files[Number(n)] ? `photo ${Number(n) + 1} (${files[Number(n)].name})` : whole);
 }
 
 const TIMES_FROM = {
@@ -300,6 +311,7 @@ function sequenceItem(a, n, file) {
   const url = URL.createObjectURL(file);
   photoUrls.push(url);
   const img = el("img", { src: url, alt: `Photo ${n + 1}: ${file.name}` });
+  img.addEventListener("error", () => { img.hidden = true; }); // a format the browser cannot draw (TIFF)
   const level = levelOf(a);
   const words = el("div", { class: "text" }, ...lines(
     el("span", {}, el("strong", {}, `Photo ${n + 1}`), " ", el("span", { class: `level ${level}` }, LEVELS[level])),
@@ -321,15 +333,13 @@ function sequenceItem(a, n, file) {
 }
 
 function renderSequence(res, files) {
-  photoUrls.forEach((u) => URL.revokeObjectURL(u));
-  photoUrls = [];
   const placed = res.answers.filter((a) => a.estimate).length;
   const bySequence = res.answers.filter((a) => a.rests_on === "sequence").length;
   $("sequence-summary").textContent = `${res.answers.length} photos located as one path, ` +
     `${TIMES_FROM[res.times_from] || "in the order sent"}: ${placed} placed` +
     (bySequence ? ` (${bySequence} by the path through the photos around them)` : "") +
     `, ${res.answers.length - placed} without an estimate.`;
-  $("sequence-note").textContent = res.note ? `The path could not help: ${res.note}.` : "";
+  $("sequence-note").textContent = res.note ? `${res.note[0].toUpperCase()}${res.note.slice(1)}.` : "";
   $("sequence-note").hidden = !res.note;
   drawSequence(res);
   $("sequence-answers").replaceChildren(...res.answers.map((a, n) => sequenceItem(a, n, files[n])));
