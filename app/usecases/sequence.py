@@ -155,7 +155,11 @@ def sequence_answers(
 def sequence_estimate(places: Places, post: np.ndarray, calibration: Calibration) -> Estimate | None:
     """The estimate a step's posterior gives: its most probable state when that is a place whose posterior
     gets an estimate by the single-photo rule (``Calibration.estimate_disc``), with that rule's disc, never
-    below the place's own spread plus the constant rule's margin."""
+    below the place's own spread plus the constant rule's margin.
+
+    Its rate is left unstated (``radius_rate`` None): the disc's rate was measured on single answers, and
+    how often a sequence's posterior of that strength holds has not been measured on the collection (the
+    words then say the rate is not calibrated rather than claim the single photos' figure)."""
     best = int(np.argmax(post))
     if best >= len(places.lats):
         return None
@@ -164,9 +168,8 @@ def sequence_estimate(places: Places, post: np.ndarray, calibration: Calibration
     disc = calibration.estimate_disc(p, constant)
     if disc is None:
         return None
-    radius, rate = disc
-    radius = constant if radius is None else max(radius, constant)
-    return Estimate(float(places.lats[best]), float(places.lons[best]), radius, p, None, radius_rate=rate)
+    radius = constant if disc[0] is None else max(disc[0], constant)
+    return Estimate(float(places.lats[best]), float(places.lons[best]), radius, p, None, radius_rate=None)
 
 
 def by_posterior(

@@ -49,6 +49,7 @@ def test_a_walk_is_located_as_one_path(server, walk_collection):
         assert (a["estimate"] is None) == (a["reason_code"] is not None)
         if a["rests_on"] == "sequence":
             assert a["estimate"] is not None and a["sequence_p"] is not None
+            assert a["estimate"]["radius_rate"] is None  # measured on single photos: not claimed here
     # The same photos one by one: each single answer is what the sequence's "pixels" answers say.
     for photo, a in zip(walk, out["answers"], strict=True):
         if a["rests_on"] != "pixels" or a["estimate"] is None:

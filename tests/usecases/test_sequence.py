@@ -77,3 +77,24 @@ def test_times_given_exif_or_order():
     assert seconds([datetime(2024, 1, 1), None]) == [None, None]
     secs, source = sequence_times([lambda: b"not an image", lambda: b""], None)
     assert source == "order" and secs == [None, None]
+
+
+def test_a_sequence_estimate_takes_the_single_photo_rules_disc_and_claims_no_rate():
+    """The disc rule decides and sizes a sequence's estimate; its rate, measured on single photos only, is
+    not claimed for it."""
+    import numpy as np
+
+    from app.engine.calibration import Calibration
+    from app.engine.sequence import Places
+    from app.usecases.sequence import sequence_estimate
+
+    calibration = Calibration(
+        source="collection",
+        disc={"rate": 0.9, "edges": [0.75], "radius_m": [None, 35.0], "n": [50, 50], "limit_m": 80.0,
+              "max_radius_m": 100.0},
+    )  # fmt: skip
+    places = Places(np.array([39.952, 39.960]), np.array([-75.193, -75.190]), np.zeros(3), np.array([5.0, 0.0]))
+    e = sequence_estimate(places, np.array([0.8, 0.15, 0.05]), calibration)
+    assert (e.lat, e.lon, e.radius_m, e.radius_rate) == (39.952, -75.193, 45.0, None)  # the place's spread + 40 m
+    assert sequence_estimate(places, np.array([0.7, 0.25, 0.05]), calibration) is None  # no disc that weak
+    assert sequence_estimate(places, np.array([0.1, 0.05, 0.85]), calibration) is None  # not in the collection
