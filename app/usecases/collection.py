@@ -201,7 +201,9 @@ class Collection:
     def _load(self) -> tuple[ReferenceIndex, int]:
         if self.shared is not None:
             index = self._shared_index(self.pipeline, self.generation)
-            return index, self._shared_version(self.generation) or 0
+            version, ts = self._shared_state(self.generation)
+            self._read_shared_at(index, ts)
+            return index, version or 0
         try:
             index, manifest = load_snapshot(
                 self.store.snapshots_dir, self.pipeline, self.store, new_index=self.pipeline.new_index
@@ -243,9 +245,33 @@ class Collection:
 
     def _shared_version(self, generation: int) -> int | None:
         """The change-log version the server holds for ``generation`` (None: never filled)."""
+        return self._shared_state(generation)[0]
+
+    def _shared_state(self, generation: int) -> tuple[int | None, int | None]:
+        """(the version the server holds for ``generation``, the server timestamp the writer took after
+        applying it: reads guaranteed at it see every change up to that version). One value ``V@TS``, so a
+        reader never pairs a new version with an older timestamp; ``V`` alone (recorded before timestamps):
+        no timestamp, reads strongly consistent."""
         assert self.shared is not None
         value = self.store.get_meta(self.shared.version_key(generation))
-        return int(value) if value is not None else None
+        if value is None:
+            return None, None
+        version, _, ts = value.partition("@")
+        return int(version), int(ts) if ts else None
+
+    def _record_shared(self, index: ReferenceIndex, generation: int, version: int) -> None:
+        """As the writer, after applying changes up to ``version``: record it with a timestamp taken now,
+        and read at that timestamp ourselves."""
+        assert self.shared is not None
+        parts = list(index.parts().values())
+        ts = parts[0].fence()
+        self.store.set_meta(self.shared.version_key(generation), f"{version}@{ts}")
+        for part in parts:
+            part.read_after(ts)
+
+    def _read_shared_at(self, index: ReferenceIndex, ts: int | None) -> None:
+        for part in index.parts().values():
+            part.read_after(ts)
 
     def hold_writer_role(self, held: bool) -> None:
         """Called by the writer role (``app.ingestion.writer``) as it is taken and given up: only its holder
@@ -265,7 +291,7 @@ class Collection:
             version = stream.version
         for part in index.parts().values():
             part.connect_fresh()  # made again by this fill: not lost
-        self.store.set_meta(self.shared.version_key(generation), str(version))
+        self._record_shared(index, generation, version)
         self.stats.full_rebuilds += 1
         log.info("shared index filled with %d references at version %d", index.size, version)
         return version
@@ -288,7 +314,7 @@ class Collection:
             return 0
         apply_changes(self.index, changes)
         self.version = changes[-1].version
-        self.store.set_meta(self.shared.version_key(self.generation), str(self.version))
+        self._record_shared(self.index, self.generation, self.version)
         self.stats.changes_applied += len(changes)
         return len(changes)
 
@@ -297,9 +323,11 @@ class Collection:
         assert self.shared is not None
         deadline = time.monotonic() + self.shared.wait_seconds
         while True:
-            held = self._shared_version(self.generation) or 0
+            held, ts = self._shared_state(self.generation)
+            held = held or 0
             if held >= head:
                 self.version = max(self.version, held)
+                self._read_shared_at(self.index, ts)
                 return
             if time.monotonic() >= deadline:
                 log.warning(
@@ -309,6 +337,7 @@ class Collection:
                     self.shared.wait_seconds,
                 )
                 self.version = max(self.version, held)
+                self._read_shared_at(self.index, ts)
                 return
             time.sleep(0.02)
 
@@ -370,8 +399,9 @@ class Collection:
                 version = stream.version
             for part in index.parts().values():
                 part.connect_fresh()  # made by this fill: not lost
-            assert self.shared is not None
-            self.store.set_meta(self.shared.version_key(generation), str(version))
+            self._record_shared(index, generation, version)
+        else:
+            self._read_shared_at(index, self._shared_state(generation)[1])
         with self.lock:
             if self.generation >= generation:
                 return False

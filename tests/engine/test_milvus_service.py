@@ -149,3 +149,30 @@ def test_refit_fills_new_collections_and_both_switch(fitted_models, mini_manifes
             assert _first(svc, db[6].image.read_bytes(), mode) == ids[6], mode
     writer.store.close()
     replica.store.close()
+
+
+def test_milvus_reads_at_the_writers_timestamp_see_its_writes_and_deletes(milvus_server):
+    """Two clients of one collection, as a writer and a replica: after the writer's upsert and delete, a
+    timestamp it takes (``fence``) makes the replica's reads at it (``read_after``) see both at once, with no
+    strongly consistent read; a replica with no timestamp reads strongly."""
+    import numpy as np
+
+    from app.engine.index.kinds.milvus import MilvusIndex
+
+    writer = MilvusIndex(64, False, uri=milvus_server.uri, collection="fence")
+    replica = MilvusIndex(64, False, uri=milvus_server.uri, collection="fence")
+    rng = np.random.default_rng(0)
+    x = rng.standard_normal((200, 64)).astype(np.float32)
+    x /= np.linalg.norm(x, axis=1, keepdims=True)
+    writer.add(np.arange(200), x)
+    assert replica.read_ts is None and replica._consistency() == {"consistency_level": "Strong"}
+    replica.read_after(writer.fence())
+    assert replica._consistency()["consistency_level"] == "Customized"
+    assert replica.search(x[:1], 1)[1][0, 0] == 0 and replica.size == 200
+    writer.remove([0])
+    writer.add(np.array([500]), x[1:2])
+    replica.read_after(writer.fence())
+    ids = replica.search(x[:2], 2)[1]
+    assert 0 not in ids[0] and set(ids[1]) == {1, 500} and replica.size == 200
+    assert replica.reconstruct([500]).shape == (1, 64)
+    writer.drop()

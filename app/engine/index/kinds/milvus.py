@@ -85,6 +85,8 @@ class MilvusIndex:
         self.uri, self.collection, self.token, self.timeout = uri, collection, token, timeout
         self.m, self.ef_construction, self.ef_search = m, ef_construction, ef_search
         self.created = False  # this process made the collection (it was absent: new, or the server lost it)
+        #: The server timestamp reads are guaranteed at (``read_after``); None: strong consistency.
+        self.read_ts: int | None = None
         self._client = None
         self._connect_lock = threading.Lock()
 
@@ -145,6 +147,26 @@ class MilvusIndex:
         self._call("connect", lambda c: None)
         fresh, self.created = self.created, False
         return fresh
+
+    def fence(self) -> int:
+        """A timestamp from the server's clock taken after every write this process made was acknowledged:
+        a read guaranteed at it sees them all. The writer records it beside the version it applied.
+
+        Why not strong consistency on every read: a strong read waits for the server's next time tick
+        (200 ms by default), and a /locate makes several reads (docs/milvus.md measures it); a read at a
+        recorded timestamp waits only while that timestamp is in the future, right after a write. The
+        allocation is the connection's ``alloc_timestamp`` (pymilvus pinned: ``MilvusClient`` does not
+        expose it)."""
+        return int(self._call("take a timestamp", lambda c: c._get_connection().alloc_timestamp(timeout=self.timeout)))
+
+    def read_after(self, ts: int | None) -> None:
+        """Reads from now on see every write before server timestamp ``ts`` (None: every write, strongly)."""
+        self.read_ts = ts
+
+    def _consistency(self) -> dict[str, Any]:
+        if self.read_ts is None:
+            return {"consistency_level": "Strong"}
+        return {"consistency_level": "Customized", "guarantee_timestamp": self.read_ts}
 
     def drop(self) -> None:
         """Remove the collection from the server (a writer refilling it from the store starts here)."""
@@ -249,6 +271,7 @@ class MilvusIndex:
                 search_params=params,
                 output_fields=[],
                 timeout=self.timeout,
+                **self._consistency(),
             ),
         )
         for r, row in enumerate(hits):
@@ -271,7 +294,11 @@ class MilvusIndex:
             rows = self._call(
                 "read codes",
                 lambda c, chunk=chunk: c.query(
-                    self.collection, filter=f"id in {chunk}", output_fields=["id", "code"], timeout=self.timeout
+                    self.collection,
+                    filter=f"id in {chunk}",
+                    output_fields=["id", "code"],
+                    timeout=self.timeout,
+                    **self._consistency(),
                 ),
             )
             for row in rows:
@@ -311,7 +338,9 @@ class MilvusIndex:
     def size(self) -> int:
         rows = self._call(
             "count",
-            lambda c: c.query(self.collection, filter="", output_fields=["count(*)"], timeout=self.timeout),
+            lambda c: c.query(
+                self.collection, filter="", output_fields=["count(*)"], timeout=self.timeout, **self._consistency()
+            ),
         )
         return int(rows[0]["count(*)"]) if rows else 0
 
