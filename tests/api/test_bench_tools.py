@@ -22,7 +22,8 @@ def test_compare_configs_interleaves_two_servers(fitted_models, mini_manifest):
     )  # fmt: skip
     rows = [line for line in out.splitlines() if line.startswith(f"| {CONFIG}")]
     assert len(rows) == 2 and rows[0].split("|")[4].strip() == "1.00"  # the first is the baseline
-    assert rows[1].startswith(f"| {CONFIG}:rerank=false |") and rows[1].split("|")[6].strip() == "0.0"  # none verified
+    assert rows[1].startswith(f"| {CONFIG}:rerank=false (") and rows[1].split("|")[6].strip() == "0.0"  # none verified
+    assert all("float flat" in r for r in rows)  # each side's index kinds, as its /ready names them
 
 
 def test_ingest_resume_compares_with_and_without_the_journal(fitted_models):
