@@ -9,7 +9,6 @@ wait_for_function with eval, so each predicate here is a function ("() => ...").
 
 import io
 import json
-import os
 import re
 from pathlib import Path
 from urllib.parse import urlparse
@@ -22,18 +21,7 @@ from tests.conftest import CHECK_IMAGES, REPO
 
 pytestmark = pytest.mark.browser  # not in `make test-quick`
 
-CHROMIUM = os.environ.get("GEOLOC_CHROMIUM", "/usr/bin/chromium")
 SHOTS = REPO / "out" / "screenshots"
-ARGS = [
-    "--no-sandbox",
-    "--disable-gpu",
-    "--disable-dev-shm-usage",
-    "--disable-background-networking",
-    "--disable-component-update",
-    "--no-first-run",
-    "--disable-sync",
-    "--disable-quic",
-]
 VIEWPORTS = {"desktop": {"width": 1280, "height": 900}, "phone": {"width": 375, "height": 812}}
 TILE_HOST = "tile.openstreetmap.org"
 UNRELATED = CHECK_IMAGES / "fox.jpg"  # not a street of the collection: candidates, but no agreement
@@ -57,18 +45,6 @@ def plain_tile() -> bytes:
     out = io.BytesIO()
     img.save(out, "PNG")
     return out.getvalue()
-
-
-@pytest.fixture(scope="module")
-def browser():
-    if not Path(CHROMIUM).exists():
-        pytest.fail(f"{CHROMIUM} is missing: `make test` installs Debian's chromium (make browser)")
-    from playwright.sync_api import sync_playwright
-
-    with sync_playwright() as p:
-        b = p.chromium.launch(executable_path=CHROMIUM, headless=True, args=ARGS)
-        yield b
-        b.close()
 
 
 @pytest.fixture(scope="module")

@@ -5,7 +5,6 @@ chosen at once there and draws the path (Chromium, as tests/api/test_browser.py 
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import pytest
 
@@ -119,20 +118,6 @@ def test_a_body_over_the_bound_is_refused_before_it_is_read(server):
     assert r.status_code == 413, r.text
     assert r.json()["error"] == "too_large"
     assert str(10 * 3_000_000 + 1024 * 1024) in r.json()["message"]
-
-
-@pytest.fixture(scope="module")
-def browser():
-    from tests.api.test_browser import ARGS, CHROMIUM
-
-    if not Path(CHROMIUM).exists():
-        pytest.fail(f"{CHROMIUM} is missing: `make test` installs Debian's chromium (make browser)")
-    from playwright.sync_api import sync_playwright
-
-    with sync_playwright() as p:
-        b = p.chromium.launch(executable_path=CHROMIUM, headless=True, args=ARGS)
-        yield b
-        b.close()
 
 
 @pytest.mark.browser

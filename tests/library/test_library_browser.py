@@ -17,7 +17,7 @@ import pytest
 
 from app.engine.configs import DEFAULT_CONFIG
 from app.library.writeback import pixel_hash
-from tests.api.test_browser import ARGS, CHROMIUM, SHOTS, open_page
+from tests.api.test_browser import SHOTS, open_page
 from tests.library.conftest import SF, copy_collection, make_library
 from tools.server_process import ServerProcess
 
@@ -28,18 +28,6 @@ HOSTILE = '<img src=x onerror="window.__xss=1">.jpg'
 
 def sha(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
-
-
-@pytest.fixture(scope="module")
-def browser():
-    if not Path(CHROMIUM).exists():
-        pytest.fail(f"{CHROMIUM} is missing: `make test` installs Debian's chromium (make browser)")
-    from playwright.sync_api import sync_playwright
-
-    with sync_playwright() as p:
-        b = p.chromium.launch(executable_path=CHROMIUM, headless=True, args=ARGS)
-        yield b
-        b.close()
 
 
 @pytest.fixture(scope="module")

@@ -217,16 +217,9 @@ async function locate() {
   showError("locate", "");
   clearAnswer();
   status("locate", "Locating…");
+  const region = regionOrSay();
+  if (!region) return;
   $("locate-btn").disabled = true;
-  let region;
-  try {
-    region = regionFields();
-  } catch (err) {
-    status("locate", "");
-    showError("locate", err.message);
-    $("locate-btn").disabled = false;
-    return;
-  }
   const form = new FormData();
   form.append("image", file);
   form.append("top_k", $("top-k").value || "10");
@@ -258,14 +251,8 @@ function showSequencePreview(files) {
 async function locateSequence(files) {
   showError("locate", "");
   clearAnswer();
-  let region;
-  try {
-    region = regionFields();
-  } catch (err) {
-    status("locate", "");
-    showError("locate", err.message);
-    return;
-  }
+  const region = regionOrSay();
+  if (!region) return;
   status("locate", `Locating ${files.length} photos as one path…`);
   $("locate-btn").disabled = true;
   const form = new FormData();
@@ -402,6 +389,16 @@ function regionFields() {
   }
   if (given.length) $("region-box").open = true;
   return Object.fromEntries(given);
+}
+// The region's fields, or null after saying in the locate view what is wrong with them.
+function regionOrSay() {
+  try {
+    return regionFields();
+  } catch (err) {
+    status("locate", "");
+    showError("locate", err.message);
+    return null;
+  }
 }
 $("region-from-map").addEventListener("click", () => {
   if (!locateMap) { showError("locate", "The map did not load: type the latitude and longitude."); return; }
