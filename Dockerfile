@@ -37,7 +37,7 @@ RUN apt-get update \
     && useradd --create-home --uid 10001 geoloc
 
 WORKDIR /app
-COPY pyproject.toml README.md ./
+COPY pyproject.toml README.md constraints.txt ./
 COPY app ./app
 COPY --from=web /web/node_modules/leaflet/dist ./app/web/static/vendor/leaflet
 COPY --from=web /web/node_modules/swagger-ui-dist/swagger-ui-bundle.js /web/node_modules/swagger-ui-dist/swagger-ui.css \
@@ -50,7 +50,7 @@ COPY --from=web /web/node_modules/swagger-ui-dist/swagger-ui-bundle.js /web/node
 # tests run): the index on Milvus when GEOLOC_MILVUS_URI is set (compose profile milvus, docs/milvus.md).
 # The pip cache mount keeps downloaded wheels between builds (a code change re-installs in seconds).
 RUN --mount=type=cache,target=/root/.cache/pip \
-    python3 -m venv /opt/venv && pip install ".[ray,postgres]" "$(grep -o 'pymilvus==[0-9.]*' pyproject.toml)"
+    python3 -m venv /opt/venv && pip install -c constraints.txt ".[ray,postgres]" "$(grep -o 'pymilvus==[0-9.]*' pyproject.toml)"
 
 COPY --from=weights . /tmp/weights
 # Every buildable model of the registry (app/engine/registry.py); `geoloc models list --check` fails the build

@@ -20,16 +20,16 @@ HARD_QUERY ?= $(SHARED)/data/penn-campus-gps/photos/img_00008.jpg
 # A photo from elsewhere: San Francisco, a place the demo collection does not hold.
 ELSEWHERE_QUERY ?= $(SHARED)/data/sf-streetview-toy/queries/q1.jpg
 
-.PHONY: bytecode demo-queries demo-doc setup browser exiftool postgres model manifests fit demo run serve test test-quick test-container lint eval results bench load fuzz crash-full clean-index
+.PHONY: constraints bytecode demo-queries demo-doc setup browser exiftool postgres model manifests fit demo run serve test test-quick test-container lint eval results bench load fuzz crash-full clean-index
 
 setup: $(VENV)/.installed $(LEAFLET) $(SWAGGER)
 
 # Each step prints one line with its time when not on a terminal (tools/steps.py; logs in out/logs/).
 STEP := $(PYTHON) tools/steps.py
 
-$(VENV)/.installed: pyproject.toml
+$(VENV)/.installed: pyproject.toml constraints.txt
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
-	@$(STEP) install -- $(BIN)/python -m pip install -q -e '.[dev]'
+	@$(STEP) install -- $(BIN)/python -m pip install -q -c constraints.txt -e '.[dev]'
 	@touch $@
 
 # Leaflet (the page's map) and Swagger UI (/docs) from the npm registry, served by the app itself (never from
@@ -37,8 +37,8 @@ $(VENV)/.installed: pyproject.toml
 # Ray (the optional engine for distributed encoding), psycopg (the store on PostgreSQL) and pymilvus with the
 # embedded Milvus server (the index on Milvus) for the tests; `make run` needs none of them.
 RAY_STAMP := $(VENV)/.ray-installed
-$(RAY_STAMP): $(VENV)/.installed
-	@$(STEP) install-ray -- $(BIN)/python -m pip install -q -e '.[dev,ray,postgres,milvus]'
+$(RAY_STAMP): $(VENV)/.installed constraints.txt
+	@$(STEP) install-ray -- $(BIN)/python -m pip install -q -c constraints.txt -e '.[dev,ray,postgres,milvus]'
 	@touch $@
 
 $(NPM_STAMP): web/package.json web/package-lock.json
@@ -115,6 +115,11 @@ endef
 
 demo-queries:
 	$(demo_queries)
+
+# The pinned versions (constraints.txt) from the environment `make test` installed: after a deliberate upgrade.
+constraints: $(RAY_STAMP)
+	@{ sed -n '/^#/p' constraints.txt; $(BIN)/python -m pip freeze --exclude-editable | grep -v '^geoloc'; } > constraints.tmp
+	@mv constraints.tmp constraints.txt
 
 # Rewrite the README's demo block from a real run of the demo queries.
 demo-doc:
