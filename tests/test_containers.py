@@ -117,7 +117,8 @@ def test_compose_ray_profile_runs_the_same_image():
         assert service["environment"]["RAY_AUTH_MODE"] == "token"
         assert service["environment"]["RAY_AUTH_TOKEN"] == "${RAY_AUTH_TOKEN:-}"
     assert "RAY_AUTH_TOKEN=" in (REPO / ".env.example").read_text()
-    assert any(r'pip install ".[ray,postgres]"' in rest for op, rest in _instructions() if op == "RUN")
+    pinned = r'pip install -c constraints.txt ".[ray,postgres]"'  # the versions the suite ran (constraints.txt)
+    assert any(pinned in rest for op, rest in _instructions() if op == "RUN")
     pyproject = (REPO / "pyproject.toml").read_text()
     assert re.search(r'^ray = \["ray\[data,client\]', pyproject, re.M)  # client: for ray:// addresses
 
