@@ -86,7 +86,10 @@ def _demo_block(readme: str) -> str:
 
 def test_the_readme_demo_block_is_a_run_of_the_three_queries():
     """The block is what tools/demo_doc.py writes from `make demo-queries`: the three queries' headers in
-    order, the first one's JSON answer, and the block rewritten from its own text is the same block."""
+    order, the first one's JSON answer, and the block rewritten from its own text is the same block.
+    docs/api.md's example answer is a run of the same query too (``make demo-doc`` writes both), but one
+    that states an estimate, so it can explain an estimate's fields (test_readme_commands checks them
+    against a real server's answer): it stays as written while the demo's own run states none."""
     readme = (REPO / "README.md").read_text()
     block = _demo_block(readme)
     assert block.startswith(f"{demo_doc.BEGIN}\n```text\n$ make demo-queries\n") and block.endswith(
@@ -100,7 +103,28 @@ def test_the_readme_demo_block_is_a_run_of_the_three_queries():
     assert demo_doc.replace_block(readme, output) == readme
     api = (REPO / "docs" / "api.md").read_text()
     example = api.split(demo_doc.ANSWER_BEGIN, 1)[1].split(demo_doc.ANSWER_END, 1)[0]
-    assert json.loads(re.search(r"```json\n(.*?)```", example, re.S).group(1)) == answer, "run: make demo-doc"
+    shown = json.loads(re.search(r"```json\n(.*?)```", example, re.S).group(1))
+    assert shown["estimate"] is not None and shown["candidates"][0]["label"] == answer["candidates"][0]["label"]
+
+
+def test_demo_doc_keeps_the_api_example_when_the_demo_states_no_estimate(tmp_path):
+    """`make demo-doc` from a saved run (the README's own block): the README's block is rewritten from it; the
+    API page's example is replaced only by an answer that states an estimate, else kept as it was."""
+    readme = (REPO / "README.md").read_text()
+    block = _demo_block(readme)
+    saved = tmp_path / "run.txt"
+    saved.write_text(block.split("$ make demo-queries\n", 1)[1].rsplit("```", 1)[0])
+    first = demo_doc.first_answer(demo_doc.demo_output(saved.read_text()))
+    (tmp_path / "README.md").write_text(readme.replace(block, f"{demo_doc.BEGIN}\nold\n{demo_doc.END}"))
+    api = (REPO / "docs" / "api.md").read_text()
+    (tmp_path / "api.md").write_text(api)
+    args = ["--from", str(saved), "--readme", str(tmp_path / "README.md"), "--api-doc", str(tmp_path / "api.md")]
+    assert demo_doc.main(args) == 0
+    assert (tmp_path / "README.md").read_text() == readme
+    written = (tmp_path / "api.md").read_text()
+    assert (written == api) == (first["estimate"] is None or demo_doc.answer_block(first) in api)
+    if first["estimate"] is not None:
+        assert demo_doc.answer_block(first) in written
 
 
 def test_make_demo_queries_are_the_lines_make_run_prints():

@@ -103,7 +103,11 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     output = demo_output(args.source.read_text() if args.source else run_queries())
     args.readme.write_text(replace_block(args.readme.read_text(), output))
-    answer = answer_block(first_answer(output))
+    first = first_answer(output)
+    if first["estimate"] is None:  # the API page's example explains an estimate's fields: it needs one
+        print(f"wrote the demo block of {args.readme}; the first answer states no estimate: {args.api_doc} kept")
+        return 0
+    answer = answer_block(first)
     args.api_doc.write_text(replace_between(args.api_doc.read_text(), ANSWER_BEGIN, ANSWER_END, answer))
     print(f"wrote the demo block of {args.readme} ({len(output.splitlines())} lines) and the answer in {args.api_doc}")
     return 0
