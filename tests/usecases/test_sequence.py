@@ -53,11 +53,10 @@ def test_a_sequence_of_one_photo_is_the_photo_alone(service, walk_collection):
         assert (one.answer.reason is None) == (alone.reason is None) or one.rests_on == SEQUENCE
 
 
-#: Three orders of the 22 San Francisco images. In the interleaved one, two images whose neighbours' candidates
-#: happen to agree get an estimate from the sequence (posteriors 0.69 and 0.56 on the walk collection, whose
-#: disc informs from 0.56): the sequence reads the single-photo disc, never fitted on sequence answers, so
-#: this leak is a known defect (docs/sequences.md), kept here as a strict expected failure until the
-#: sequence has its own calibration.
+#: Three orders of the 22 San Francisco images. In the interleaved one, images whose neighbours' candidates
+#: happen to agree get an estimate from the sequence on the walk collection: the sequence reads the
+#: single-photo disc, never fitted on sequence answers, so this leak is a known defect (docs/sequences.md,
+#: with the figures), kept here as a strict expected failure until the sequence has its own calibration.
 ELSEWHERE_ORDERS = [
     pytest.param(list(range(22)), id="in-order"),
     pytest.param(list(range(21, -1, -1)), id="reversed"),
