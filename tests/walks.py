@@ -9,7 +9,12 @@ fresh clone's fit, the code unchanged).
 
 A plugin of the root conftest (``pytest_plugins``): one fit and ingest for the whole run, shared by the
 xdist workers (``built_once``); each module that asks for ``walk_collection`` gets its own copy of the
-models and data dirs (a server or a service may write to its data dir)."""
+models and data dirs (a server or a service may write to its data dir).
+
+Why its discs hold for 8 answers in 10 (``GEOLOC_RADIUS_RATE``, read by the fit) and not the default 9: at 9 in
+10 the strongest bin's disc rests on its last one or two captures, and which of them is far off moves with
+the float rounding of the machine the suite runs on (the same code stated a disc on one CI machine and
+none on another); at 8 in 10 the strongest bin states one on both."""
 
 from __future__ import annotations
 
@@ -24,6 +29,8 @@ CONFIG = "hybrid-bin"
 #: The held-out walk: consecutive captures of the first phone, in time order.
 WALK = slice(12, 20)
 AROUND = 56  # the collection: the first 56 captures less the walk's 8
+#: The rate of the collection's discs (see above).
+RADIUS_RATE = "0.8"
 
 
 @pytest.fixture(scope="session")
@@ -50,7 +57,9 @@ def walk_built(tmp_path_factory, models_dir, penn_index) -> Path:
         manifest = root / "collection.csv"
         write_manifest(manifest, rows)
         where = ["--models-dir", str(models), "--config", CONFIG]
-        geoloc("fit", "--manifest", str(manifest), *where)
+        with pytest.MonkeyPatch.context() as env:
+            env.setenv("GEOLOC_RADIUS_RATE", RADIUS_RATE)
+            geoloc("fit", "--manifest", str(manifest), *where)
         geoloc("ingest", "--manifest", str(manifest), "--split", "db", "--data-dir", str(root / "data"), *where)
 
     return built_once(tmp_path_factory, "walk", build)

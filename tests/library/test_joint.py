@@ -219,9 +219,12 @@ def test_a_resumed_scan_reads_the_runs_as_a_fresh_one_and_a_decision_survives(wa
     # A reviewed photo keeps its decision through later scans; without the time prior the runs' placements
     # go back to the photos' own suggestions (the reviewed one stays as reviewed).
     sid = journal.scan_id_of(folder)
-    reviewed = (placed or [n for n in sorted(after) if after[n]["lat"] is not None])[0]
+    # The reviewed photo: one the runs placed, else one the user places at its best candidate.
+    reviewed = placed[0] if placed else sorted(after)[0]
+    at = after[reviewed]
+    lat, lon = (at["lat"], at["lon"]) if at["lat"] is not None else at["calibrated_candidates"][0][:2]
     decided = next(r for r in journal.photos(sid, LOCATED) if r.path.endswith(reviewed))
-    journal.decide(decided.id, ACCEPTED, after[reviewed]["lat"], after[reviewed]["lon"])
+    journal.decide(decided.id, ACCEPTED, lat, lon)
     scan_library(service, folder, ScanOptions(workers=1, time_prior=False), journal)
     final = _results(journal, folder)
     assert final[reviewed] == after[reviewed]
