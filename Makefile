@@ -62,7 +62,7 @@ browser:
 	  (apt-get update -q && DEBIAN_FRONTEND=noninteractive apt-get install -y -q chromium) > /tmp/geoloc-apt.log 2>&1 \
 	  || { echo "could not install chromium: see /tmp/geoloc-apt.log"; exit 1; }; }
 
-# `geoloc library write` calls exiftool (issue 36), and its tests run it: install it when it is missing.
+# `geoloc library write` calls exiftool, and its tests run it: install it when it is missing.
 exiftool:
 	@command -v exiftool >/dev/null || { echo "installing exiftool (Debian package libimage-exiftool-perl)"; \
 	  (apt-get update -q && DEBIAN_FRONTEND=noninteractive apt-get install -y -q libimage-exiftool-perl) > /tmp/geoloc-apt.log 2>&1 \

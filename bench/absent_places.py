@@ -3,7 +3,7 @@
     .venv/bin/python -m bench.absent_places [--data-dir index] [--models-dir models] [--config hybrid] \
         [PHOTO_OR_FOLDER ...]   # default: every sf-streetview-toy image (22 San Francisco streets)
 
-Why: "Not in this collection" must be an answer (issue 20). The sf-streetview-toy images are street views of
+Why: "Not in this collection" must be an answer. The sf-streetview-toy images are street views of
 San Francisco; against the Penn demo collection (`make demo`) none is present, so every confident estimate
 is a wrong answer. Each photo goes through ``GeolocService.locate``, the use case /locate serves. Prints one
 line per photo (reason code, best p_within_25m) and the summary: confident share, mean and highest best p.

@@ -35,7 +35,7 @@ from tools.server_process import ServerProcess
 
 SHARED = REPO.parent / "shared"
 COMMAND = ".venv/bin/python -m bench.benchmarks"
-COMPARED = "hybrid-xfeat"  # issue 11's speed goal: its /locate p50 against the default's, in this run
+COMPARED = "hybrid-xfeat"  # compared for speed: its /locate p50 against the default's, in this run
 BINARY = "hybrid-bin"  # the same descriptor with a Hamming shortlist: what to run at 10^5-10^6 references
 
 

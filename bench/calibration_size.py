@@ -4,7 +4,7 @@
                                      [--seeds 3] [--first-seed 0]
 
 Why: `geoloc refit` of a 20-photo collection found no level at which its answers held (threshold 1.01), and
-nothing told the user that this is the collection's size, not a fault (issue 34). This refits, as `geoloc
+nothing told the user that this is the collection's size, not a fault. This refits, as `geoloc
 refit` does (fit, SVM bank and calibration on the references alone), seeded subsets of whole captures of the
 manifest's db rows of increasing size, and prints per size and seed whether the calibration found a
 confident level. ``app.engine.calibration.CONFIDENT_FROM_REFERENCES`` is the size from which every seed did.

@@ -1,4 +1,4 @@
-"""/locate p50 of two configurations on real servers, interleaved query by query (issue 11's speed goal).
+"""/locate p50 of two configurations on real servers, interleaved query by query.
 
     .venv/bin/python -m bench.compare_configs [--configs hybrid,hybrid-xfeat] [--reps 3]
     .venv/bin/python -m bench.compare_configs --configs lite2-hybrid-384-sv:rerank=false,lite2-hybrid-384-sv

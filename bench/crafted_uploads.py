@@ -1,4 +1,4 @@
-"""Crafted uploads against a real server (issue 30): each shape one and eight at once, the server's RSS
+"""Crafted uploads against a real server: each shape one and eight at once, the server's RSS
 peak over idle and the slowest answer.
 
 The shapes are generated here, as the tests do (tests/api/test_hardening_shapes.py): the strips that
@@ -30,7 +30,7 @@ from tools.crafted_images import STRIPS, encoded, noise, tiff_with_frames
 from tools.process_memory import MiB, PeakRss, rss_bytes
 from tools.server_process import ServerProcess
 
-#: Each burst's target from the issue: the RSS peak over idle for eight at once, and the slowest answer.
+#: Each burst's target: the RSS peak over idle for eight at once, and the slowest answer.
 PEAK_LIMIT_MB = 1200
 ANSWER_LIMIT_S = 5.0
 
@@ -146,7 +146,7 @@ def main() -> None:
         "",
         f"`python -m bench.crafted_uploads` ({args.config}, {machine()}; {usable_cpus()} usable CPUs, the default "
         f"`GEOLOC_LOCATE_CONCURRENCY`): a fresh server per shape, holding 16 penn crops; its RSS peak over idle "
-        "during the burst and one second after, and the slowest answer. Targets (issue 30): at most "
+        "during the burst and one second after, and the slowest answer. Targets: at most "
         f"{PEAK_LIMIT_MB} MB over idle for eight, at most {ANSWER_LIMIT_S:.0f} s an answer.",
         "",
         "| shape | answers | peak over idle, 1 / 8 at once (MB) | slowest answer, 1 / 8 at once (s) |",
@@ -162,7 +162,7 @@ def main() -> None:
         "",
         f"Worst of all shapes: +{worst_peak:.0f} MB for eight at once (target {PEAK_LIMIT_MB}), slowest answer "
         f"{worst_s:.2f} s (target {ANSWER_LIMIT_S:.0f}). Before the fix the 49000 x 32 PNG answered 500 in 0.15 s "
-        "and then grew the server past 19 GB (the OOM killer), and the TIFF chain took 93 s an answer (issue 30).",
+        "and then grew the server past 19 GB (the OOM killer), and the TIFF chain took 93 s an answer.",
         "Eight 12 MP photos with `rerank=true` are ordinary requests, not crafted ones: each takes its turn in "
         "the /locate slots (one per usable CPU), verification included, so the eighth waits for the seven "
         "before it; that wait is the price of the memory bound (outside the slots, 16 of them held 1.7 GB).",

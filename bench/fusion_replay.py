@@ -3,8 +3,8 @@ unverified answers.
 
     .venv/bin/python -m bench.fusion_replay [--recorded-floor 12] out/eval/sv-5fold.json out/eval/sv-40.json
 
-Why: with stored XFeat verification (``lite2-hybrid-384-sv``) R@1 fell below the same queries unverified (issue
-32). A verified ``geoloc eval`` run records, per query, the retrieval order (reference, global score, whether
+Why: with stored XFeat verification (``lite2-hybrid-384-sv``) R@1 fell below the same queries unverified. A
+verified ``geoloc eval`` run records, per query, the retrieval order (reference, global score, whether
 it lies within the run's radius) and each verified candidate's matches and H / F inliers
 (``queries[].verification``). Which candidate comes first depends on nothing else, so a fusion rule's R@1 on
 those queries is replayed without extracting or matching again, exactly but for one thing: a candidate the

@@ -5,9 +5,9 @@ lies within each estimate's stated radius.
         [--manifest data/manifests/penn-campus-gps.csv] [--held-within 25]
     .venv/bin/python -m bench.held_places --write-subset /tmp/c60.csv [--references 60] [--seed 0]
 
-Why: the counterpart of ``bench.absent_places`` (issue 32: "the 16 penn query photos against the demo
-collection: >= 4 estimates, each within its stated radius"; "a 60-reference collection: an estimate for at
-least one penn query photo whose place it holds"). The photos are the whole photos of the manifest's query
+Why: the counterpart of ``bench.absent_places`` (its goals: the 16 penn query photos against the demo
+collection give >= 4 estimates, each within its stated radius; a 60-reference collection gives an estimate
+for at least one penn query photo whose place it holds). The photos are the whole photos of the manifest's query
 split (the 16 of penn-campus-gps, what the README's stage medians are taken over), their truth the
 manifest's position; a photo counts as held when a reference of the collection lies within ``--held-within``
 metres of it (every photo is listed, the held ones marked). Each goes through ``GeolocService.locate``, the

@@ -1,4 +1,4 @@
-"""Index kinds for 10^5-10^7 references: search time, recall, memory and change costs (issue 35).
+"""Index kinds for 10^5-10^7 references: search time, recall, memory and change costs.
 
     PYTHONPATH=$PWD nice -n 10 .venv/bin/python -m bench.index_scale --sizes 100000,1000000 [--write]
 
@@ -49,7 +49,7 @@ from bench.scale_codes import (
 REPO = Path(__file__).resolve().parents[1]
 OUT = REPO / "out" / "index_scale"
 K = 10
-#: The issue's targets at 10^7 references.
+#: The targets at 10^7 references.
 TARGETS = {"p50_ms": 5.0, "recall10": 0.95, "penn_top1": 0.97, "ram_bytes_per_ref": 128, "change_ratio": 1.5}
 #: Threads for building (training, adding, the exact ground truth); searches are always timed on one. The
 #: shared development machine allows two, and on a loaded one a single thread is faster (OpenMP barriers wait
@@ -523,7 +523,7 @@ def section(figures: list[KindFigures], context: dict, command: str) -> str:
     when = datetime.now(UTC).strftime("%Y-%m-%d %H:%M UTC")
     penn = ", ".join(f"{k.rsplit('_', 1)[1]}: {v:.0%}" for k, v in context.items() if k.startswith("exact_penn"))
     return (
-        f"## Index kinds at 10^5-10^7 references (issue 35)\n\n`{command}` ({when}; synthetic codes fitted to "
+        f"## Index kinds at 10^5-10^7 references\n\n`{command}` ({when}; synthetic codes fitted to "
         f"penn's real codes, {context['n_penn_refs']} real penn references included, {context['n_penn_queries']} "
         f"real penn queries; synthetic queries at cosine {context['query_cosine']:.2f} to their source; "
         "medians; one FAISS thread for searches, two for building):\n\n"

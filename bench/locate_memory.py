@@ -1,4 +1,4 @@
-"""Memory of a real server under 8 concurrent 49 MP /locate uploads (issue 18, defect 5).
+"""Memory of a real server under 8 concurrent 49 MP /locate uploads.
 
 Starts ``geoloc serve`` (app/server_process.py) on a temporary data dir with a fitted pipeline and a few
 penn references, then per burst: samples the server's RSS at idle, sends N concurrent /locate with the same

@@ -5,7 +5,7 @@ exact coarse quantizer and with an HNSW graph over the centroids.
 
 Why: an add to an IVF first assigns the new code to its nearest list (a flat scan of the ``nlist``
 centroids, or a search of an HNSW graph over them), then encodes it and appends it to that list.
-``default_nlist`` grows the lists as 4 sqrt(n) (1,024 at 10^5, 16,384 at 10^7), so issue 35's "add per
+``default_nlist`` grows the lists as 4 sqrt(n) (1,024 at 10^5, 16,384 at 10^7), so the target "add per
 change at 10^7 <= 1.5x its cost at 10^5" turns on how the assignment's cost grows with ``nlist``, and on
 nothing else that grows with the collection.
 

@@ -1,4 +1,4 @@
-"""Stored local features for verification (issue 32, items 1-2): which form to store, what it costs, and
+"""Stored local features for verification: which form to store, what it costs, and
 whether verifying against it separates the right place from the wrong one as well as re-extracting does.
 
 For each candidate form (``PROFILES``: RootSIFT from the pipeline's own decode at its own 384 px, or at

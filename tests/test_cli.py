@@ -90,7 +90,7 @@ def test_build_fit_ingest_locate(workdir, mini_manifest):
 
 
 def test_the_fast_configurations_fit_ingest_and_locate_at_their_sizes(workdir, mini_manifest):
-    """hybrid-fast and hybrid-faster (issue 21) are the default on fewer pixels and nothing else: the same
+    """hybrid-fast and hybrid-faster are the default on fewer pixels and nothing else: the same
     stages end to end, with a db photo found first by its own code."""
     from app.engine.configs import get_config
     from app.engine.pipeline import Pipeline
@@ -292,7 +292,7 @@ def test_eval_names_a_manifest_that_leaves_nothing_to_fit_on(workdir, penn_index
 
 
 def test_every_failure_is_one_line_and_a_documented_exit_code(tmp_path):
-    """Issue 22: `geoloc locate missing.jpg` printed a 42-line traceback. Every failure: one line on stderr,
+    """`geoloc locate missing.jpg` once printed a long traceback. Every failure: one line on stderr,
     an exit code of docs/guide.md's table (app.cli.EXIT_CODES); --debug adds the traceback."""
     from app.cli import EXIT_CODES
 

@@ -111,7 +111,7 @@ def test_image_holds_every_registered_model(container, build_log):
 
 
 def test_image_carries_exiftool(container, build_log):
-    """`geoloc library write` (issue 36) writes GPS with exiftool: the image carries it."""
+    """`geoloc library write` writes GPS with exiftool: the image carries it."""
     out = _run(["buildah", "run", "--isolation", "chroot", container, "--", "exiftool", "-ver"], 120, build_log)
     assert float(out.strip()) >= 12, out
 

@@ -1,4 +1,4 @@
-"""`geoloc eval` of a configuration that stores local features (issue 32), on real penn photos: it verifies
+"""`geoloc eval` of a configuration that stores local features, on real penn photos: it verifies
 every query from the photos' stored records by default (as /locate does), reports the same queries without
 verification, fits each fold's verified rule from stored records, and ranks the answers' confidence against
 the training-free baselines (best score, inliers, SUE) consistently with its own per-query records."""

@@ -51,7 +51,7 @@ def _openmp_threads() -> set[int]:
 
 
 def test_serving_uses_one_blas_thread_and_a_fit_one_blas_and_openmp_thread(restored_blas):
-    """A fit's numerics run on FIT_THREADS threads whatever the machine (the same fit everywhere, issue 34).
+    """A fit's numerics run on FIT_THREADS threads whatever the machine (the same fit everywhere).
     In a fresh interpreter: the thread limits are process state, and the suite's earlier tests (faiss's and
     scikit-learn's OpenMP runtimes loaded and limited in other orders) left the OpenMP limit at 1."""
     if not os.environ.get("GEOLOC_TEST_FRESH_PROCESS"):

@@ -24,7 +24,7 @@ def test_one_line_per_step_and_the_log_on_failure(tmp_path):
 
 
 def test_a_live_step_shows_its_lines_as_they_come(tmp_path):
-    """`make fit` off a terminal (issue 34: a first `make run` printed nothing for minutes): each line the
+    """`make fit` off a terminal (a first `make run` once printed nothing for minutes): each line the
     command prints is shown indented, and is in the log too."""
     chatty = [sys.executable, "-c", "for i in range(3): print(f'fit: extract: {i}/3 img, 1.0 img/s', flush=True)"]
     ok = _step(tmp_path, "fit-x", "--live", "--", *chatty)

@@ -1,4 +1,4 @@
-"""Crafted image files, generated (never stored): the shapes an adversarial pass found (issue 30), for the
+"""Crafted image files, generated (never stored): the shapes an adversarial pass found, for the
 tests that reproduce each defect on a real server and for the benchmark that measures them
 (bench/crafted_uploads.py)."""
 
@@ -34,7 +34,7 @@ def noise(width: int, height: int) -> Image.Image:
     return Image.fromarray(np.random.default_rng(0).integers(0, 256, (height, width, 3), np.uint8))
 
 
-#: The shapes the issue found, each generated here (none is a stored fixture).
+#: The shapes that pass found, each generated here (none is a stored fixture).
 STRIPS = {
     "49000x32 png": lambda: encoded(Image.new("RGB", (49000, 32)), "PNG"),
     "32x60000 jpeg": lambda: encoded(Image.new("RGB", (32, 60000), (90, 90, 90)), "JPEG"),

@@ -1,4 +1,4 @@
-"""The words `geoloc locate` puts on an answer (issue 34): a photo with no confident estimate is never told to
+"""The words `geoloc locate` puts on an answer: a photo with no confident estimate is never told to
 "trust the ranked candidates", and --min-score that hides every candidate says so instead of "no reference
 could be compared (None)". Real `geoloc locate` on the mini collection and penn photos."""
 

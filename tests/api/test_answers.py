@@ -1,4 +1,4 @@
-"""Knowing when it does not know (issue 20), on a real server and real photos: a refit of a 21-photo
+"""Knowing when it does not know, on a real server and real photos: a refit of a 21-photo
 collection calibrates the confidence rule and p_within_25m on that collection, and with --calibrate-rerank a
 second rule for verified answers (an uncalibrated pipeline gives none; a second refit once 6 are deleted
 finds it too small and drops them again), a query whose place was removed gets no confident estimate, a San

@@ -233,7 +233,7 @@ def test_an_answer_without_estimate(browser, server, tile_png, viewport, tmp_pat
     assert re.search(r"spread over \d", page.inner_text("#explain"))
     assert "from candidate 1" in page.locator("#candidates li").nth(1).inner_text()
     assert page.locator("#map path.leaflet-interactive").count() == 0  # no estimate circle
-    # The dashed rectangle (the collection's extent) has its line in the legend (issue 34).
+    # The dashed rectangle (the collection's extent) has its line in the legend.
     assert page.locator("#map path.extent").count() == 1 and page.locator("#legend-extent").is_visible()
     check_markers = markers(page)
     one = next(m for m in check_markers if m["n"] == "1")
@@ -249,7 +249,7 @@ def test_an_answer_without_estimate(browser, server, tile_png, viewport, tmp_pat
     page.click("#locate-btn")
     page.wait_for_selector("#locate-error:not([hidden])")
     assert "not a JPEG" in page.inner_text("#locate-error")
-    # Beside the refusal, the caption no longer says the file "can still be located" (issue 34).
+    # Beside the refusal, the caption no longer says the file "can still be located".
     assert "can still be located" not in page.inner_text("#preview-box"), page.inner_text("#preview-box")
     assert not page.errors, page.errors
 
@@ -315,7 +315,7 @@ def test_no_match(browser, server, tile_png):
 
 
 def test_markers_a_few_metres_apart_name_each_other(browser, server, tile_png):
-    """Two candidates 6 m apart: their markers overlap at the popup's zoom (issue 34: markers 4 and 8 hid
+    """Two candidates 6 m apart: their markers overlap at the popup's zoom (two markers once hid
     each other unseen), so each popup names the other; one 300 m away is not named."""
     ref = server.client.get("/references?limit=1").json()["items"][0]
     spots = [(0.0, 0.61), (6.0, 0.58), (300.0, 0.55)]  # metres north of the reference, score
@@ -498,7 +498,7 @@ def test_a_photo_without_features(browser, server, tile_png, tmp_path):
     page.wait_for_selector("#answer:not([hidden])", timeout=60_000)
     assert page.inner_text("#level") == "No match"
     assert page.inner_text("#headline") == "This photo has nothing to recognise a place by."
-    assert page.inner_text("#answer").count("blank, dark or blurred") == 1, "said once (issue 34)"
+    assert page.inner_text("#answer").count("blank, dark or blurred") == 1, "said once"
     assert page.locator("#candidates li").count() == 0 and page.locator("#map .num-marker").count() == 0
     assert not page.errors, page.errors
 
@@ -562,7 +562,7 @@ def test_api_docs_render_with_no_network_beyond_the_service(browser, server):
     assert redoc.status == 404 and redoc.json()["error"] == "not_found"
 
 
-# -- user text is text: labels, file names, notes and messages never run as HTML (issue 18) -------------
+# -- user text is text: labels, file names, notes and messages never run as HTML ----------------------
 XSS_KEY = "xss-key"
 EXFIL = "/xss-exfil"
 
@@ -749,7 +749,7 @@ def test_the_page_policy_contains_a_slip(browser, xss_server, tile_png):
     assert any(v.startswith("script-src") for v in page.evaluate("window.__csp")), page.evaluate("window.__csp")
 
 
-# -- first use, round 2 (issue 22): the region control, the Add flow, /docs at phone width ----------------
+# -- first use: the region control, the Add flow, /docs at phone width -----------------------------------
 def test_a_region_on_the_locate_view(browser, server, tile_png):
     """The API's region (lat, lon, radius_m) from the Locate view: a circle far from every reference gives
     the region's "no match"; a partial one is refused on the page; the photo's own spot finds it again."""

@@ -108,7 +108,7 @@ def test_first_start_fits_ingests_and_serves(tmp_path, photo_folder, bare_models
         log = Path(server.log.name).read_text()
         for line in ("step 1 of 3", "step 2 of 3", "step 3 of 3", "first start done"):
             assert line in log, log  # the progress is in the log too
-        # ... with the extraction's rate and each fitting step's time (issue 34: where the first start's time goes)
+        # ... with the extraction's rate and each fitting step's time (to show where the first start's time goes)
         assert re.search(r"extracting features \(\d+/\d+ photos, [\d.]+ photos/s\)", log), log
         assert re.search(r"first start: fitted in codebook, PCA, binariser [\d.]+ s, .*calibration [\d.]+ s", log), log
         assert (data / "pipelines" / f"{CONFIG}-g0" / "pipeline.json").is_file()

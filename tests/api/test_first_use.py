@@ -1,4 +1,4 @@
-"""What a newcomer trips on (issue 22): one fault gets one code on every route, capture times are ISO 8601,
+"""What a newcomer trips on: one fault gets one code on every route, capture times are ISO 8601,
 answers carry rounded figures, and the mode refusal says which configuration would serve the mode."""
 
 import json
@@ -138,7 +138,7 @@ def _decimals(x: float) -> int:
 def test_answers_round_metres_and_scores(server):
     r = server.client.post("/locate", files=[("image", ("q.jpg", PHOTO.read_bytes()))], data={"top_k": 5})
     answer = r.json()
-    # The tests' pipeline is not calibrated (issue 20): the conservative rule wants 3 candidates agreeing on
+    # The tests' pipeline is not calibrated: the conservative rule wants 3 candidates agreeing on
     # one spot, and the photo itself and its crop are 2: no estimate, and it says why.
     assert answer["estimate"] is None and answer["reason_code"] == "ambiguous", answer
     assert answer["reason"].startswith("uncalibrated") and "the best group has 2" in answer["reason"], answer

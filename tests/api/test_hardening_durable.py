@@ -1,4 +1,4 @@
-"""Durability of the data dir on disk (issue 18, items 2 and 11), on a real server with real photos.
+"""Durability of the data dir on disk, on a real server with real photos.
 
 - A clean stop leaves every row in the SQLite main file (the WAL checkpointed), so a copy of that file
   alone holds the whole collection.

@@ -1,4 +1,4 @@
-"""Files and rows agree across processes (issue 18): an upload racing a DELETE of the same image on another
+"""Files and rows agree across processes: an upload racing a DELETE of the same image on another
 server keeps its image; a DELETE whose file cannot be removed completes and queues the removal, which the
 writer retries; orphans are swept by the writer and by `geoloc check --repair`; a backup holds the API key."""
 

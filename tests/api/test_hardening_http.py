@@ -1,4 +1,4 @@
-"""Hardening of the HTTP layer (issue 18), on a real server.
+"""Hardening of the HTTP layer, on a real server.
 
 - A body is refused (401 before it is read, 413 as soon as it is too long) before 64 MB of a 300 MB body
   are read, whatever the client says about its length: counted on the client, by how many bytes the
@@ -21,7 +21,7 @@ from tests.conftest import PENN
 
 KEY = "hardening-key"
 MB = 1024 * 1024
-TOTAL = 300 * MB  # the issue's body
+TOTAL = 300 * MB  # an oversized body, far past READ_AT_MOST
 READ_AT_MOST = 64 * MB
 CROP = (PENN / "crops" / "img_00001_0.jpg").read_bytes()
 BOUNDARY = "hardening"

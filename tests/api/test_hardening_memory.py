@@ -1,4 +1,4 @@
-"""Bounded memory for /locate (issue 18, defect 5): a /locate limit by default, large images that cannot be
+"""Bounded memory for /locate: a /locate limit by default, large images that cannot be
 draft-decoded reduced right after decoding under a process-wide pixel budget, and normal photos decoded
 exactly as before. The memory figures themselves come from bench/locate_memory.py, not from a test."""
 

@@ -1,4 +1,4 @@
-"""Issue 30, defects 3 and 5 to 10, each on a real server (or the real CLI): thumbnails of large non-JPEG
+"""Defects an adversarial pass found, each on a real server (or the real CLI): thumbnails of large non-JPEG
 references bounded and kept; verification inside the /locate slots; the HTML policy on every route that
 serves HTML; a data dir whose -wal is removed under a live server refuses writes and says why, losing
 nothing it acknowledged; backups private; GEOLOC_PROTECT_READS covering /metrics and /ready's details; a

@@ -1,4 +1,4 @@
-"""Crafted uploads within the byte and pixel limits (issue 30, defects 1, 2 and 4), on real servers: a 5 KB
+"""Crafted uploads within the byte and pixel limits, on real servers: a 5 KB
 strip of 49000 x 32 pixels used to answer 500 and then grow the server to 19.7 GB (the CNN branch scaled it
 to 514,500 x 336 and kept running after the answer); the same file as a reference crash-looped the writer;
 a TIFF of 100,000 IFDs held /locate for 93 s counting its frames. Each is now refused or bounded before any

@@ -1,4 +1,4 @@
-"""The page's own defences and the thumbnails' privacy (issue 18), against a real server.
+"""The page's own defences and the thumbnails' privacy, against a real server.
 
 The page is tried with hostile text in a real browser in test_browser.py; here are its headers, the
 static rules that keep user text out of HTML (index.html has nothing inline the policy would have to

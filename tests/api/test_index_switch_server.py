@@ -1,4 +1,4 @@
-"""GEOLOC_INDEX_SWITCH_AT on a real server (issue 35, item 2): uploads carry the collection past the
+"""GEOLOC_INDEX_SWITCH_AT on a real server: uploads carry the collection past the
 (lowered) threshold, /ready and /metrics say the exact kind serves and then the compressed kinds with
 their parameters, every upload is found first before and after the switch, a delete is gone at once, and
 a restart (clean stop: the final snapshot records the kinds) serves the compressed kinds without a

@@ -320,8 +320,8 @@ def test_standalone_worker_gives_the_role_up_when_its_session_is_cut(tmp_path, f
 
 
 def test_a_poison_reference_leaves_both_replicas_serving(tmp_path, fitted_models, hosts_env, monkeypatch):
-    """Issue 30: a strip of 49000 x 32 pixels stored pending (as an older version accepted it) killed the
-    writer, then the next host to take the role, 19 s later. Now it fails alone with its reason: both hosts
+    """A strip of 49000 x 32 pixels stored pending (as an older version accepted it) once killed the
+    writer, then the next host to take the role. Now it fails alone with its reason: both hosts
     keep serving and the rest of its batch is indexed."""
     from tests.api.test_hardening_shapes import _add_pending
     from tools.crafted_images import STRIPS
@@ -347,7 +347,7 @@ def test_a_poison_reference_leaves_both_replicas_serving(tmp_path, fitted_models
 def test_a_host_without_the_shared_images_folder_refuses_to_serve(tmp_path, fitted_models, hosts_env):
     """Two servers on one database, each with its own data dir and GEOLOC_IMAGES_DIR left out: the first
     serves, the second never gets ready and says why on /ready (uploads there used to be accepted and never
-    found by the writer, issue 34); uploads to it are refused, not lost."""
+    found by the writer); uploads to it are refused, not lost."""
     env = {k: v for k, v in hosts_env.items() if k != "GEOLOC_IMAGES_DIR"}
     with Server(tmp_path / "host-a", fitted_models, extra_env=env) as a:
         b = Server(tmp_path / "host-b", fitted_models, extra_env=env)

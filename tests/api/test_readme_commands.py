@@ -36,7 +36,7 @@ API_DOC = (REPO / "docs" / "api.md").read_text()
 ACTIVATE = "source .venv/bin/activate"
 
 #: README lines run by other tests (their commands there are the same, through `python -m app.cli`).
-#: The README's library lines run, in order and on a library of real photos, in their own test (issue 36).
+#: The README's library lines run, in order and on a library of real photos, in their own test.
 LIBRARY = "tests/library/test_readme_library.py"
 ELSEWHERE = {
     "geoloc models build": "tests/test_cli.py (test_build_fit_ingest_locate), tests/engine/test_xfeat_onnx.py",
@@ -197,7 +197,7 @@ def test_the_set_up_line_is_in_the_readme_and_geoloc_needs_it(shell):
 def test_every_readme_command_is_run_here_or_elsewhere(shell):
     """The curl lines in order (a job id from an answer feeds the JOB_ID line, a reference it added the REF_ID
     lines), then the geoloc lines. The README edits and deletes only a reference it added itself, never one
-    of the demo collection's (issue 34: its PATCH and DELETE named demo reference 12)."""
+    of the demo collection's (its PATCH and DELETE once named a demo reference)."""
     lines = [c for c in commands(DOCS) if c.split()[0] in ("curl", "geoloc")]
     curls = [c for c in lines if c.startswith("curl")]
     assert len(curls) >= 14, curls
@@ -288,7 +288,7 @@ def test_the_readme_example_answer_has_the_fields_of_a_real_one(shell):
 
 
 def test_the_readme_synopsis_shows_each_numeric_default_the_command_has():
-    """`[--workers 2]` was shown where the default is 1 (issue 34): every `[--option NUMBER]` of a synopsis
+    """`[--workers 2]` was once shown where the default is 1: every `[--option NUMBER]` of a synopsis
     line is the option's real default."""
     import typer.main
 
@@ -309,8 +309,8 @@ def test_the_readme_synopsis_shows_each_numeric_default_the_command_has():
 
 
 def test_the_readme_recipe_for_another_configuration_fills_its_data_dir_and_git_ignores_it():
-    """The hybrid-bin recipe served an empty collection (no ingest shown) from an untracked index-bin/ (issue
-    34): it ingests into the data dir it serves, and git ignores that folder."""
+    """The hybrid-bin recipe once served an empty collection (no ingest shown) from an untracked index-bin/: it
+    ingests into the data dir it serves, and git ignores that folder."""
     text = " ".join(API_DOC.split())
     recipe = text.split("serve another one on its own data dir", 1)[1].split("geoloc serve", 1)[0]
     assert "make fit CONFIG=hybrid-bin" in recipe

@@ -26,7 +26,7 @@ from app.storage.store import ReferenceStore
 from tests.api.conftest import CONFIG, Server
 from tests.conftest import REPO
 
-#: main as it was before schema migrations (the last commit of issue 30's hardening).
+#: main as it was before schema migrations (the last commit of the upload hardening).
 BEFORE_MIGRATIONS = "00671a861e55af2bcbd23bf0953675bc4c07c113"
 
 

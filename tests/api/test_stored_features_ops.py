@@ -1,4 +1,4 @@
-"""Stored local features through operations, on penn photos (issue 32): `geoloc backup` and `geoloc restore`
+"""Stored local features through operations, on penn photos: `geoloc backup` and `geoloc restore`
 carry them (a restored data dir verifies at once, no back-fill), and a server started on a data dir whose
 references lack them back-fills them in the background (progress on /ready, resumable, once per data dir)
 while it answers."""

@@ -1,4 +1,4 @@
-"""Stored local features through the service, on penn photos (issue 32): with ``lite2-hybrid-384-sv`` the
+"""Stored local features through the service, on penn photos: with ``lite2-hybrid-384-sv`` the
 worker writes one small file per reference at ingestion, /locate verifies the top candidates from those files
 by default (a reference's own photo first, with many inliers; a far one with few), a candidate without a
 file stays unverified, ``rerank=false`` is the global-only answer, a deleted reference's file goes with its

@@ -1,6 +1,6 @@
 """Worker failover: when the process that holds a data dir's worker lock dies, an API server on the same
 data dir that was started with an in-process worker takes the lock over and indexes the queued uploads,
-with nobody restarting anything by hand (issue 18, defect 10)."""
+with nobody restarting anything by hand."""
 
 from __future__ import annotations
 

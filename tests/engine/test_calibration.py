@@ -183,7 +183,7 @@ def test_a_verified_answer_is_judged_by_the_verified_rule_which_survives_a_resta
 
 
 def test_an_ambiguous_reason_does_not_repeat_its_code():
-    """The page showed "ambiguous: ambiguous: ..." (the code, then words that began with it; issue 34)."""
+    """The page once showed "ambiguous: ambiguous: ..." (the code, then words that began with it)."""
     rng = np.random.default_rng(0)
     cal = fit_calibration([_sample(rng, present) for present in [True] * 60 + [False] * 60])
     cal.confident_p = 0.9999  # nothing is confident: the present places are ambiguous

@@ -179,7 +179,7 @@ def test_geoloc_models_build_only_lite2(lite2_wheel, tmp_path):
 
 @pytest.mark.parametrize("name", ["lite2-hybrid", "lite2-hybrid-384"])
 def test_the_lite2_feature_level_hybrid_finds_a_reencoded_photo(name, lite2, models_dir, mini_manifest):
-    """The Lite2 stride-16 map sampled at each RootSIFT keypoint (issue 21's best recall): 128 + 720
+    """The Lite2 stride-16 map sampled at each RootSIFT keypoint (the best recall of those tried): 128 + 720
     dimensions per feature, fitted, saved and found again from a smaller, re-compressed copy of a photo."""
     from PIL import Image
 

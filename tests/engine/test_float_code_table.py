@@ -1,4 +1,4 @@
-"""The float code table of ``ivf-rabitq`` (issue 35, memory): codes read from the index's file and a spill file
+"""The float code table of ``ivf-rabitq``: codes read from the index's file and a spill file
 by ``pread``, never held in the heap; puts, drops and replacements against a plain dict; a snapshot written
 from the served index itself (``stage_dump``) while changes keep arriving, then read back."""
 

@@ -64,7 +64,7 @@ def test_draft_decoding_keeps_the_orientation(path, stored, decoded):
 
 def test_small_images_and_the_default_decode_are_unchanged():
     """A crop below twice the target decodes as it is; ``load_image`` without a pipeline keeps its 1600 px
-    target (the issue-18 hardening tests check that path byte for byte)."""
+    target (the hardening tests check that path byte for byte)."""
     pipe = Pipeline(get_config("sift-mbvlad"))
     crop = sorted((PENN / "crops").glob("*.jpg"))[0]
     assert np.array_equal(pipe.decode(crop.read_bytes()).rgb, load_image(crop.read_bytes()).rgb)
@@ -79,8 +79,8 @@ def _png_of(rgb: np.ndarray) -> bytes:
 
 
 def test_the_same_photo_is_read_the_same_whatever_its_container():
-    """Issue 33: the demo's photo as its JPEG, as a PNG of the same pixels and as its 12 MP original was
-    decoded at 800, 533 and 504 px by three filters (DCT 1/2, box 3, DCT 1/8) and answered with three
+    """The demo's photo as its JPEG, as a PNG of the same pixels and as its 12 MP original was once
+    decoded at three sizes by three filters (DCT 1/2, box 3, DCT 1/8) and answered with three
     confidences. Now a PNG of a JPEG's pixels reaches the branches as the very same pixels, and the original
     within a few grey levels of them, at the sizes the default configuration reads."""
     assert DECODE_OVERSAMPLE >= 2

@@ -1,4 +1,4 @@
-"""What the server may touch of its disk (review of issue 36): the API scans folders under the library
+"""What the server may touch of its disk: the API scans folders under the library
 root only (never a manifest, whose rows may name any file); a scan never follows a symbolic link; a write
 or an undo refuses a linked target and, on the server, any target outside the root; thumbnails likewise;
 scan ids are random; a scan left "running" by a dead process is marked interrupted at the next start."""

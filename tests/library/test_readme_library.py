@@ -1,4 +1,4 @@
-"""The "Geolocating a photo library" lines of docs/guide.md, run as written in a shell on real photos (issue 36):
+"""The "Geolocating a photo library" lines of docs/guide.md, run as written in a shell on real photos:
 penn's 81 photos with the 16 query-split photos' GPS removed, two San Francisco photos, a text file named
 .jpg and a photo with broken EXIF. Checked after each line: the GeoJSON (RFC 7946) and the CSV cover every
 photo without GPS; each confident position lies within its stated radius of the truth; the San Francisco

@@ -1,4 +1,4 @@
-"""The index kind chosen by size (issue 35, item 2), on real photos' codes and real FAISS: a collection of
+"""The index kind chosen by size, on real photos' codes and real FAISS: a collection of
 hybrid-bin codes (float and binary, both ``flat``) crosses a lowered ``IndexSizing.switch_at``, the
 compressed kinds are trained on its own codes and built in the background while the exact index keeps
 answering and taking changes, the swap replays what arrived meanwhile, deletes still work after it, and a
