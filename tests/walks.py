@@ -14,7 +14,7 @@ models and data dirs (a server or a service may write to its data dir).
 Why its discs hold for 8 answers in 10 (``GEOLOC_RADIUS_RATE``, read by the fit) and not the default 9: at 9 in
 10 the strongest bin's disc rests on its last one or two captures, and which of them is far off moves with
 the float rounding of the machine the suite runs on (the same code stated a disc on one CI machine and
-none on another); at 8 in 10 the strongest bin states one on both."""
+none on another); at 8 in 10 its quantile tolerates several captures far off."""
 
 from __future__ import annotations
 
