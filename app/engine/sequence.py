@@ -17,7 +17,8 @@ single-photo answer, so it costs a few K x K arrays per photo whatever the colle
   what the time gap times a speed bound allows (or a step bound where there are no times), plus both
   places' own uncertainty; beyond it the compatibility falls off exponentially. Entering or leaving the
   absent state has a fixed weight (``ABSENT_LINK``): a walk may leave the collection's area; staying out
-  of it weighs 1, and two compatible places ``CONTINUITY_GAIN``.
+  of it weighs 1, and two compatible places up to ``CONTINUITY_GAIN``: the full gain where the reach is
+  small against the collection, none where it spans the collection (``continuity_gain``).
 - **Bursts**: photos of one place close in time are one step; its emissions are the product of its
   photos' (each photo's evidence about the same place counts once per photo).
 - **Viterbi** gives the most likely path; **forward-backward** gives each step's own posterior, what a
@@ -84,9 +85,28 @@ class Motion:
 
     speed_mps: float = DEFAULT_SPEED_MPS
     step_m: float = DEFAULT_STEP_M
+    #: The collection's extent (the diagonal of the box its references lie in; None: unknown), against
+    #: which a step's reach is weighed (``continuity_gain``).
+    extent_m: float | None = None
 
     def allowed_m(self, gap_s: float | None) -> float:
         return self.step_m if gap_s is None else self.speed_mps * abs(gap_s)
+
+    def continuity_gain(self, gap_s: float | None) -> float:
+        """What two compatible places are worth against staying absent, for one step.
+
+        Why it shrinks with the reach: continuity is evidence only because the next photo must lie in a
+        small reachable disc rather than anywhere in the collection. Where the step's reach (the allowed
+        distance plus both places' slack, as a disc) covers the collection's extent (as a disc of that
+        diameter), every place is compatible with every other and a run of places lining up is no longer
+        unlikely by chance; the full gain there was a prior, never measured, that the sequence lies in the
+        collection, and it lifted sequences of photos from elsewhere, each too weak alone, above the
+        disc's threshold together. The gain falls linearly with the share of the collection in reach, to
+        1 (no favour) where the reach covers it all. Without a known extent, the full gain."""
+        if not self.extent_m or self.extent_m <= 0:
+            return CONTINUITY_GAIN
+        share = min(1.0, (2.0 * (self.allowed_m(gap_s) + SLACK_M) / self.extent_m) ** 2)
+        return 1.0 + (CONTINUITY_GAIN - 1.0) * (1.0 - share)
 
 
 @dataclass(frozen=True)
@@ -220,7 +240,7 @@ def log_transition(a: Places, b: Places, gap_s: float | None, motion: Motion) ->
     if ka and kb:
         d = haversine_m(a.lats[:, None], a.lons[:, None], b.lats[None, :], b.lons[None, :])
         excess = np.maximum(d - motion.allowed_m(gap_s) - SLACK_M, 0.0)
-        out[:ka, :kb] = np.log(CONTINUITY_GAIN) - excess / FALLOFF_M
+        out[:ka, :kb] = np.log(motion.continuity_gain(gap_s)) - excess / FALLOFF_M
     return out
 
 

@@ -34,7 +34,7 @@ import numpy as np
 from app.engine.calibration import Calibration
 from app.engine.sequence import Motion, Observation, solve
 from app.library.timeprior import WINDOW_S, Anchor
-from app.usecases.sequence import SEQUENCE, sequence_estimate
+from app.usecases.sequence import SEQUENCE, in_collection, sequence_estimate
 from app.usecases.sequence_inputs import seconds
 
 #: Consecutive photos of one camera at most this far apart belong to one run (the time prior's window).
@@ -109,6 +109,7 @@ def joint_suggestions(
     for a in anchors:
         if a.camera in by_camera:
             by_camera[a.camera].append(Member(a.taken, anchored(a)))
+    motion = in_collection(motion or Motion(), calibration)
     for members in by_camera.values():
         for run in runs(members):
             path = solve([m.observation for m in run], motion) if len(run) > 1 else None

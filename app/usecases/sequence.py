@@ -113,7 +113,7 @@ def sequence_answers(
         photos = [SequencePhoto(_shown(a, options), PIXELS, None, a) for a in singles]
         return SequenceAnswer(photos, [PathPoint(None, None, False) for _ in singles], times_from, note)
     observations = [observation(a, t) for a, t in zip(singles, times_s, strict=True)]
-    result = solve(observations, motion, burst_s)
+    result = solve(observations, in_collection(motion, calibration), burst_s)
     photos, path = [], []
     for n, alone in enumerate(singles):
         s = result.step_of(n)
@@ -150,6 +150,13 @@ def sequence_answers(
             )
         photos.append(SequencePhoto(_shown(answer, options), PIXELS, p, alone))
     return SequenceAnswer(photos, path, times_from)
+
+
+def in_collection(motion: Motion, calibration: Calibration) -> Motion:
+    """``motion`` weighed against the calibrated collection's extent (``Motion.continuity_gain``), where the
+    calibration knows it (a collection calibrated before discs does not: the full gain)."""
+    extent = (calibration.disc or {}).get("extent_m")
+    return motion if motion.extent_m is not None or not extent else replace(motion, extent_m=float(extent))
 
 
 def sequence_estimate(places: Places, post: np.ndarray, calibration: Calibration) -> Estimate | None:

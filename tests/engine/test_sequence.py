@@ -171,3 +171,22 @@ def test_an_empty_sequence_is_refused_and_a_photo_without_candidates_is_absent()
     result = solve([_obs([]), _obs([(LAT0, LON0, 0.95)])])
     assert result.path[0] == ABSENT
     assert len(result.posterior[0]) == 1
+
+
+def test_continuity_is_worth_nothing_where_a_step_reaches_across_the_collection():
+    """The gain of two places in reach: full without a known extent or where the reach is small against the
+    collection, 1 where the reach spans it; a walk of weak photos is placed only where continuity says something."""
+    from app.engine.sequence import CONTINUITY_GAIN
+
+    assert Motion(step_m=500).continuity_gain(None) == CONTINUITY_GAIN
+    assert Motion(step_m=500, extent_m=300).continuity_gain(None) == 1.0
+    assert 1.0 < Motion(step_m=50, extent_m=3000).continuity_gain(None) < CONTINUITY_GAIN
+    assert Motion(speed_mps=2, extent_m=3000).continuity_gain(10.0) > Motion(
+        speed_mps=2, extent_m=3000
+    ).continuity_gain(60.0)
+    walk = _walk(8)  # each photo: its true place at 0.4, nothing else
+    obs = [_obs([(lat, lon, 0.4)]) for lat, lon in walk]
+    placed = solve(obs, Motion(step_m=100, extent_m=6000))
+    assert (placed.path != ABSENT).all()
+    spanned = solve(obs, Motion(step_m=100, extent_m=300))  # every place within reach of every other
+    assert (spanned.path == ABSENT).all()
