@@ -8,8 +8,14 @@ so a photo's own crop, or a neighbour's, never answers for it. Every other captu
 crops, and the crops of the captures without an original) is a db row. Running the ``--parts`` parts in turn
 holds out every window once.
 
+``--steps`` measures the walks instead: every pair of a camera's consecutive photos, its time gap and its
+distance (GPS to GPS), against the motion model's defaults (``app.engine.sequence``): how many steps lie
+beyond the distance it calls compatible (the speed bound times the gap, or the step bound, plus its slack)
+and how many photos within its burst time lie more than a place apart.
+
     python -m bench.sequence_walks --out out/walks/penn-walks-0.csv --part 0
     geoloc eval -m out/walks/penn-walks-0.csv --sequence-window 5
+    python -m bench.sequence_walks --steps
 """
 
 from __future__ import annotations
@@ -18,6 +24,10 @@ import argparse
 import csv
 from pathlib import Path
 
+import numpy as np
+
+from app.engine.geo import haversine_m
+from app.engine.sequence import BURST_S, PLACE_RADIUS_M, SLACK_M, Motion
 from app.library.photos import read_meta
 from app.manifests import Row, write_manifest
 from app.usecases.sequence_inputs import seconds
@@ -65,14 +75,61 @@ def walk_rows(source: Path, window: int, part: int, parts: int) -> list[Row]:
     return rows
 
 
+def steps(source: Path) -> list[tuple[float, float]]:
+    """(time gap in seconds, distance in metres) of every pair of a camera's consecutive photos."""
+    out = []
+    for photos in walks(source).values():
+        for (a, sa, _), (b, sb, _) in zip(photos[:-1], photos[1:], strict=True):
+            d = haversine_m(float(a["lat"]), float(a["lon"]), float(b["lat"]), float(b["lon"]))
+            out.append((sb - sa, float(d)))
+    return out
+
+
+def step_report(measured: list[tuple[float, float]]) -> str:
+    """The walks' measured motion against the model's defaults, in lines of text."""
+    gap = np.array([g for g, _ in measured])
+    dist = np.array([d for _, d in measured])
+    moving = gap > 0
+    speed = dist[moving] / gap[moving]
+    motion = Motion()
+    beyond_speed = int((dist > np.array([motion.allowed_m(g) for g in gap]) + SLACK_M).sum())
+    beyond_step = int((dist > motion.allowed_m(None) + SLACK_M).sum())
+    burst = gap <= BURST_S
+    q = (50, 90, 95, 99, 100)
+    return "\n".join(
+        [
+            f"{len(measured)} steps (consecutive photos of one camera)",
+            "time gap s, quantiles " + _quantiles(gap, q),
+            "distance m, quantiles " + _quantiles(dist, q),
+            "speed m/s, quantiles " + _quantiles(speed, q),
+            f"beyond the speed bound ({motion.speed_mps} m/s x gap + {SLACK_M:.0f} m): {beyond_speed}",
+            f"beyond the step bound ({motion.step_m:.0f} m + {SLACK_M:.0f} m): {beyond_step}",
+            f"within {BURST_S:.0f} s: {int(burst.sum())}, of which more than {PLACE_RADIUS_M:.0f} m apart: "
+            f"{int((dist[burst] > PLACE_RADIUS_M).sum())}",
+        ]
+    )
+
+
+def _quantiles(x: np.ndarray, q: tuple[int, ...]) -> str:
+    values = np.percentile(x, q) if len(x) else [float("nan")] * len(q)
+    names = ["max" if k == 100 else f"q{k}" for k in q]
+    return ", ".join(f"{name} {v:.2f}" for name, v in zip(names, values, strict=True))
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--source", type=Path, default=PENN)
-    ap.add_argument("--out", type=Path, required=True)
+    ap.add_argument("--out", type=Path, help="the manifest to write")
+    ap.add_argument("--steps", action="store_true", help="measure the walks' steps instead of writing a manifest")
     ap.add_argument("--window", type=int, default=6, help="consecutive photos per held-out window")
     ap.add_argument("--parts", type=int, default=3, help="hold out one window in this many")
     ap.add_argument("--part", type=int, default=0, help="which windows: their number modulo --parts")
     args = ap.parse_args(argv)
+    if args.steps:
+        print(step_report(steps(args.source.resolve())))
+        return
+    if args.out is None:
+        ap.error("--out is required (or --steps)")
     if not 0 <= args.part < args.parts or args.window < 2:
         ap.error("need 0 <= --part < --parts and --window >= 2")
     rows = walk_rows(args.source.resolve(), args.window, args.part, args.parts)

@@ -4,11 +4,13 @@ neighbours beside the same photos alone; the manifest's sequence and time column
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 from pathlib import Path
 
 from app.evaluation.sequences import SequenceWindow, sequences, window_of
 from app.manifests import Row, read_manifest, write_manifest
-from bench.sequence_walks import walk_rows
+from bench.sequence_walks import steps, walk_rows, walks
 from tests.conftest import PENN
 from tests.test_cli import geoloc
 
@@ -90,3 +92,21 @@ def test_eval_reports_the_sequence_beside_the_photos_alone(tmp_path, models_dir,
     assert plain["recall_at"] == report["single_recall_at"] and plain["sequence"] is None
     p = geoloc(*args, "--sequence-window", "3", "--online")
     assert "centred" not in p.stdout and "online" in p.stdout
+
+
+def test_the_walks_steps_are_measured_against_the_motion_models_defaults():
+    """`python -m bench.sequence_walks --steps` on the penn walks: every consecutive pair of a camera's
+    photos, in time order, and the defaults the docs say hold them all."""
+    done = subprocess.run(
+        [sys.executable, "-m", "bench.sequence_walks", "--steps"], capture_output=True, text=True, timeout=300
+    )
+    assert done.returncode == 0, done.stderr
+    by_camera = walks(PENN)
+    measured = steps(PENN)
+    assert len(measured) == sum(len(photos) - 1 for photos in by_camera.values()) > 50
+    assert all(gap >= 0 for gap, _ in measured)
+    lines = done.stdout.splitlines()
+    assert lines[0] == f"{len(measured)} steps (consecutive photos of one camera)"
+    assert lines[4].startswith("beyond the speed bound (2.0 m/s x gap + 50 m): ") and lines[4].endswith(": 0")
+    assert lines[5].startswith("beyond the step bound (150 m + 50 m): ") and lines[5].endswith(": 0")
+    assert lines[6].endswith("of which more than 25 m apart: 0")
