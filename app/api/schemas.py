@@ -302,8 +302,12 @@ class PathPointOut(BaseModel):
 
 
 class SequenceOut(BaseModel):
-    answers: list[SequencePhotoOut] = Field(description="one /locate-shaped answer per image, in the order sent")
-    path: list[PathPointOut] = Field(description="the most likely path (Viterbi), one point per image")
+    answers: list[SequencePhotoOut] = Field(
+        description="one /locate-shaped answer per image, in the order located: as sent, or with order=taken in "
+        "the order the images were taken"
+    )
+    images: list[int] = Field(description="each answer's image, as its position among the images sent (from 0)")
+    path: list[PathPointOut] = Field(description="the most likely path (Viterbi), one point per answer")
     times_from: str = Field(
         description="given (taken_at), exif (the photos' DateTimeOriginal), video (the frames' times) or order "
         "(no times)"
@@ -317,6 +321,7 @@ class SequenceOut(BaseModel):
                 SequencePhotoOut(**LocateOut.of(p.answer).model_dump(), rests_on=p.rests_on, sequence_p=p.sequence_p)
                 for p in result.photos
             ],
+            images=result.images,
             path=[PathPointOut(lat=q.lat, lon=q.lon, in_collection=q.in_collection) for q in result.path],
             times_from=result.times_from,
             note=result.note,

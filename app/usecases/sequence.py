@@ -19,7 +19,7 @@ not grow with the collection."""
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -32,7 +32,7 @@ from app.engine.geo import haversine_m
 from app.engine.sequence import ABSENT, BURST_S, PLACE_RADIUS_M, Motion, Observation, Places, solve
 from app.errors import InvalidRequest, ServiceError, code_of
 from app.usecases.locate import ESTIMATE_CANDIDATES
-from app.usecases.sequence_inputs import sequence_times
+from app.usecases.sequence_inputs import sequence_times, taken_order
 
 if TYPE_CHECKING:
     from app.usecases.service import GeolocService
@@ -83,6 +83,8 @@ class SequenceAnswer:
     path: list[PathPoint]
     times_from: str  # given, exif or order
     note: str | None = None  # why the sequence could not inform the answers (an uncalibrated collection)
+    #: Each answer's photo, as its position among the photos given (from 0); empty: the order given.
+    images: list[int] = field(default_factory=list)
 
 
 def observation(answer: LocateAnswer, time_s: float | None) -> Observation:
@@ -258,33 +260,42 @@ def locate_sequence(
     taken_at: Sequence[str] | None = None,
     max_photos: int = MAX_PHOTOS,
     times_s: Sequence[float] | None = None,
+    by_time: bool = False,
 ) -> SequenceAnswer:
     """The sequence use case, whole: count and times checked before anything is located; each photo read
     and located alone (``GeolocService.locate``: under its limits, holding an extraction slot, so a sequence
     holds one decoded photo at a time); a photo that cannot be located is named, all of them, and nothing is
     answered; then the path. ``images``: functions that read each photo's bytes (read twice when the times
-    come from EXIF). ``times_s``: the photos' times in seconds, known already (a video's frames)."""
+    come from EXIF). ``times_s``: the photos' times in seconds, known already (a video's frames).
+    ``by_time``: the photos come in any order (files chosen together, named by several cameras) and are
+    located in the order of their times, where they all have one; the answer names each one's position
+    among those given (``SequenceAnswer.images``)."""
     check_count(len(images), max_photos)
     service.collection.check_mode(options.mode)
+    order = list(range(len(images)))
     if times_s is not None:
         times, times_from = list(times_s), "video"
     else:
-        times, times_from = sequence_times(images, taken_at)
+        times, times_from = sequence_times(images, taken_at, in_order=not by_time)
+        if by_time:
+            order, times = taken_order(times)
     singles: list[LocateAnswer] = []
     broken: list[tuple[int, GeolocError]] = []
     wide = single_options(options)
-    for n, read in enumerate(images):
+    for n in order:
         try:
-            singles.append(service.locate(read, wide))
+            singles.append(service.locate(images[n], wide))
         except GeolocError as e:
             if code_of(e) not in IMAGE_CODES:
                 raise
             broken.append((n, e))
     if broken:
+        broken.sort(key=lambda item: item[0])  # named in the order given
         words = "; ".join(f"image {n}: {e}" for n, e in broken)
         raise BrokenImagesInSequence(
             f"{len(broken)} of the {len(images)} images cannot be located ({words}); nothing was located",
             code_of(broken[0][1]),
         )
     calibration = service.answer_calibration(options)
-    return sequence_answers(singles, times, calibration, motion, options, times_from=times_from)
+    answer = sequence_answers(singles, times, calibration, motion, options, times_from=times_from)
+    return replace(answer, images=order)

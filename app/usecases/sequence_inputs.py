@@ -76,22 +76,36 @@ def check_order(secs: Sequence[float | None], source: str) -> None:
 
 
 def sequence_times(
-    images: Sequence[Callable[[], bytes]], given: Sequence[str] | None
+    images: Sequence[Callable[[], bytes]], given: Sequence[str] | None, in_order: bool = True
 ) -> tuple[list[float | None], str]:
     """Each photo's time in seconds (all None: order only) and where the times come from (``given``,
     ``exif`` or ``order``). ``given``: one ISO 8601 time per photo, or None/empty for the EXIF times, read
-    from each photo in turn (``images``: functions that read its bytes; one photo held at a time)."""
+    from each photo in turn (``images``: functions that read its bytes; one photo held at a time).
+    ``in_order``: the caller says the photos are in the order taken, so times that go backwards are refused;
+    else the caller orders them by these times (``taken_order``)."""
     if given:
         if len(given) != len(images):
             raise InvalidRequest(f"taken_at: give one per image or none ({len(given)} for {len(images)} images)")
         secs = seconds([parse_time(t, n) for n, t in enumerate(given)])
-        check_order(secs, "given")
+        if in_order:
+            check_order(secs, "given")
         return secs, "given"
     secs = seconds([exif_time(read()) for read in images])
     if secs and secs[0] is not None:
-        check_order(secs, "EXIF")
+        if in_order:
+            check_order(secs, "EXIF")
         return secs, "exif"
     return secs, "order"
+
+
+def taken_order(secs: Sequence[float | None]) -> tuple[list[int], list[float | None]]:
+    """The photos' positions in the order they were taken, and their times from the first taken; photos
+    without times keep the order they came in. Equal times (a burst) keep it too."""
+    if not secs or secs[0] is None:
+        return list(range(len(secs))), list(secs)
+    order = sorted(range(len(secs)), key=lambda n: secs[n])
+    first = secs[order[0]]
+    return order, [secs[n] - first for n in order]
 
 
 # -- files, folders, videos (the CLI) ----------------------------------------------------------------------

@@ -57,6 +57,26 @@ def test_a_walk_is_located_as_one_path(server, walk_collection):
         assert alone["estimate"] == a["estimate"]
 
 
+def test_photos_in_any_order_are_located_in_the_order_taken(server, walk_collection):
+    """order=taken: the walk sent shuffled is located in its EXIF time order, as it is sent in order, and
+    ``images`` names each answer's photo among those sent; without it, the same shuffle is refused."""
+    _, _, walk = walk_collection
+    shuffled = [3, 0, 5, 1, 7, 2, 6, 4][: len(walk)]
+    sent = [walk[n] for n in shuffled]
+    in_order = server.client.post("/locate/sequence", files=_files(walk), timeout=300).json()
+    assert in_order["images"] == list(range(len(walk)))
+    r = server.client.post("/locate/sequence", files=_files(sent), data={"order": "taken"}, timeout=300)
+    assert r.status_code == 200, r.text
+    out = r.json()
+    assert out["times_from"] == "exif"
+    assert [shuffled[n] for n in out["images"]] == list(range(len(walk)))
+    assert out["path"] == in_order["path"]
+    for a, b in zip(out["answers"], in_order["answers"], strict=True):
+        assert (a["estimate"], a["rests_on"], a["candidates"]) == (b["estimate"], b["rests_on"], b["candidates"])
+    refused = server.client.post("/locate/sequence", files=_files(sent), timeout=300)
+    assert refused.status_code == 422 and "go backwards" in refused.json()["message"]
+
+
 def test_given_times_and_bounds_are_read(server, walk_collection):
     _, _, walk = walk_collection
     times = [f"2024-09-23T16:{10 + n:02d}:00-04:00" for n in range(3)]
@@ -81,6 +101,7 @@ def test_photos_from_elsewhere_get_no_estimate(server):
         (2, {"taken_at": ["2024-09-23T16:10:00"]}, 422, "one per image"),
         (2, {"taken_at": ["2024-09-23T16:10:00", "2024-09-23T16:09:00"]}, 422, "go backwards"),
         (2, {"max_speed_mps": "-1"}, 422, "max_speed_mps"),
+        (2, {"order": "by name"}, 422, "order"),
     ],
 )
 def test_bad_sequences_are_refused(server, n, data, status, words):
@@ -125,17 +146,20 @@ def test_a_body_over_the_bound_is_refused_before_it_is_read(server):
 def test_the_page_locates_several_photos_as_one_path(
     browser, server, walk_collection, penn_index, tmp_path, viewport, photos
 ):
-    """Several photos chosen on the page go to /locate/sequence, in the order of their names: the summary,
-    each photo's answer in words (what it rests on), a marker per placed photo and the path on the map, as the
-    API answers the same photos. ``collection``: six captures of one phone the collection holds (placed, a path drawn);
-    ``walk``: the held-out walk (the collection's extent outlined where nothing is placed). One file name is
-    HTML: it stays text."""
+    """Several photos chosen on the page go to /locate/sequence, located in the order they were taken: the
+    summary, each photo's answer in words (what it rests on), a marker per placed photo and the path on the
+    map, as the API answers the same photos. ``collection``: six captures of one phone the collection holds
+    (placed, a path drawn), named in the order taken; ``walk``: the held-out walk (the collection's extent
+    outlined where nothing is placed), named against it (the page lists them by time, not by name). One file
+    name is HTML: it stays text."""
     from tests.api.test_browser import markers, no_horizontal_scroll, open_page, plain_tile, screenshot
 
     _, _, walk = walk_collection
     if photos == "collection":
         walk = [PENN / r["photo"] for r in [r for r in penn_index if r["photo"]][21:27]]
-    names = [p.name for p in walk]
+    names = (
+        [p.name for p in walk] if photos == "collection" else [f"photo {len(walk) - n}.jpg" for n in range(len(walk))]
+    )
     names[-1] = "walk <img src=x onerror=alert(1)>.jpg"  # sorts after img_000NN.jpg, as the walk's last photo
     chosen = []
     for p, name in zip(walk, names, strict=True):

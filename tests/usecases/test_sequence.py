@@ -11,7 +11,7 @@ from app.engine.calibration import Disc
 from app.engine.sequence import Motion
 from app.errors import InvalidRequest
 from app.usecases.sequence import PIXELS, SEQUENCE, locate_sequence, sequence_answers
-from app.usecases.sequence_inputs import seconds, sequence_times
+from app.usecases.sequence_inputs import seconds, sequence_times, taken_order
 from app.usecases.service import GeolocService
 from tests.conftest import PENN
 from tests.walks import CONFIG
@@ -92,6 +92,12 @@ def test_times_given_exif_or_order():
     assert seconds([datetime(2024, 1, 1), None]) == [None, None]
     secs, source = sequence_times([lambda: b"not an image", lambda: b""], None)
     assert source == "order" and secs == [None, None]
+    # Photos in any order: their times, unchecked, and the order they were taken in.
+    secs, source = sequence_times(readers[::-1], None, in_order=False)
+    assert source == "exif" and secs == [0, -130, -136]
+    assert taken_order(secs) == ([2, 1, 0], [0, 6, 136])
+    assert taken_order([0.0, -5.0, 0.0]) == ([1, 0, 2], [0, 5, 5])  # a burst keeps the order given
+    assert taken_order([None, None, None]) == ([0, 1, 2], [None, None, None])
 
 
 def test_a_sequence_estimate_takes_the_single_photo_rules_disc_and_claims_no_rate():

@@ -3,7 +3,7 @@ the form, call ``locate_sequence`` (the whole use case), shape the answers."""
 
 from __future__ import annotations
 
-from typing import Annotated
+from typing import Annotated, Literal
 
 from fastapi import APIRouter, Depends, File, Form, Request, UploadFile
 
@@ -48,6 +48,14 @@ def locate_sequence_route(
             "none: each photo's EXIF DateTimeOriginal, else their order alone"
         ),
     ] = None,
+    order: Annotated[
+        Literal["sent", "taken"],
+        Form(
+            description="sent: the images are in the order they were taken (times that go backwards are refused); "
+            "taken: in any order, located in the order of their times (taken_at, else EXIF) where every image has "
+            "one; `images` in the answer says which image each answer is"
+        ),
+    ] = "sent",
     max_speed_mps: Annotated[
         float, Form(gt=0, le=100, description="the fastest the photographer moves, where the photos have times")
     ] = DEFAULT_SPEED_MPS,
@@ -73,5 +81,6 @@ def locate_sequence_route(
         Motion(speed_mps=max_speed_mps, step_m=max_step_m),
         taken_at,
         request.app.state.settings.max_sequence_images,
+        by_time=order == "taken",
     )
     return SequenceOut.of(result)

@@ -153,8 +153,9 @@ TABS.forEach(([t], i) => {
 // -- locate: the chosen photo -----------------------------------------------------------------------
 let previewUrl = null;
 let photoUrls = []; // the thumbnails of a sequence's photos, released when others are chosen
-// The photos chosen, in the order they were taken as far as the page can tell: by file name (cameras and
-// phones number their photos), numbers compared as numbers. The service checks their capture times.
+// The photos chosen, by file name (cameras and phones number their photos), numbers compared as numbers:
+// the order of a sequence whose photos carry no capture times. The service orders those that do by their
+// times (order=taken), whatever their names.
 function chosenFiles() {
   return [...$("locate-file").files].sort((a, b) => a.name.localeCompare(b.name, "en", { numeric: true }));
 }
@@ -257,6 +258,7 @@ async function locateSequence(files) {
   $("locate-btn").disabled = true;
   const form = new FormData();
   files.forEach((f) => form.append("image", f));
+  form.append("order", "taken");
   form.append("top_k", $("top-k").value || "10");
   for (const [name, value] of Object.entries(region)) form.append(name, value);
   try {
@@ -329,7 +331,8 @@ function renderSequence(res, files) {
   $("sequence-note").textContent = res.note ? `${res.note[0].toUpperCase()}${res.note.slice(1)}.` : "";
   $("sequence-note").hidden = !res.note;
   drawSequence(res);
-  $("sequence-answers").replaceChildren(...res.answers.map((a, n) => sequenceItem(a, n, files[n])));
+  // Answers come in the order the photos were taken; `images` says which file each one is.
+  $("sequence-answers").replaceChildren(...res.answers.map((a, n) => sequenceItem(a, n, files[res.images[n]])));
   $("sequence").hidden = false;
 }
 
