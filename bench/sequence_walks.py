@@ -101,7 +101,7 @@ def step_report(measured: list[tuple[float, float]]) -> str:
             f"{len(measured)} steps (consecutive photos of one camera)",
             "time gap s, quantiles " + _quantiles(gap, q),
             "distance m, quantiles " + _quantiles(dist, q),
-            "speed m/s, quantiles " + _quantiles(speed, q),
+            f"speed m/s ({int(moving.sum())} steps with a gap), quantiles " + _quantiles(speed, q),
             f"beyond the speed bound ({motion.speed_mps} m/s x gap + {SLACK_M:.0f} m): {beyond_speed}",
             f"beyond the step bound ({motion.step_m:.0f} m + {SLACK_M:.0f} m): {beyond_step}",
             f"within {BURST_S:.0f} s: {int(burst.sum())}, of which more than {PLACE_RADIUS_M:.0f} m apart: "

@@ -10,7 +10,7 @@ from pathlib import Path
 
 from app.evaluation.sequences import SequenceWindow, sequences, window_of
 from app.manifests import Row, read_manifest, write_manifest
-from bench.sequence_walks import steps, walk_rows, walks
+from bench.sequence_walks import step_report, steps, walk_rows, walks
 from tests.conftest import PENN
 from tests.test_cli import geoloc
 
@@ -98,7 +98,10 @@ def test_the_walks_steps_are_measured_against_the_motion_models_defaults():
     """`python -m bench.sequence_walks --steps` on the penn walks: every consecutive pair of a camera's
     photos, in time order, and the defaults the docs say hold them all."""
     done = subprocess.run(
-        [sys.executable, "-m", "bench.sequence_walks", "--steps"], capture_output=True, text=True, timeout=300
+        [sys.executable, "-m", "bench.sequence_walks", "--steps", "--source", str(PENN)],
+        capture_output=True,
+        text=True,
+        timeout=300,
     )
     assert done.returncode == 0, done.stderr
     by_camera = walks(PENN)
@@ -110,3 +113,7 @@ def test_the_walks_steps_are_measured_against_the_motion_models_defaults():
     assert lines[4].startswith("beyond the speed bound (2.0 m/s x gap + 50 m): ") and lines[4].endswith(": 0")
     assert lines[5].startswith("beyond the step bound (150 m + 50 m): ") and lines[5].endswith(": 0")
     assert lines[6].endswith("of which more than 25 m apart: 0")
+    # The counts count: one step too fast for its gap, one past the step bound, two close in time but apart.
+    made = step_report([(10.0, 100.0), (0.0, 30.0), (5.0, 10.0), (400.0, 210.0)]).splitlines()
+    assert made[0].startswith("4 steps") and made[4].endswith(": 1") and made[5].endswith(": 1")
+    assert made[6].endswith("within 10 s: 3, of which more than 25 m apart: 2")

@@ -321,7 +321,7 @@ class SequenceOut(BaseModel):
                 SequencePhotoOut(**LocateOut.of(p.answer).model_dump(), rests_on=p.rests_on, sequence_p=p.sequence_p)
                 for p in result.photos
             ],
-            images=result.images,
+            images=result.images or list(range(len(result.photos))),
             path=[PathPointOut(lat=q.lat, lon=q.lon, in_collection=q.in_collection) for q in result.path],
             times_from=result.times_from,
             note=result.note,

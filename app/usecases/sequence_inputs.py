@@ -71,7 +71,7 @@ def check_order(secs: Sequence[float | None], source: str) -> None:
         if a is not None and b is not None and b < a:
             raise TimesOutOfOrder(
                 f"the {source} times go backwards: image {n} was taken {a - b:.0f} s before image {n - 1}; give "
-                "the images in the order they were taken"
+                "the images in the order they were taken, or send order=taken"
             )
 
 

@@ -5,6 +5,7 @@ chosen at once there and draws the path (Chromium, as tests/api/test_browser.py 
 from __future__ import annotations
 
 import json
+import re
 
 import pytest
 
@@ -61,7 +62,8 @@ def test_photos_in_any_order_are_located_in_the_order_taken(server, walk_collect
     """order=taken: the walk sent shuffled is located in its EXIF time order, as it is sent in order, and
     ``images`` names each answer's photo among those sent; without it, the same shuffle is refused."""
     _, _, walk = walk_collection
-    shuffled = [3, 0, 5, 1, 7, 2, 6, 4][: len(walk)]
+    assert len(walk) == 8
+    shuffled = [3, 0, 5, 1, 7, 2, 6, 4]
     sent = [walk[n] for n in shuffled]
     in_order = server.client.post("/locate/sequence", files=_files(walk), timeout=300).json()
     assert in_order["images"] == list(range(len(walk)))
@@ -75,6 +77,37 @@ def test_photos_in_any_order_are_located_in_the_order_taken(server, walk_collect
         assert (a["estimate"], a["rests_on"], a["candidates"]) == (b["estimate"], b["rests_on"], b["candidates"])
     refused = server.client.post("/locate/sequence", files=_files(sent), timeout=300)
     assert refused.status_code == 422 and "go backwards" in refused.json()["message"]
+
+
+def test_given_times_in_any_order_and_broken_photos_named_as_sent(server, walk_collection):
+    """order=taken reads given times too, unchecked; photos that cannot be located are named by their position
+    as sent, in that order, whatever the order they were located in."""
+    from app.usecases.sequence_inputs import exif_time
+
+    _, _, walk = walk_collection
+    times = ["2024-09-23T16:12:00-04:00", "2024-09-23T16:10:00-04:00"]
+    r = server.client.post(
+        "/locate/sequence", files=_files(walk[:2]), data={"taken_at": times, "order": "taken"}, timeout=300
+    )
+    assert r.status_code == 200, r.text
+    assert r.json()["images"] == [1, 0] and r.json()["times_from"] == "given"
+
+    def cut(photo):  # its EXIF time still readable, its pixels not
+        data = photo.read_bytes()[: photo.stat().st_size // 3]
+        assert exif_time(data) is not None
+        return data
+
+    # Sent: the walk's 6th photo cut, its 1st whole, its 4th cut; located in time order: 1st, 4th, 6th.
+    files = [
+        ("image", ("late.jpg", cut(walk[5]), "image/jpeg")),
+        ("image", ("first.jpg", walk[0].read_bytes(), "image/jpeg")),
+        ("image", ("middle.jpg", cut(walk[3]), "image/jpeg")),
+    ]
+    r = server.client.post("/locate/sequence", files=files, data={"order": "taken"}, timeout=300)
+    assert r.status_code == 400, r.text
+    message = r.json()["message"]
+    assert "2 of the 3 images" in message and "image 1:" not in message
+    assert 0 <= message.index("image 0:") < message.index("image 2:"), message
 
 
 def test_given_times_and_bounds_are_read(server, walk_collection):
@@ -160,7 +193,7 @@ def test_the_page_locates_several_photos_as_one_path(
     names = (
         [p.name for p in walk] if photos == "collection" else [f"photo {len(walk) - n}.jpg" for n in range(len(walk))]
     )
-    names[-1] = "walk <img src=x onerror=alert(1)>.jpg"  # sorts after img_000NN.jpg, as the walk's last photo
+    names[-1] = "walk <img src=x onerror=alert(1)>.jpg"  # the walk's last photo in time
     chosen = []
     for p, name in zip(walk, names, strict=True):
         (tmp_path / name).write_bytes(p.read_bytes())
@@ -219,13 +252,14 @@ def test_the_page_locates_several_photos_as_one_path(
         page.wait_for_function("() => document.querySelector('#sequence-summary').textContent.includes('by the path')")
         assert "(1 by the path through the photos around them)" in page.inner_text("#sequence-summary")
         assert "Placed by the path through the photos around it" in items.nth(1).inner_text()
-        # A refusal names the photos as the list does: by their number from 1 and their file name.
+        # A refusal names the photos by their file names (the service numbers them in the order sent).
         refusal = {"error": "unreadable_image", "message": "1 of the 6 images cannot be located (image 2: not a JPEG)"}
         page.unroute("**/locate/sequence")
         page.route("**/locate/sequence", lambda route: route.fulfill(status=400, json=refusal))
         page.click("#locate-btn")
         page.wait_for_selector("#locate-error:not([hidden])")
-        assert f"(photo 3 ({names[2]}): not a JPEG)" in page.inner_text("#locate-error")
+        sent = sorted(names, key=lambda n: [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", n)])
+        assert f"({sent[2]}: not a JPEG)" in page.inner_text("#locate-error")
     screenshot(page, f"locate-sequence-{photos}-{viewport}.png")
     if viewport == "phone":
         no_horizontal_scroll(page)

@@ -1,4 +1,4 @@
-"""POST /locate/sequence: several photos in order (a walk, a drive, a burst), located as one path. Parse
+"""POST /locate/sequence: several photos (a walk, a drive, a burst), located as one path. Parse
 the form, call ``locate_sequence`` (the whole use case), shape the answers."""
 
 from __future__ import annotations
@@ -33,13 +33,16 @@ def _reader(request: Request, upload: UploadFile):
     response_model=SequenceOut,
     responses=error_responses(400, 401, 413, 415, 422, 503),
     dependencies=[Depends(read_access)],
-    summary="Where were these photos taken? Several photos in order, located as one path",
+    summary="Where were these photos taken? Several photos, located as one path in the order taken",
 )
 def locate_sequence_route(
     request: Request,
     core: Core,
     image: Annotated[
-        list[UploadFile], File(description="the photos in the order they were taken, one `image` field each")
+        list[UploadFile],
+        File(
+            description="the photos in the order they were taken (any order with order=taken), one `image` field each"
+        ),
     ],
     taken_at: Annotated[
         list[str] | None,

@@ -274,18 +274,17 @@ async function locateSequence(files) {
   }
 }
 
-// The service numbers a sequence's images from 0 in the order sent ("image 3: ..."): the page says which
-// photo that is, numbered from 1 as its list does, with its file name.
+// The service numbers a sequence's images from 0 in the order sent ("image 3: ..."): the page names that
+// photo by its file name (its list numbers the photos in the order taken, which a refusal never reached).
 function namePhotos(message, files) {
-  return message.replace(/\bimage (\d+)\b/g, (whole, n) =>
-    files[Number(n)] ? `photo ${Number(n) + 1} (${files[Number(n)].name})` : whole);
+  return message.replace(/\bimage (\d+)\b/g, (whole, n) => (files[Number(n)] ? files[Number(n)].name : whole));
 }
 
 const TIMES_FROM = {
   exif: "in the order of the times they were taken (their EXIF)",
   given: "in the order of the times given",
   video: "in the order of the video's frames",
-  order: "in the order of their file names (they carry no capture times)",
+  order: "in the order of their file names (not every one carries a capture time)",
 };
 
 // What one photo's answer rests on, in words: the path only where the photo alone was not enough.
