@@ -383,6 +383,14 @@ def locate(
             "(the same answer as POST /locate/sequence)",
         ),
     ] = False,
+    order: Annotated[
+        str,
+        typer.Option(
+            "--order",
+            help="sequence of files: sent (they are in the order taken; times that go backwards are refused) or "
+            "taken (any order, located in the order of their EXIF times); a folder is always read as taken",
+        ),
+    ] = "sent",
     video: Annotated[
         Path | None, typer.Option("--video", help="locate a video's frames as one path (with --every)")
     ] = None,
@@ -408,10 +416,13 @@ def locate(
     options = LocateOptions(
         top_k=top_k, mode=mode, rerank=rerank, region=_region_option(lat, lon, radius_m, bbox), min_score=min_score
     )
+    if order not in ("sent", "taken"):
+        _fail(f"--order must be sent or taken, not {order!r}")
     if sequence or video is not None:
         _locate_sequence(
-            images or [], video, every, options, max_speed_mps, max_step_m, brief, data_dir, models_dir, config
-        )
+            images or [], video, every, options, max_speed_mps, max_step_m, order == "taken", brief, data_dir,
+            models_dir, config,
+        )  # fmt: skip
         return
     if not images or len(images) != 1:
         _fail("give one photo (several, or a folder, with --sequence)")
@@ -438,13 +449,14 @@ def _locate_sequence(
     options,
     max_speed_mps: float,
     max_step_m: float,
+    by_time: bool,
     brief: bool,
     data_dir: Path,
     models_dir: Path,
     config: str,
 ) -> None:
     """`geoloc locate --sequence` and `--video`: the sequence use case over files, a folder or a video's
-    frames; its JSON is POST /locate/sequence's."""
+    frames; its JSON is POST /locate/sequence's, with ``photos`` naming each answer's file or frame."""
     from app.api.schemas import SequenceOut
     from app.engine.sequence import Motion
     from app.policies import IndexSizing
@@ -463,15 +475,16 @@ def _locate_sequence(
         readers = [lambda f=f: f for f in frames]
     else:
         if len(images) == 1 and images[0].is_dir():
-            images = folder_photos(images[0])
+            images, by_time = folder_photos(images[0]), True
         for p in images:
             if not p.is_file():
                 _fail(f"no such photo: {p}")
         readers = [p.read_bytes for p in images]
     check_count(len(readers))  # said before the model loads
     service = GeolocService.open(data_dir, models_dir, config, backend=_S.backend(data_dir), sizing=IndexSizing(0))
-    result = locate_sequence(service, readers, options, motion, times_s=times)
-    names = [f"frame at {t:.1f} s" for t in times] if times is not None else [str(p) for p in images]
+    result = locate_sequence(service, readers, options, motion, times_s=times, by_time=by_time)
+    given = [f"frame at {t:.1f} s" for t in times] if times is not None else [str(p) for p in images]
+    names = [given[n] for n in result.images]
     out = {"photos": names, **SequenceOut.of(result).model_dump()}  # which photo each answer is for
     if brief:
         for name, a in zip(names, out["answers"], strict=True):

@@ -28,6 +28,22 @@ def test_files_in_order(walk_collection):
     assert all(a["rests_on"] in ("pixels", "sequence") and len(a["candidates"]) <= 2 for a in out["answers"])
 
 
+def test_files_in_any_order_with_order_taken(walk_collection):
+    """--order taken: files given against their time order are located in it, each answer naming its file;
+    without it the same files are refused, and a bad value is said."""
+    walk = walk_collection[2][:4]
+    given = [walk[2], walk[0], walk[3], walk[1]]
+    args = ["locate", "--sequence", *map(str, given)]
+    out = json.loads(geoloc(*args, "--order", "taken", *_where(walk_collection)).stdout)
+    assert out["photos"] == [str(p) for p in walk]
+    assert out["images"] == [1, 3, 0, 2]
+    assert out["times_from"] == "exif" and len(out["answers"]) == 4
+    refused = geoloc(*args, *_where(walk_collection), check=False)
+    assert refused.returncode != 0 and "go backwards" in refused.stdout + refused.stderr
+    bad = geoloc(*args, "--order", "by name", *_where(walk_collection), check=False)
+    assert bad.returncode != 0 and "--order must be sent or taken" in bad.stdout + bad.stderr
+
+
 def test_a_folder_is_read_in_exif_time_order(tmp_path, walk_collection):
     walk = walk_collection[2][:4]
     folder = tmp_path / "walk"

@@ -121,13 +121,9 @@ class UnreadableVideo(InvalidRequest):
 
 
 def folder_photos(folder: Path) -> list[Path]:
-    """A folder's images in the order they were taken: by EXIF time where every one has one, else by name."""
-    paths = sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
-    times = [exif_time(p.read_bytes()) for p in paths]
-    secs = seconds(times)
-    if paths and secs[0] is not None:
-        paths = [p for _, p in sorted(zip(secs, paths, strict=True), key=lambda x: (x[0], x[1].name))]
-    return paths
+    """A folder's images by name: the sequence use case orders them by their EXIF times where every one has
+    one (``taken_order``), else keeps this order."""
+    return sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
 
 
 def video_frames(
