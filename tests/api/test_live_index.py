@@ -56,10 +56,12 @@ def test_incremental_updates_across_processes_and_restarts(tmp_path, fitted_mode
     data = tmp_path / "data"
     policy = {"GEOLOC_SNAPSHOT_EVERY_CHANGES": "10"}
     with Server(data, fitted_models, api_key=KEY, extra_env=policy) as a:
+        before = metric(a, "geoloc_snapshot_writes")
         wait_job(a.client, _upload(a.client, rows[:12])["job_id"])
         # >= 10 changes pending: the writer takes a snapshot at its next check (slow under a loaded machine).
+        # Its file is written before the writer counts it: wait for both, so the count read below is final.
         deadline = time.time() + 180
-        while _snapshot_version(data) < 8 and time.time() < deadline:
+        while (_snapshot_version(data) < 8 or metric(a, "geoloc_snapshot_writes") <= before) and time.time() < deadline:
             time.sleep(0.3)
         assert _snapshot_version(data) >= 8, "the writer took no snapshot of the uploads"
         writes, rebuilds = metric(a, "geoloc_snapshot_writes"), metric(a, "geoloc_index_full_rebuilds")
