@@ -60,6 +60,15 @@ def encode_penn(manifest: Path, models_dir: Path, config: str) -> PennCodes:
     return PennCodes(np.stack(refs).astype(np.float32), np.stack(queries).astype(np.float32))
 
 
+def penn_positions(manifest: Path) -> tuple[np.ndarray, np.ndarray]:
+    """(lat, lon) of the manifest's db rows and query rows, in the order ``encode_penn`` encodes them."""
+    from app.manifests import read_manifest
+
+    rows = read_manifest(manifest)
+    pick = lambda split: np.array([(r.lat, r.lon) for r in rows if r.split == split], np.float64)  # noqa: E731
+    return pick("db"), pick("query")
+
+
 def unit_rows(x: np.ndarray) -> np.ndarray:
     x /= np.linalg.norm(x, axis=1, keepdims=True)
     return x
