@@ -102,7 +102,8 @@ class Settings(StorageSettings):
         200_000,
         ge=0,
         description="references at which a configuration with exact (flat) kinds switches to the compressed "
-        "kinds, ivf-rabitq for floats and binary-ivf for bits, built in the background (0: never; "
+        "kinds, ivf-rabitq for floats and binary-ivf for bits, built in the background (a start whose snapshot "
+        "holds the exact kind past it builds them before /ready answers 200; 0: never; "
         "app/usecases/collection.py, IndexSizing, says why 200,000)",
     )
     milvus_uri: str | None = Field(

@@ -58,26 +58,26 @@ def _run_writer(app: FastAPI, service: GeolocService) -> None:
         )
 
 
+def _not_ready(app: FastAPI, line: str) -> None:
+    """What /ready says until the service is ready; each new line goes to the log too."""
+    if line != app.state.not_ready:
+        log.info("%s", line)
+    app.state.not_ready = line
+
+
 def _first_start(app: FastAPI) -> None:
     """An empty data dir is fitted on GEOLOC_INITIAL_PHOTOS and they are ingested (``app.jobs.first_start``),
     before it is opened; each progress line goes to the log and is what /ready says meanwhile."""
     from app.jobs.first_start import run_first_start
 
-    state = app.state
-    s: Settings = state.settings
-
-    def say(line: str) -> None:
-        if line != state.load_error:
-            log.info("%s", line)
-        state.load_error = line
-
+    s: Settings = app.state.settings
     workers = min(4, usable_cpus())  # extraction threads; each holds one decoded photo
     run_first_start(
         s.data_dir,
         s.models_dir,
         s.config,
         s.initial_photos,
-        say,
+        lambda line: _not_ready(app, line),
         s.image_limits(),
         workers=workers,
         backend=s.backend(s.data_dir),
@@ -151,6 +151,10 @@ def _load(app: FastAPI, stop: threading.Event) -> None:
             except Exception:  # refused, or the check could not run: this service is not used
                 service.close()
                 raise
+            # Ready means ready at size: a data dir left exact above the switch (a bulk load, a restore
+            # without a snapshot) is not served by the slow exact search; /ready says how far the build is.
+            if not service.index_at_size(lambda line: _not_ready(app, line)):
+                log.warning("the index its size calls for could not be built: the exact index serves")
             if s.worker == "inprocess":
                 _run_writer(app, service)
             # Where other hosts commit changes (PostgreSQL): catch up as they do, not at the next search.
@@ -158,13 +162,13 @@ def _load(app: FastAPI, stop: threading.Event) -> None:
             if listener is not None:
                 state.listener = listener
             state.service = service
-            state.load_error = None
+            state.not_ready = None
             log.info("ready: config %s, %d references", service.config_name, service.size)
             _backfill(app, stop)
             return
         except Exception as e:  # keep /health up and say what is wrong on /ready
             log.exception("loading failed; retrying in %.0f s", delay)
-            state.load_error = f"loading failed: {e} (retrying in {delay:.0f} s)"
+            state.not_ready = f"loading failed: {e} (retrying in {delay:.0f} s)"
             stop.wait(delay)
             delay = min(delay * 2, 30.0)
 
@@ -211,7 +215,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.listener = None  # the backend's change listener, where it has one (PostgreSQL)
     app.state.writer = None  # the writer role (worker=inprocess), held or waiting for the worker lock
     app.state.worker = None  # its ingestion worker, once this process holds the role
-    app.state.load_error = None
+    app.state.not_ready = None
     app.state.backfill = None  # the stored features' back-fill: its latest progress line (/ready)
     app.state.backfill_thread = None
     # Each add wraps the ones before (the last is outermost): a bug still answers JSON and keeps the

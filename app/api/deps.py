@@ -20,7 +20,7 @@ from app.usecases.service import GeolocService
 def service(request: Request) -> GeolocService:
     state = request.app.state
     if state.service is None:
-        raise ApiError(503, "not_ready", state.load_error or "the model, pipeline and index are still loading")
+        raise ApiError(503, "not_ready", state.not_ready or "the model, pipeline and index are still loading")
     return state.service
 
 

@@ -239,7 +239,8 @@ def ingest(
 ) -> tuple[Summary, int]:
     """The whole of `geoloc ingest`: the run, and, when no server's worker holds the data dir (this run then
     holds the writer role, ``app.ingestion.writer``), the rows earlier runs left pending (crashed, or storage
-    retries) and a final snapshot. Returns the run's summary and how many of those rows it encoded.
+    retries) and a final snapshot of the index kind the collection's size calls for. Returns the run's
+    summary and how many of those rows it encoded.
     ``progress``: where the run counts its photos (default: a bar, or a log line per thousand)."""
     writer = Writer(service.store.backend, options.batch, workers=options.workers)
     writer.attach(service)
@@ -253,6 +254,8 @@ def ingest(
         finally:
             progress.close()
         left = writer.drain(service)
+        if writer.held:  # the final snapshot holds the kind the size calls for: the next start serves it at once
+            service.index_at_size(say)
         completed = True
     finally:
         writer.stop(final=completed)  # the snapshot (a completed run), the checkpoint, the lock

@@ -26,7 +26,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -159,6 +159,7 @@ class Collection:
         self._switch_lock = threading.Lock()
         self._switcher: threading.Thread | None = None
         self.switch_error: str | None = None  # why the last switch to the compressed kind failed
+        self.switch_progress: str | None = None  # what the switch under way is doing (/ready while a start waits)
         self._switch_failed_at: float | None = None
         self._first_pending_at: float | None = None  # when the oldest change not in a snapshot was applied
         self.rebuilt = False  # loaded by a full rebuild: a snapshot is due as soon as a writer can take it
@@ -449,6 +450,7 @@ class Collection:
             return
         with self._switch_lock:
             if not self.switching:
+                self.switch_progress = f"building the index {self.index.size:,} references call for"
                 self._switcher = threading.Thread(target=self._switch_loop, name="geoloc-index-switch", daemon=True)
                 self._switcher.start()
 
@@ -459,6 +461,20 @@ class Collection:
         except Exception as e:  # keep serving the exact index; try again after ``retry_seconds``
             log.exception("switching the index to the compressed kind failed")
             self.switch_error, self._switch_failed_at = str(e), time.monotonic()
+        finally:
+            self.switch_progress = None
+
+    def index_at_size(self, report: Callable[[str], None], poll_seconds: float = 1.0) -> bool:
+        """Make the index the kind its size calls for before going on: where the switch is due (a start on
+        a data dir a bulk load or a restore left exact above the threshold; the end of a bulk ingest), run it
+        now (the same background switch) and wait, handing ``report`` what it is doing each ``poll_seconds``.
+        Returns whether the index is the size's kind; False where the switch failed (the exact index then
+        serves, and the switch is tried again later as at any size)."""
+        self.catch_up()  # applies what was logged, and starts the switch where the size calls for it
+        while self.switching:
+            report(self.switch_progress or "building the index the size calls for")
+            self._switcher.join(poll_seconds)
+        return not self.sizing.due(self.index)
 
     def switch_index_kind(self) -> bool:
         """Replace the exact index by the compressed kinds, as a new generation is loaded: a training sample
@@ -473,13 +489,16 @@ class Collection:
                 return False
             size = exact.size
             sample = exact.sample(ReferenceIndex.sample_size(size))
+        trained_on = max(len(codes) for codes in sample if codes is not None)
+        self.switch_progress = f"building the index {size:,} references call for: training on {trained_on:,} codes"
         compressed = exact.compressed(size, *sample)
         del sample
         trained_s = time.perf_counter() - t0
         with self.store.code_stream() as stream:
             if stream.generation != generation:
                 return False
-            compressed, built_at = index_from_stream(self.pipeline, stream.chunks, into=compressed), stream.version
+            chunks = self._counted(stream.chunks, size, trained_s)
+            compressed, built_at = index_from_stream(self.pipeline, chunks, into=compressed), stream.version
         with self.lock:
             if self.generation != generation:
                 return False
@@ -498,6 +517,17 @@ class Collection:
             time.perf_counter() - t0 - trained_s,
         )
         return True
+
+    def _counted(self, chunks: Iterable[CodeChunk], size: int, trained_s: float) -> Iterator[CodeChunk]:
+        """The stream's chunks, each counted into ``switch_progress`` as it is added."""
+        added = 0
+        for c in chunks:
+            yield c
+            added += len(c.ids)
+            self.switch_progress = (
+                f"building the index {size:,} references call for: trained in {trained_s:.0f} s, "
+                f"{added:,} of {size:,} references added"
+            )
 
     # -- keeping current ------------------------------------------------------------------------------
     def catch_up(self) -> int:

@@ -4,10 +4,15 @@ their parameters, every upload is found first before and after the switch, a del
 a restart (clean stop: the final snapshot records the kinds) serves the compressed kinds without a
 rebuild."""
 
+import os
 import re
+import subprocess
+import sys
 import time
+from pathlib import Path
 
-from tests.api.conftest import Server, wait_job
+from app.manifests import write_manifest
+from tests.api.conftest import CONFIG, Server, wait_job
 from tests.api.test_live_index import KEY, H, _locate, _upload, metric, rows  # noqa: F401  (rows: a fixture)
 
 SWITCH_AT = 8
@@ -72,3 +77,56 @@ def test_the_kind_switches_by_size_on_a_server(tmp_path, fitted_models, rows):  
         assert _kinds(again.client) == {"float": "ivf-rabitq", "binary": "binary-ivf"}
         assert metric(again, "geoloc_index_full_rebuilds") == 0 and metric(again, "geoloc_index_kind_switches") == 0
         _found_first(again.client, rows[2 : SWITCH_AT + 3 : 3], ids[2::3])
+
+
+def test_a_start_above_the_threshold_is_ready_only_with_the_compressed_kind(tmp_path, fitted_models, rows):  # noqa: F811
+    """A data dir left exact above the threshold (here: served with the switch off, as after a bulk load or a
+    restore without a snapshot) is not served by the exact search: /ready answers 200 once the compressed
+    kinds serve, and says meanwhile how far their build is (the same lines go to the log)."""
+    data = tmp_path / "data"
+    with Server(data, fitted_models, api_key=KEY, extra_env={"GEOLOC_INDEX_SWITCH_AT": "0"}) as s:
+        up = _upload(s.client, rows[: SWITCH_AT + 3])
+        wait_job(s.client, up["job_id"])
+        assert _kinds(s.client) == {"float": "flat", "binary": "flat"}
+    ids = up["reference_ids"]
+    with Server(data, fitted_models, api_key=KEY, extra_env={"GEOLOC_INDEX_SWITCH_AT": str(SWITCH_AT)}) as again:
+        ready = again.client.get("/ready").json()  # the first 200 the start gave
+        assert _kinds(again.client) == {"float": "ivf-rabitq", "binary": "binary-ivf"}, ready
+        assert ready["index_loaded"] == "snapshot" and ready["index_size"] == SWITCH_AT + 3
+        assert metric(again, "geoloc_index_kind_switches") == 1 and metric(again, "geoloc_index_switching") == 0
+        log = Path(again.log.name).read_text()
+        said = log.index(f"building the index {SWITCH_AT + 3:,} references call for")
+        assert said < log.index("index switched to") < log.index("ready: config")
+        _found_first(again.client, rows[: SWITCH_AT + 3 : 3], ids[::3])
+        more = _upload(again.client, rows[SWITCH_AT + 3 : SWITCH_AT + 5])
+        wait_job(again.client, more["job_id"])
+        _found_first(again.client, rows[SWITCH_AT + 3 : SWITCH_AT + 5], more["reference_ids"])
+        gone = ids[0]
+        assert again.client.delete(f"/references/{gone}", headers=H).status_code == 200
+        assert gone not in [c["reference_id"] for c in _locate(again.client, rows[0].image, top_k=10)["candidates"]]
+
+
+def test_a_bulk_ingest_past_the_threshold_leaves_the_compressed_kind_for_the_next_start(
+    tmp_path,
+    fitted_models,
+    rows,  # noqa: F811
+):
+    """`geoloc ingest` ends with the kind the size calls for in its final snapshot: the next start loads it
+    and serves at once, with no switch and no rebuild."""
+    manifest = tmp_path / "some.csv"
+    write_manifest(manifest, rows[: SWITCH_AT + 2])
+    data = tmp_path / "data"
+    env = {**os.environ, "GEOLOC_INDEX_SWITCH_AT": str(SWITCH_AT), "GEOLOC_ORT_THREADS": "1"}
+    cmd = [sys.executable, "-m", "app.cli", "ingest", "--manifest", str(manifest), "--split", "db"]
+    cmd += ["--config", CONFIG, "--data-dir", str(data), "--models-dir", str(fitted_models)]
+    run = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=600)
+    assert run.returncode == 0, run.stderr[-3000:]
+    assert f"building the index {SWITCH_AT + 2:,} references call for" in run.stdout + run.stderr
+    with Server(data, fitted_models, api_key=KEY, extra_env={"GEOLOC_INDEX_SWITCH_AT": str(SWITCH_AT)}) as s:
+        ready = s.client.get("/ready").json()
+        assert _kinds(s.client) == {"float": "ivf-rabitq", "binary": "binary-ivf"}, ready
+        assert ready["index_loaded"] == "snapshot" and ready["index_size"] == SWITCH_AT + 2
+        assert metric(s, "geoloc_index_kind_switches") == 0 and metric(s, "geoloc_index_full_rebuilds") == 0
+        for row in rows[: SWITCH_AT + 2 : 3]:  # each photo's own reference first, from the loaded kind
+            found = _locate(s.client, row.image, top_k=3)["candidates"][0]
+            assert (found["lat"], found["lon"]) == (row.lat, row.lon) and found["score"] > 0.99, row.image.name

@@ -119,3 +119,31 @@ def test_below_the_threshold_or_a_named_kind_never_switches(tmp_path, fitted):  
         index = ReferenceIndex(config, 64, 64)
         assert not index.switches_by_size and not sizing.due(index)
         assert sizing.describe(index, False) == "the configuration's kinds at every size"
+
+
+def test_index_at_size_builds_the_sizes_kind_now_and_says_how_far_it_is(tmp_path, fitted):  # noqa: F811
+    """What a start and the end of a bulk ingest wait for: the switch run now, its progress lines handed
+    over while it runs (training, then references added), the compressed kinds serving when it returns."""
+    pipe, rows, codes = fitted
+    col = Collection(ReferenceStore(tmp_path), pipe, sizing=IndexSizing(0))
+    ids = _fill(col.store, rows, codes, SWITCH_AT + 2)
+    col.catch_up()
+    assert col.index_at_size(lambda line: None) and col.index.is_exact  # the switch is off: nothing due
+    col.sizing = IndexSizing(SWITCH_AT)
+    held = HeldStream(col.store)
+    col.store.code_stream = held
+    lines: list[str] = []
+
+    def report(line: str) -> None:
+        lines.append(line)
+        if held.opened.is_set():  # trained, the stream open: let the fill go on
+            held.release.set()
+
+    assert col.index_at_size(report, poll_seconds=0.05)
+    col.store.code_stream = held.real
+    assert col.index.kinds() == {"float": "ivf-rabitq", "binary": "binary-ivf"} and not col.switching
+    assert lines[0].startswith(f"building the index {SWITCH_AT + 2:,} references call for")
+    assert any(": training on " in line for line in lines), lines
+    assert col.switch_progress is None
+    _all_found_first(col, ids, codes[: SWITCH_AT + 2])
+    col.store.close()

@@ -36,7 +36,7 @@ def ready(request: Request, x_api_key: Annotated[str | None, Header()] = None):
     state = request.app.state
     detailed = _may_read(request, x_api_key)
     if state.service is None:
-        return error_response("not_ready", (state.load_error or "loading") if detailed else "loading")
+        return error_response("not_ready", (state.not_ready or "loading") if detailed else "loading")
     refusal = state.service.write_refusal
     if refusal is not None:  # the database files changed under this process (app/storage/integrity.py)
         return error_response("storage_unavailable", refusal if detailed else "the storage refuses writes")
