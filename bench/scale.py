@@ -3,9 +3,12 @@
     .venv/bin/python -m bench.scale [--sizes 1000,100000,1000000] [--config lite2-hybrid-384] [--out out/bench/scale]
 
 For each size: a data dir seeded with synthetic codes (bench.seed, kept between runs), then a real
-`geoloc serve`: /ready after a restart with the snapshot and with the snapshot deleted, resident memory,
-/locate p50/p95 on real 1600 px photos steady and right after an upload, the job time per upload, and how
-long a second API process on the same data dir takes to see an upload. Prints the table and the ratios of
+`geoloc serve`: the first start on the seeded rows (/ready, then the first /locate requests after it and the
+resident memory: a start is ready only with the index kind its size calls for), /ready after a restart with
+the snapshot and with the snapshot deleted, resident memory, /locate p50/p95 on real 1600 px photos steady
+and right after an upload, the job time per upload, whether each uploaded photo is found first after its job
+and gone from the next /locate once deleted, and how long a second API process on the same data dir takes to
+see an upload. Prints the table and the ratios of
 each size against the smallest, and writes them to OUT/scale.json and the scale section of
 docs/benchmarks.md.
 """
@@ -43,13 +46,13 @@ def _rss_mb(client: httpx.Client) -> float:
 
 
 def _locate(client: httpx.Client, photo: Path) -> float:
-    data = photo.read_bytes()
+    return _ms(lambda: _candidates(client, photo.read_bytes()))
 
-    def go():
-        r = client.post("/locate", files=[("image", ("q.jpg", data, "image/jpeg"))], data={"top_k": 10})
-        r.raise_for_status()
 
-    return _ms(go)
+def _candidates(client: httpx.Client, data: bytes) -> list[int]:
+    r = client.post("/locate", files=[("image", ("q.jpg", data, "image/jpeg"))], data={"top_k": 10})
+    r.raise_for_status()
+    return [c["reference_id"] for c in r.json()["candidates"]]
 
 
 def _start(data: Path, models: Path, config: str, **kw) -> tuple[ServerProcess, float]:
@@ -65,8 +68,13 @@ def measure(size: int, root: Path, models: Path, config: str, photos: list[Path]
     seeded = seed(data, size, models, config)
     out: dict = {"references": size, "seed_rows_per_s": seeded["rows_per_second"] if seeded["added"] else None}
     print(f"[{size:,d}] seeded in {time.perf_counter() - t0:.0f} s", flush=True)
-    # First start (builds from SQLite if there is no snapshot yet), clean stop (writes the final snapshot).
-    s, _ = _start(data, models, config)
+    # First start (builds from SQLite if there is no snapshot yet, and the kind the size calls for), measured
+    # from the first requests after /ready answers 200; clean stop (writes the final snapshot).
+    s, out["ready_first_start_s"] = _start(data, models, config)
+    first = [_locate(s.client, p) for p in photos]
+    out["first_start_locate_p50_ms"] = statistics.median(first)
+    out["first_start_rss_mb"] = _rss_mb(s.client)
+    out["first_start_index"] = s.client.get("/ready").json()["index"]["float"]["kind"]
     s.stop()
     s, out["ready_with_snapshot_s"] = _start(data, models, config)
     out["rss_mb"] = _rss_mb(s.client)
@@ -75,13 +83,14 @@ def measure(size: int, root: Path, models: Path, config: str, photos: list[Path]
     out["locate_p95_ms"] = sorted(steady)[int(0.95 * (len(steady) - 1))]
     second = ServerProcess(data, models, config, worker="none", api_key="bench")
     second.wait_ready(timeout=600)
-    job_ms, after_ms, seen_ms = [], [], []
+    job_ms, after_ms, seen_ms, found_first, gone = [], [], [], 0, 0
     for n, photo in enumerate(photos[:5]):
         size_b = second.client.get("/ready").json()["index_size"]
         t_post = time.perf_counter()
+        upload = placeholder(photo.read_bytes(), time.time_ns())
         r = s.client.post(
             "/references",
-            files=[("image", (photo.name, placeholder(photo.read_bytes(), time.time_ns()), "image/jpeg"))],
+            files=[("image", (photo.name, upload, "image/jpeg"))],
             data={"lat": 39.95 + n * 1e-4, "lon": -75.19},
             headers={"X-API-Key": "bench"},
         )
@@ -96,6 +105,12 @@ def measure(size: int, root: Path, models: Path, config: str, photos: list[Path]
             time.sleep(0.01)
         seen_ms.append((time.perf_counter() - t_post) * 1000)
         after_ms.append(_locate(s.client, photos[-1 - n]))
+        ref_id = body["reference_ids"][0]
+        found_first += _candidates(s.client, upload)[:1] == [ref_id]
+        s.client.delete(f"/references/{ref_id}", headers={"X-API-Key": "bench"}).raise_for_status()
+        gone += ref_id not in _candidates(s.client, upload)
+    out["uploads_found_first"] = f"{found_first} of {len(job_ms)}"
+    out["deletes_gone_at_once"] = f"{gone} of {len(job_ms)}"
     out["job_p50_ms"] = statistics.median(job_ms) if job_ms else None
     out["locate_after_upload_p50_ms"] = statistics.median(after_ms) if after_ms else None
     out["second_process_sees_upload_p50_ms"] = statistics.median(seen_ms) if seen_ms else None
@@ -156,6 +171,10 @@ def table(results: list[dict]) -> str:
     base = results[0]
     cols = [
         ("references", "{:,d}"),
+        ("ready_first_start_s", "{:.1f}"),
+        ("first_start_index", "{}"),
+        ("first_start_locate_p50_ms", "{:.0f}"),
+        ("first_start_rss_mb", "{:.0f}"),
         ("ready_with_snapshot_s", "{:.1f}"),
         ("ready_without_snapshot_s", "{:.1f}"),
         ("rss_mb", "{:.0f}"),
@@ -164,6 +183,8 @@ def table(results: list[dict]) -> str:
         ("locate_after_upload_p50_ms", "{:.0f}"),
         ("job_p50_ms", "{:.0f}"),
         ("second_process_sees_upload_p50_ms", "{:.0f}"),
+        ("uploads_found_first", "{}"),
+        ("deletes_gone_at_once", "{}"),
         ("snapshot_writes_during_uploads", "{}"),
     ]
     lines = ["| " + " | ".join(c for c, _ in cols) + " |", "|" + "---|" * len(cols)]
@@ -173,10 +194,16 @@ def table(results: list[dict]) -> str:
     for r in results[1:]:
         ratios = ", ".join(
             f"{c} {r[c] / base[c]:.2f}x"
-            for c in ("job_p50_ms", "locate_after_upload_p50_ms", "locate_p50_ms")
+            for c in ("first_start_locate_p50_ms", "job_p50_ms", "locate_after_upload_p50_ms", "locate_p50_ms")
             if r.get(c) and base.get(c)
         )
-        lines.append(f"- {r['references']:,d} against {base['references']:,d}: {ratios}")
+        more = r["references"] - base["references"]
+        per_ref = ", ".join(
+            f"{c} {(r[c] - base[c]) * 2**20 / more:+.0f} B per reference"
+            for c in ("first_start_rss_mb", "rss_mb")
+            if r.get(c) and base.get(c)
+        )
+        lines.append(f"- {r['references']:,d} against {base['references']:,d}: {ratios}; {per_ref}")
     return "\n".join(lines)
 
 
