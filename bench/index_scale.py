@@ -81,6 +81,7 @@ class KindFigures:
     build_s: float | None = None
     add_ms: float | None = None
     remove_ms: float | None = None
+    add_batch_ms: float | None = None  # per reference, added BATCH at a time (as the writer applies a run)
     dump_s: float | None = None
     file_bytes_per_ref: float | None = None
     load_s: float | None = None
@@ -135,8 +136,14 @@ def _recall10(found: np.ndarray, exact: np.ndarray) -> float:
     return float(np.mean([len(set(f[f >= 0]) & set(e[e >= 0])) / K for f, e in zip(found, exact, strict=True)]))
 
 
-def _change_costs(index, fresh: np.ndarray, first_id: int) -> tuple[float, float]:
-    """Median ms of adding one new reference, then of removing it again (the collection ends as it began)."""
+#: References per add in the batched measure: a run of uploads the writer applies in one call
+#: (``apply_changes``), whose list assignment is then one matrix product over the centroids.
+BATCH = 100
+
+
+def _change_costs(index, fresh: np.ndarray, first_id: int) -> tuple[float, float, float]:
+    """Median ms of adding one new reference, then of removing it again, and ms per reference of adding
+    them ``BATCH`` at a time (median over the batches), removed again (the collection ends as it began)."""
     adds, removes = [], []
     ids = np.arange(first_id, first_id + len(fresh), dtype=np.int64)
     for i, x in zip(ids, fresh, strict=True):
@@ -148,7 +155,13 @@ def _change_costs(index, fresh: np.ndarray, first_id: int) -> tuple[float, float
         removed = index.remove([i])
         removes.append((time.perf_counter() - t0) * 1000)
         assert removed == 1, f"id {i} was not removed"
-    return float(np.median(adds)), float(np.median(removes))
+    batches = []
+    for lo in range(0, len(fresh) - BATCH + 1, BATCH):
+        t0 = time.perf_counter()
+        index.add(ids[lo : lo + BATCH], fresh[lo : lo + BATCH])
+        batches.append((time.perf_counter() - t0) * 1000 / BATCH)
+    assert index.remove(ids[: len(batches) * BATCH]) == len(batches) * BATCH
+    return float(np.median(adds)), float(np.median(removes)), float(np.median(batches))
 
 
 _LOAD_PROBE = """
@@ -289,7 +302,7 @@ def measure_float_kind(
             progress(f"    nprobe {nprobe:4d} shortlist {shortlist:4d}: {sweep[-1]}")
     best = choose(sweep, None if true is None else recall_at(true.exact, (10,))[10])
     index.set_search(best["nprobe"], best["shortlist"])
-    add_ms, remove_ms = _change_costs(index, gen.draw(200, rng), first_id=10**12)
+    add_ms, remove_ms, add_batch_ms = _change_costs(index, gen.draw(5 * BATCH, rng), first_id=10**12)
     faiss.omp_set_num_threads(BUILD_THREADS)
     persist = _persist(index, n, OUT / f"float-{codec}-{kmeans}-{quantizer}-{n}.faiss")
     fig = KindFigures(
@@ -310,6 +323,7 @@ def measure_float_kind(
         build_s,
         add_ms,
         remove_ms,
+        add_batch_ms,
         sweep=sweep,
         true_r10=best.get("true_r10"),
         true_kept10=best.get("true_kept10"),
@@ -413,7 +427,7 @@ def measure_binary(
         progress(f"    binary nprobe {nprobe:4d}: {sweep[-1]}")
     best = min((s for s in sweep if s["top1"] >= 0.97), key=lambda s: s["p50_ms"], default=sweep[-1])
     index.nprobe = best["nprobe"]
-    add_ms, remove_ms = _change_costs(index, sign_bits(gen.draw(200, rng)), first_id=10**12)
+    add_ms, remove_ms, add_batch_ms = _change_costs(index, sign_bits(gen.draw(5 * BATCH, rng)), first_id=10**12)
     faiss.omp_set_num_threads(BUILD_THREADS)
     persist = _persist(index, n, OUT / f"binary-{n}.faiss")
     exact = KindFigures(
@@ -438,6 +452,7 @@ def measure_binary(
         build_s,
         add_ms,
         remove_ms,
+        add_batch_ms,
         sweep=sweep,
         true_r10=best.get("true_r10"),
         true_kept10=best.get("true_kept10"),
@@ -567,15 +582,16 @@ def table(figures: list[KindFigures]) -> str:
     base = {f.kind: f for f in figures if f.n == min(x.n for x in figures)}
     head = (
         "| references | kind | parameters | search p50 ms (1 thread) | true match R@10 | exact's top-10 true "
-        "matches kept | top-10 recall | penn top-1 = exact | RAM B/ref (loaded) | file B/ref | add ms | remove ms | "
-        "add / remove vs smallest | train s | build s | dump s | load s | load peak / file |\n|" + "---|" * 18
+        "matches kept | top-10 recall | penn top-1 = exact | RAM B/ref (loaded) | file B/ref | add ms | "
+        f"add ms per reference, {BATCH} at a time | remove ms | add / batched add / remove vs smallest | train s | "
+        "build s | dump s | load s | load peak / file |\n|" + "---|" * 19
     )
     rows = []
     for f in figures:
         b = base.get(f.kind)
         ratio = (
-            f"{f.add_ms / b.add_ms:.2f}x / {f.remove_ms / b.remove_ms:.2f}x"
-            if b is not None and f.add_ms and b.add_ms
+            f"{f.add_ms / b.add_ms:.2f}x / {f.add_batch_ms / b.add_batch_ms:.2f}x / {f.remove_ms / b.remove_ms:.2f}x"
+            if b is not None and f.add_ms and b.add_ms and f.add_batch_ms and b.add_batch_ms
             else ""
         )
         params = ", ".join(f"{k} {v}" for k, v in f.params.items())
@@ -583,6 +599,7 @@ def table(figures: list[KindFigures]) -> str:
             f"| {f.n:,} | {f.kind} | {params} | {f.p50_ms:.3f} | {_fmt(f.true_r10, '.3f')} | "
             f"{_fmt(f.true_kept10, '.1%')} | {f.recall10:.3f} | {_fmt(f.penn_top1, '.1%')} | "
             f"{_fmt(f.ram_bytes_per_ref, '.0f')} | {_fmt(f.file_bytes_per_ref, '.0f')} | {_fmt(f.add_ms, '.3f')} | "
+            f"{_fmt(f.add_batch_ms, '.4f')} | "
             f"{_fmt(f.remove_ms, '.3f')} | {ratio} | {_fmt(f.train_s, '.1f')} | {_fmt(f.build_s, '.1f')} | "
             f"{_fmt(f.dump_s, '.2f')} | {_fmt(f.load_s, '.2f')} | {_fmt(f.load_peak_vs_file, '.2f')} |"
         )

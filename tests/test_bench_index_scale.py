@@ -92,7 +92,7 @@ def test_bench_runs_end_to_end_at_a_tiny_size(tmp_path):
         assert 0 <= f["recall10"] <= 1 and f["p50_ms"] > 0
     pq = kinds["ivf-pq32"]
     assert pq["params"]["nlist"] == 51 and pq["params"]["nprobe"] in (8, 32)  # 2,000 // 39 lists at most
-    assert len(pq["sweep"]) == 2 and pq["ram_bytes_per_ref"] > 0 and pq["add_ms"] > 0
+    assert len(pq["sweep"]) == 2 and pq["ram_bytes_per_ref"] > 0 and pq["add_ms"] > 0 and pq["add_batch_ms"] > 0
     # every list probed: the re-ranked search finds the exact top-10 on the clustered part at least
     assert max(s["recall10"] for s in pq["sweep"]) > min(s["recall10"] for s in pq["sweep"]) - 1e-9
     assert "| 2,000 | ivf-pq32 |" in run.stdout and "## Index kinds" in run.stdout
