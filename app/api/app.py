@@ -153,7 +153,11 @@ def _load(app: FastAPI, stop: threading.Event) -> None:
                 raise
             # Ready means ready at size: a data dir left exact above the switch (a bulk load, a restore
             # without a snapshot) is not served by the slow exact search; /ready says how far the build is.
-            if not service.index_at_size(lambda line: _not_ready(app, line)):
+            built = service.index_at_size(lambda line: _not_ready(app, line), stop)
+            if stop.is_set():  # shutting down while it built: nothing to serve
+                service.close()
+                return
+            if not built:
                 log.warning("the index its size calls for could not be built: the exact index serves")
             if s.worker == "inprocess":
                 _run_writer(app, service)

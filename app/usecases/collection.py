@@ -464,15 +464,21 @@ class Collection:
         finally:
             self.switch_progress = None
 
-    def index_at_size(self, report: Callable[[str], None], poll_seconds: float = 1.0) -> bool:
+    def index_at_size(
+        self, report: Callable[[str], None], poll_seconds: float = 1.0, stop: threading.Event | None = None
+    ) -> bool:
         """Make the index the kind its size calls for before going on: where the switch is due (a start on
         a data dir a bulk load or a restore left exact above the threshold; the end of a bulk ingest), run it
-        now (the same background switch) and wait, handing ``report`` what it is doing each ``poll_seconds``.
+        now (the same background switch) and wait, handing ``report`` each new line of what it is doing.
         Returns whether the index is the size's kind; False where the switch failed (the exact index then
-        serves, and the switch is tried again later as at any size)."""
+        serves, and the switch is tried again later as at any size) or ``stop`` was set meanwhile."""
         self.catch_up()  # applies what was logged, and starts the switch where the size calls for it
-        while self.switching:
-            report(self.switch_progress or "building the index the size calls for")
+        said = None
+        while self.switching and not (stop is not None and stop.is_set()):
+            line = self.switch_progress or "building the index the size calls for"
+            if line != said:
+                report(line)
+                said = line
             self._switcher.join(poll_seconds)
         return not self.sizing.due(self.index)
 

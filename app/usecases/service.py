@@ -145,10 +145,10 @@ class GeolocService:
         """Why the storage refuses writes (its database files changed under this process), or None."""
         return self.store.write_refusal
 
-    def index_at_size(self, report: Callable[[str], None]) -> bool:
+    def index_at_size(self, report: Callable[[str], None], stop: threading.Event | None = None) -> bool:
         """Make the index the kind the collection's size calls for before serving or ending a bulk load
-        (``Collection.index_at_size``), saying what it does through ``report``."""
-        return self.collection.index_at_size(report)
+        (``Collection.index_at_size``), saying what it does through ``report``; ``stop`` ends the wait."""
+        return self.collection.index_at_size(report, stop=stop)
 
     def readiness(self) -> Readiness:
         """The collection's state for /ready, caught up first."""

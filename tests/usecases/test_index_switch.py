@@ -7,6 +7,7 @@ restart comes back with the same kinds from the snapshot."""
 import contextlib
 import json
 import threading
+import time
 
 import pytest
 
@@ -134,16 +135,20 @@ def test_index_at_size_builds_the_sizes_kind_now_and_says_how_far_it_is(tmp_path
     col.store.code_stream = held
     lines: list[str] = []
 
-    def report(line: str) -> None:
-        lines.append(line)
-        if held.opened.is_set():  # trained, the stream open: let the fill go on
-            held.release.set()
+    def release_once_trained() -> None:  # the stream opens after the training: hold it a few polls, then go on
+        assert held.opened.wait(120)
+        time.sleep(0.5)
+        held.release.set()
 
-    assert col.index_at_size(report, poll_seconds=0.05)
+    releaser = threading.Thread(target=release_once_trained)
+    releaser.start()
+    assert col.index_at_size(lines.append, poll_seconds=0.05)
+    releaser.join()
     col.store.code_stream = held.real
     assert col.index.kinds() == {"float": "ivf-rabitq", "binary": "binary-ivf"} and not col.switching
     assert lines[0].startswith(f"building the index {SWITCH_AT + 2:,} references call for")
     assert any(": training on " in line for line in lines), lines
+    assert len(lines) == len(set(lines))  # each line handed over once
     assert col.switch_progress is None
     _all_found_first(col, ids, codes[: SWITCH_AT + 2])
     col.store.close()
