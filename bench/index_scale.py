@@ -579,50 +579,49 @@ def _fmt(v, spec: str) -> str:
 
 
 def table(figures: list[KindFigures]) -> str:
+    """One row per size and kind at its chosen setting (every measured figure is in figures.json)."""
     base = {f.kind: f for f in figures if f.n == min(x.n for x in figures)}
     head = (
-        "| references | kind | parameters | search p50 ms (1 thread) | true match R@10 | exact's top-10 true "
-        "matches kept | top-10 recall | penn top-1 = exact | RAM B/ref (loaded) | file B/ref | add ms | "
-        f"add ms per reference, {BATCH} at a time | remove ms | add / batched add / remove vs smallest | train s | "
-        "build s | dump s | load s | load peak / file |\n|" + "---|" * 19
+        "| references | kind | nlist / nprobe / shortlist | p50 ms | true match R@10 | exact's top-10 true matches "
+        f"kept | top-10 recall | RAM B/ref | add ms | add ms per reference, {BATCH} at a time | remove ms | "
+        "add / batched / remove vs smallest | train s | build s | load s |\n|" + "---|" * 15
     )
     rows = []
     for f in figures:
         b = base.get(f.kind)
         ratio = (
-            f"{f.add_ms / b.add_ms:.2f}x / {f.add_batch_ms / b.add_batch_ms:.2f}x / {f.remove_ms / b.remove_ms:.2f}x"
+            f"{f.add_ms / b.add_ms:.1f}x / {f.add_batch_ms / b.add_batch_ms:.1f}x / {f.remove_ms / b.remove_ms:.1f}x"
             if b is not None and f.add_ms and b.add_ms and f.add_batch_ms and b.add_batch_ms
             else ""
         )
-        params = ", ".join(f"{k} {v}" for k, v in f.params.items())
+        search = " / ".join(str(f.params[k]) for k in ("nlist", "nprobe", "shortlist") if k in f.params)
         rows.append(
-            f"| {f.n:,} | {f.kind} | {params} | {f.p50_ms:.3f} | {_fmt(f.true_r10, '.3f')} | "
-            f"{_fmt(f.true_kept10, '.1%')} | {f.recall10:.3f} | {_fmt(f.penn_top1, '.1%')} | "
-            f"{_fmt(f.ram_bytes_per_ref, '.0f')} | {_fmt(f.file_bytes_per_ref, '.0f')} | {_fmt(f.add_ms, '.3f')} | "
-            f"{_fmt(f.add_batch_ms, '.4f')} | "
-            f"{_fmt(f.remove_ms, '.3f')} | {ratio} | {_fmt(f.train_s, '.1f')} | {_fmt(f.build_s, '.1f')} | "
-            f"{_fmt(f.dump_s, '.2f')} | {_fmt(f.load_s, '.2f')} | {_fmt(f.load_peak_vs_file, '.2f')} |"
+            f"| {f.n:,} | {f.kind} | {search} | {f.p50_ms:.2f} | {_fmt(f.true_r10, '.3f')} | "
+            f"{_fmt(f.true_kept10, '.0%')} | {f.recall10:.3f} | {_fmt(f.ram_bytes_per_ref, '.0f')} | "
+            f"{_fmt(f.add_ms, '.3f')} | {_fmt(f.add_batch_ms, '.3f')} | {_fmt(f.remove_ms, '.3f')} | {ratio} | "
+            f"{_fmt(f.train_s, '.0f')} | {_fmt(f.build_s, '.0f')} | {_fmt(f.load_s, '.2f')} |"
         )
     return "\n".join([head, *rows])
 
 
 def sweep_table(figures: list[KindFigures]) -> str:
+    """The float kinds' sweep at the largest size (every size's is in figures.json); the service's own
+    setting marked."""
+    largest = max(f.n for f in figures)
     lines = [
         "| references | kind | nprobe | shortlist | p50 ms | true match R@10 | exact's top-10 true matches kept | "
-        "top-10 recall | penn / binary top-1 | synthetic top-1 | penn top-1 where exact's is a penn reference |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "top-10 recall |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for f in figures:
-        kind = f"{f.kind} ({f.params['kmeans']} k-means)" if "kmeans" in f.params else f.kind
+        if "shortlist" not in f.params or f.n != largest:
+            continue
         for s in f.sweep:
             service = f.kind == "ivf-rabitq" and all(s.get(k) == v for k, v in SERVICE_SEARCH.items())
-            mark = " (the service's setting)" if service else ""
             lines.append(
-                f"| {f.n:,} | {kind}{mark} | {s['nprobe']} | "
-                f"{s.get('shortlist', '')} | {s['p50_ms']:.3f} | {_fmt(s.get('true_r10'), '.3f')} | "
-                f"{_fmt(s.get('true_kept10'), '.1%')} | {s['recall10']:.3f} | "
-                f"{s.get('penn_top1', s.get('top1')):.1%} | {_fmt(s.get('synth_top1'), '.1%')} | "
-                f"{_fmt(s.get('penn_top1_real_match'), '.1%')} |"
+                f"| {f.n:,} | {f.kind} | {s['nprobe']}{' (service)' if service else ''} | {s['shortlist']} | "
+                f"{s['p50_ms']:.2f} | {_fmt(s.get('true_r10'), '.3f')} | {_fmt(s.get('true_kept10'), '.0%')} | "
+                f"{s['recall10']:.3f} |"
             )
     return "\n".join(lines)
 
@@ -668,8 +667,8 @@ def true_match_section(t: dict) -> str:
     )
 
 
-def section(figures: list[KindFigures], context: dict, command: str) -> str:
-    when = datetime.now(UTC).strftime("%Y-%m-%d %H:%M UTC")
+def section(figures: list[KindFigures], context: dict) -> str:
+    command, when = context["command"], context["finished"]
     penn = ", ".join(f"{k.rsplit('_', 1)[1]}: {v:.0%}" for k, v in context.items() if k.startswith("exact_penn"))
     return (
         f"## Index kinds at 10^5-10^7 references\n\n`{command}` ({when}; synthetic codes fitted to "
@@ -679,8 +678,9 @@ def section(figures: list[KindFigures], context: dict, command: str) -> str:
         f"{table(figures)}\n\nHow often a penn query's exact top-1 is still a penn reference: {penn}.\n\n"
         f"{true_match_section(context['true_match'])}\n\n"
         f"{fidelity_line(context['fidelity'])}\n\n"
-        "Sweep (the row above is the fastest setting within 5 ms that keeps at least 97 % of the exact search's "
-        "top-10 true matches with its R@10 of the true match within 0.01 of exact's; else the fastest meeting "
+        "Sweep at the largest size (the row above is the fastest setting within 5 ms that keeps at least 97 % "
+        "of the exact search's top-10 true matches with its R@10 of the true match within 0.01 of exact's; else "
+        "the fastest meeting "
         "recall >= 0.95 and top-1 >= 97 %; else the most accurate within 5 ms):"
         f"\n\n{sweep_table(figures)}\n"
     )
@@ -723,10 +723,19 @@ def main() -> None:
     ap.add_argument("--models-dir", type=Path, default=REPO / "models")
     ap.add_argument("--config", default="lite2-hybrid-384")
     ap.add_argument("--write", action="store_true", help="write the section into docs/benchmarks.md")
+    ap.add_argument(
+        "--render", type=Path, help="measure nothing: render the section from a run's figures.json (its command)"
+    )
     args = ap.parse_args()
-    figures, context = run(args, progress=lambda m: print(m, flush=True))
-    command = "PYTHONPATH=$PWD .venv/bin/python -m bench.index_scale " + " ".join(sys.argv[1:])
-    text = section(figures, context, command)
+    if args.render is not None:
+        saved = json.loads(args.render.read_text())
+        figures, context = [KindFigures(**f) for f in saved["figures"]], saved["context"]
+    else:
+        figures, context = run(args, progress=lambda m: print(m, flush=True))
+        context["command"] = "PYTHONPATH=$PWD .venv/bin/python -m bench.index_scale " + " ".join(sys.argv[1:])
+        context["finished"] = datetime.now(UTC).strftime("%Y-%m-%d %H:%M UTC")
+        _save(figures, context, args.out)
+    text = section(figures, context)
     print(text)
     if args.write:
         from bench.common import write_section
