@@ -161,6 +161,8 @@ def _load(app: FastAPI, stop: threading.Event) -> None:
                 log.warning("the index its size calls for could not be built: the exact index serves")
             if s.worker == "inprocess":
                 _run_writer(app, service)
+                if state.writer.held:
+                    service.snapshot_at_size(lambda line: _not_ready(app, line))
             # Where other hosts commit changes (PostgreSQL): catch up as they do, not at the next search.
             listener = service.start_change_listener()
             if listener is not None:

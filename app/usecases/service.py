@@ -150,6 +150,17 @@ class GeolocService:
         (``Collection.index_at_size``), saying what it does through ``report``; ``stop`` ends the wait."""
         return self.collection.index_at_size(report, stop=stop)
 
+    def snapshot_at_size(self, report: Callable[[str], None]) -> bool:
+        """After this process built the index its size calls for and before it serves: that index's snapshot
+        written now, by the writer role's holder (the caller), so that the write of a large index does not run
+        beside the first requests and a restart loads it. Returns whether one was due."""
+        col = self.collection
+        if not col.stats.kind_switches or not col.snapshot_due():
+            return False
+        report(f"writing the snapshot of the index ({col.size:,} references)")
+        col.write_snapshot()  # waits for the writer's own snapshot thread where it began the same write
+        return True
+
     def readiness(self) -> Readiness:
         """The collection's state for /ready, caught up first."""
         col = self.collection

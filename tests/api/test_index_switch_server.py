@@ -82,7 +82,8 @@ def test_the_kind_switches_by_size_on_a_server(tmp_path, fitted_models, rows):  
 def test_a_start_above_the_threshold_is_ready_only_with_the_compressed_kind(tmp_path, fitted_models, rows):  # noqa: F811
     """A data dir left exact above the threshold (here: served with the switch off, as after a bulk load or a
     restore without a snapshot) is not served by the exact search: /ready answers 200 once the compressed
-    kinds serve, and says meanwhile how far their build is (the same lines go to the log)."""
+    kinds serve and their snapshot is written, and says meanwhile how far their build is (the same lines go
+    to the log)."""
     data = tmp_path / "data"
     with Server(data, fitted_models, api_key=KEY, extra_env={"GEOLOC_INDEX_SWITCH_AT": "0"}) as s:
         up = _upload(s.client, rows[: SWITCH_AT + 3])
@@ -94,6 +95,8 @@ def test_a_start_above_the_threshold_is_ready_only_with_the_compressed_kind(tmp_
         assert _kinds(again.client) == {"float": "ivf-rabitq", "binary": "binary-ivf"}, ready
         assert ready["index_loaded"] == "snapshot" and ready["index_size"] == SWITCH_AT + 3
         assert metric(again, "geoloc_index_kind_switches") == 1 and metric(again, "geoloc_index_switching") == 0
+        # ...and its snapshot written before it served: no write of the new index beside the first requests
+        assert metric(again, "geoloc_snapshot_writes") >= 1
         log = Path(again.log.name).read_text()
         said = log.index(f"building the index {SWITCH_AT + 3:,} references call for")
         assert said < log.index("index switched to") < log.index("ready: config")
