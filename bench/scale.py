@@ -136,6 +136,7 @@ def interleaved(sizes: list[int], root: Path, models: Path, config: str, photos:
 
     svcs = {n: GeolocService.open(root / f"n{n}", models, config) for n in sizes}
     out = {n: {"locate": [], "search": [], "job": []} for n in sizes}
+    added: dict[int, list[int]] = {n: [] for n in sizes}
     for k, photo in enumerate(photos):
         data = photo.read_bytes()
         for n, svc in svcs.items():
@@ -145,9 +146,14 @@ def interleaved(sizes: list[int], root: Path, models: Path, config: str, photos:
             out[n]["search"].append(answer.timings_ms["search"])
             if k < 5:
                 t0 = time.perf_counter()
-                svc.accept([Upload(placeholder(data, time.time_ns()), photo.name, 39.95, -75.19)])
+                accepted = svc.accept([Upload(placeholder(data, time.time_ns()), photo.name, 39.95, -75.19)])
                 IngestWorker(svc, batch_size=8).run_once()
                 out[n]["job"].append((time.perf_counter() - t0) * 1000)
+                added[n] += accepted.reference_ids
+    for n, svc in svcs.items():  # the seeded data dirs stay as seeded: a later run's photos have no twins
+        for ref_id in added[n]:
+            svc.delete(ref_id)
+        svc.close()
     return {n: {f"{k}_p50_ms": statistics.median(v) for k, v in d.items()} | {"references": n} for n, d in out.items()}
 
 
