@@ -19,6 +19,7 @@ import argparse
 import json
 import re
 import statistics
+import sys
 import time
 from pathlib import Path
 
@@ -246,7 +247,7 @@ def main() -> None:
     (args.root / "scale-inprocess.json").write_text(json.dumps(inproc, indent=1))
     print(text)
     if not args.no_write:
-        write_doc(text, f".venv/bin/python -m bench.scale --sizes {args.sizes} --config {args.config}")
+        write_doc(text, ".venv/bin/python -m bench.scale " + " ".join(sys.argv[1:]))
 
 
 if __name__ == "__main__":
