@@ -18,11 +18,15 @@ against the exact search, penn queries' top-1 agreement with the exact search, t
 add and one remove at size, dump and load time, and the RAM the loaded index holds (resident growth of a
 fresh process that loads it, so the hashtable and the allocator's overhead are counted, not only the file).
 The float kind sweeps nprobe x shortlist and reports the cheapest setting meeting the targets.
+
+``--milvus-up-to N`` adds the ``milvus`` kind at the sizes up to N, on a Milvus standalone started from the
+``milvus`` wheel for the run (or ``--milvus-uri``): filled, sealed and indexed, then searched as the others.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import gc
 import json
 import os
@@ -141,16 +145,18 @@ def _recall10(found: np.ndarray, exact: np.ndarray) -> float:
 BATCH = 100
 
 
-def _change_costs(index, fresh: np.ndarray, first_id: int) -> tuple[float, float, float]:
-    """Median ms of adding one new reference, then of removing it again, and ms per reference of adding
-    them ``BATCH`` at a time (median over the batches), removed again (the collection ends as it began)."""
+def _change_costs(index, fresh: np.ndarray, first_id: int, singles: int | None = None) -> tuple[float, float, float]:
+    """Median ms of adding one new reference, then of removing it again (the first ``singles`` codes, all by
+    default), and ms per reference of adding them ``BATCH`` at a time (median over the batches), removed
+    again (the collection ends as it began)."""
     adds, removes = [], []
     ids = np.arange(first_id, first_id + len(fresh), dtype=np.int64)
-    for i, x in zip(ids, fresh, strict=True):
+    one_by_one = ids[: len(ids) if singles is None else singles]
+    for i in one_by_one:
         t0 = time.perf_counter()
-        index.add(ids[i - first_id : i - first_id + 1], x[None])
+        index.add(ids[i - first_id : i - first_id + 1], fresh[i - first_id][None])
         adds.append((time.perf_counter() - t0) * 1000)
-    for i in ids:
+    for i in one_by_one:
         t0 = time.perf_counter()
         removed = index.remove([i])
         removes.append((time.perf_counter() - t0) * 1000)
@@ -334,6 +340,57 @@ def measure_float_kind(
     return fig
 
 
+@contextlib.contextmanager
+def _milvus_server(progress):
+    """A Milvus standalone from the ``milvus`` wheel for this run (``tools/milvus_server.py``); its uri."""
+    from tools.milvus_server import MilvusServer
+
+    server = MilvusServer().start()
+    progress(f"  Milvus standalone at {server.uri} (started in {server.started_in:.0f} s)")
+    try:
+        yield server.uri
+    finally:
+        server.remove()
+
+
+def measure_milvus(codes, n, queries, exact, n_synth_q, n_penn, gen, rng, progress, uri, true=None) -> KindFigures:
+    """The ``milvus`` kind (float codes, HNSW on the server at the kind's defaults) as the service configures
+    it, filled with the first ``n`` codes, sealed and indexed (``settle``), searched one query at a time at
+    a timestamp taken after the fill (as the service reads); its RAM is the server's, not measured here."""
+    from app.engine.index.kinds.milvus import MilvusIndex
+
+    index = MilvusIndex(codes.shape[1], False, uri=uri, collection=f"bench_index_scale_{n}")
+    index.drop()  # a previous run's rows would count twice
+    t0 = time.perf_counter()
+    for lo, x in chunks(codes, n):
+        index.add(np.arange(lo, lo + len(x), dtype=np.int64), np.asarray(x, np.float32))
+    indexed = index.settle()
+    build_s = time.perf_counter() - t0
+    index.read_after(index.fence())
+    progress(f"  milvus: {indexed:,} rows stored and indexed in {build_s:.1f} s")
+    p50, res = _p50_ms(lambda q: index.search(q, K)[1][0], queries)
+    found = np.stack(res)
+    true_figures = true.figures(found) if true is not None else {}
+    # a remove first reads which ids are stored, strongly consistent (a server time tick each): 50 are timed
+    add_ms, remove_ms, add_batch_ms = _change_costs(index, gen.draw(3 * BATCH, rng), first_id=10**12, singles=50)
+    index.drop()
+    index.close()
+    return KindFigures(
+        n,
+        "milvus",
+        {"quantizer": "HNSW", "m": index.m, "ef_search": index.ef_search},
+        p50,
+        _recall10(found[:n_synth_q], exact[:n_synth_q]),
+        float(np.mean(found[n_synth_q:, 0] == exact[n_synth_q:, 0])),
+        build_s=build_s,
+        add_ms=add_ms,
+        remove_ms=remove_ms,
+        add_batch_ms=add_batch_ms,
+        true_r10=true_figures.get("true_r10"),
+        true_kept10=true_figures.get("true_kept10"),
+    )
+
+
 def meets_true_targets(s: dict, exact_r10: float) -> bool:
     """Whether a setting keeps the true match as the exact search does (TRUE_TARGETS)."""
     return (
@@ -514,55 +571,63 @@ def run(args, progress=print) -> tuple[list[KindFigures], dict]:
         "penn_queries": truth.n_queries,
         "sizes": {},
     }
-    for n in sizes:
-        progress(f"{n:,} references")
-        t0 = time.perf_counter()
-        _, exact = exact_search(codes, n, queries, K)
-        context[f"exact_penn_top1_is_penn_{n}"] = float(np.mean(exact[n_synth_q:, 0] < n_penn))
-        progress(f"  exact top-{K} in {time.perf_counter() - t0:.0f} s")
-        t0 = time.perf_counter()
-        ranks = exact_ranks(codes, n, penn.queries, truth, n_penn, args.extent_km * 1000, args.region_m, args.seed)
-        true = TrueContext(truth, ranks.ranks, n_synth_q)
-        context["true_match"]["sizes"][str(n)] = {
-            "exact": recall_at(ranks.ranks),
-            "region": recall_at(ranks.region_ranks),
-            "region_distractors": ranks.region_distractors,
-            "exact_median_rank": float(np.median(ranks.ranks)),
-        }
-        progress(f"  true match: {context['true_match']['sizes'][str(n)]} ({time.perf_counter() - t0:.0f} s)")
-        base = measure_exact_float(codes, n, queries, progress, true)
-        if base is not None:
-            figures.append(base)
-        for kmeans in args.kmeans:
-            for codec in args.codecs:
-                for quantizer in args.quantizer:
-                    figures.append(
-                        measure_float_kind(
-                            codes,
-                            n,
-                            codec,
-                            kmeans,
-                            queries,
-                            exact,
-                            n_synth_q,
-                            n_penn,
-                            args.nprobe,
-                            args.shortlist,
-                            gen,
-                            rng,
-                            progress,
-                            quantizer,
-                            true,
-                        )
-                    )
-                    _save(figures, context, args.out)
-        if not args.no_binary:
-            exact_hamming = None
+    milvus_uri = args.milvus_uri
+    with contextlib.ExitStack() as servers:  # a Milvus server this run starts is removed when it ends
+        for n in sizes:
+            progress(f"{n:,} references")
+            t0 = time.perf_counter()
+            _, exact = exact_search(codes, n, queries, K)
+            context[f"exact_penn_top1_is_penn_{n}"] = float(np.mean(exact[n_synth_q:, 0] < n_penn))
+            progress(f"  exact top-{K} in {time.perf_counter() - t0:.0f} s")
+            t0 = time.perf_counter()
+            ranks = exact_ranks(codes, n, penn.queries, truth, n_penn, args.extent_km * 1000, args.region_m, args.seed)
+            true = TrueContext(truth, ranks.ranks, n_synth_q)
+            context["true_match"]["sizes"][str(n)] = {
+                "exact": recall_at(ranks.ranks),
+                "region": recall_at(ranks.region_ranks),
+                "region_distractors": ranks.region_distractors,
+                "exact_median_rank": float(np.median(ranks.ranks)),
+            }
+            progress(f"  true match: {context['true_match']['sizes'][str(n)]} ({time.perf_counter() - t0:.0f} s)")
+            base = measure_exact_float(codes, n, queries, progress, true)
+            if base is not None:
+                figures.append(base)
             for kmeans in args.kmeans:
-                rows = measure_binary(codes, n, queries, n_synth_q, args.nprobe, kmeans, gen, rng, progress, true)
-                figures += rows if exact_hamming is None else rows[1:]
-                exact_hamming = rows[0]
+                for codec in args.codecs:
+                    for quantizer in args.quantizer:
+                        figures.append(
+                            measure_float_kind(
+                                codes,
+                                n,
+                                codec,
+                                kmeans,
+                                queries,
+                                exact,
+                                n_synth_q,
+                                n_penn,
+                                args.nprobe,
+                                args.shortlist,
+                                gen,
+                                rng,
+                                progress,
+                                quantizer,
+                                true,
+                            )
+                        )
+                        _save(figures, context, args.out)
+            if n <= args.milvus_up_to:
+                uri = milvus_uri or (milvus_uri := servers.enter_context(_milvus_server(progress)))
+                figures.append(
+                    measure_milvus(codes, n, queries, exact, n_synth_q, n_penn, gen, rng, progress, uri, true)
+                )
                 _save(figures, context, args.out)
+            if not args.no_binary:
+                exact_hamming = None
+                for kmeans in args.kmeans:
+                    rows = measure_binary(codes, n, queries, n_synth_q, args.nprobe, kmeans, gen, rng, progress, true)
+                    figures += rows if exact_hamming is None else rows[1:]
+                    exact_hamming = rows[0]
+                    _save(figures, context, args.out)
     return figures, context
 
 
@@ -595,6 +660,8 @@ def table(figures: list[KindFigures]) -> str:
             else ""
         )
         search = " / ".join(str(f.params[k]) for k in ("nlist", "nprobe", "shortlist") if k in f.params)
+        if "ef_search" in f.params:  # milvus: its HNSW's degree and search depth
+            search = f"HNSW M {f.params['m']} / ef {f.params['ef_search']}"
         rows.append(
             f"| {f.n:,} | {f.kind} | {search} | {f.p50_ms:.2f} | {_fmt(f.true_r10, '.3f')} | "
             f"{_fmt(f.true_kept10, '.0%')} | {f.recall10:.3f} | {_fmt(f.ram_bytes_per_ref, '.0f')} | "
@@ -716,6 +783,13 @@ def main() -> None:
     ap.add_argument(
         "--extent-km", type=float, default=100.0, help="distractors' positions: uniform over a square this wide"
     )
+    ap.add_argument(
+        "--milvus-up-to",
+        type=int,
+        default=0,
+        help="measure the milvus kind at the sizes up to this (on a server from the milvus wheel, or --milvus-uri)",
+    )
+    ap.add_argument("--milvus-uri", default=None, help="a running Milvus server to measure on instead")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", type=Path, default=OUT)
     ap.add_argument("--penn-codes", type=Path, default=REPO / "out" / "penn_codes.npz")

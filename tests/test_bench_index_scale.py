@@ -6,6 +6,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from bench.scale_codes import CodeGenerator, PennCodes, codes_file, effective_dimension, exact_search, penn_positions
 from bench.true_match import Positions, distractor_xy, exact_ranks, find_true_matches, found_ranks, kept, recall_at
@@ -110,3 +111,26 @@ def test_effective_dimension_counts_the_directions_codes_vary_in():
     assert 230 < effective_dimension(rng.standard_normal((20_000, 256))) <= 256
     line = np.outer(rng.standard_normal(5000), rng.standard_normal(256)) + 1e-6 * rng.standard_normal((5000, 256))
     assert effective_dimension(line) < 1.01
+
+
+@pytest.mark.milvus
+def test_bench_measures_the_milvus_kind_on_a_real_server(tmp_path, milvus_server):
+    """The milvus kind at a tiny size on the session's Milvus server: filled, sealed and indexed, searched
+    (its HNSW at 2,000 codes finds the exact top 10), its changes timed, its collection dropped after."""
+    manifest = fake_penn(tmp_path / "penn.npz")
+    out = tmp_path / "out"
+    cmd = [sys.executable, "-m", "bench.index_scale", "--sizes", "2000", "--queries", "30", "--nprobe", "8"]
+    cmd += ["--shortlist", "50", "--codecs", "RaBitQ", "--no-binary", "--out", str(out)]
+    cmd += ["--penn-codes", str(tmp_path / "penn.npz"), "--manifest", str(manifest)]
+    cmd += ["--milvus-up-to", "2000", "--milvus-uri", milvus_server.uri]
+    run = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=900)
+    assert run.returncode == 0, run.stderr[-3000:]
+    kinds = {f["kind"]: f for f in json.loads((out / "figures.json").read_text())["figures"]}
+    assert set(kinds) == {"flat (exact)", "ivf-rabitq", "milvus"}
+    milvus = kinds["milvus"]
+    assert milvus["recall10"] >= 0.9 and milvus["true_kept10"] is not None and 0 <= milvus["true_r10"] <= 1
+    assert milvus["add_ms"] > 0 and milvus["remove_ms"] > 0 and milvus["add_batch_ms"] > 0
+    assert "| 2,000 | milvus | HNSW M 32 / ef 256 |" in run.stdout
+    from pymilvus import MilvusClient
+
+    assert "bench_index_scale_2000" not in MilvusClient(uri=milvus_server.uri).list_collections()

@@ -21,6 +21,7 @@ from __future__ import annotations
 import contextlib
 import re
 import threading
+import time
 from pathlib import Path
 from typing import Any
 from urllib.parse import urlsplit, urlunsplit
@@ -173,6 +174,26 @@ class MilvusIndex:
         self._call("drop the collection", lambda c: c.drop_collection(self.collection, timeout=self.timeout))
         self._client = None
         self.created = False
+
+    def settle(self, timeout: float = 600.0) -> int:
+        """Seal what was written and wait until the server's index covers every row; returns the rows indexed.
+
+        Why: Milvus searches the rows of a growing segment by a brute-force scan and builds its HNSW only on
+        sealed segments, which it seals by size or after a while; a measure of the index itself (the bench)
+        seals them first, as a collection long in service has."""
+        self._call("seal the segments", lambda c: c.flush(self.collection, timeout=self.timeout))
+        deadline = time.monotonic() + timeout
+        while True:
+            info = self._call(
+                "describe the index", lambda c: c.describe_index(self.collection, "code", timeout=self.timeout)
+            )
+            if int(info.get("pending_index_rows", 0)) == 0 and int(info.get("indexed_rows", 0)) >= int(
+                info.get("total_rows", 0)
+            ):
+                return int(info.get("indexed_rows", 0))
+            if time.monotonic() > deadline:
+                raise IndexUnavailable(f"the Milvus server indexed {info.get('indexed_rows')} rows in {timeout:.0f} s")
+            time.sleep(1.0)
 
     def close(self) -> None:
         client, self._client = self._client, None
