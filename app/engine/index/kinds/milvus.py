@@ -238,7 +238,11 @@ class MilvusIndex:
         return found
 
     def remove(self, ids) -> int:
-        """Deleted on the server at once (no tombstones here); returns how many were stored."""
+        """Deleted on the server at once (no tombstones here); returns how many were stored.
+
+        The read first is strong (it waits for the server's next time tick, about 200 ms) and is what makes
+        the delete hold: Milvus drops a delete of a key no segment holds yet, and one added an instant
+        before may not be in one (deleting every id asked without the read left some in place)."""
         ids = sorted({int(i) for i in ids})
         present = self._present(ids)
         for s in range(0, len(present), BATCH):
