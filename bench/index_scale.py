@@ -353,7 +353,7 @@ def _milvus_server(progress):
         server.remove()
 
 
-def measure_milvus(codes, n, queries, exact, n_synth_q, n_penn, gen, rng, progress, uri, true=None) -> KindFigures:
+def measure_milvus(codes, n, queries, exact, n_synth_q, gen, rng, progress, uri, true=None) -> KindFigures:
     """The ``milvus`` kind (float codes, HNSW on the server at the kind's defaults) as the service configures
     it, filled with the first ``n`` codes, sealed and indexed (``settle``), searched one query at a time at
     a timestamp taken after the fill (as the service reads); its RAM is the server's, not measured here."""
@@ -617,9 +617,7 @@ def run(args, progress=print) -> tuple[list[KindFigures], dict]:
                         _save(figures, context, args.out)
             if n <= args.milvus_up_to:
                 uri = milvus_uri or (milvus_uri := servers.enter_context(_milvus_server(progress)))
-                figures.append(
-                    measure_milvus(codes, n, queries, exact, n_synth_q, n_penn, gen, rng, progress, uri, true)
-                )
+                figures.append(measure_milvus(codes, n, queries, exact, n_synth_q, gen, rng, progress, uri, true))
                 _save(figures, context, args.out)
             if not args.no_binary:
                 exact_hamming = None
