@@ -247,6 +247,7 @@ def ingest(
     if not writer.acquire():
         say("a server's worker runs on this data dir: this run encodes its own rows, the server follows")
     completed = False
+    switches = service.collection.stats.kind_switches
     try:
         progress = progress or Progress(source.count(), desc=f"ingest {source.kind}")
         try:
@@ -256,6 +257,8 @@ def ingest(
         left = writer.drain(service)
         if writer.held:  # the final snapshot holds the kind the size calls for: the next start serves it at once
             service.index_at_size(say)
+        if service.collection.stats.kind_switches > switches:  # here, or by a batch's catch-up meanwhile
+            say(service.collection.last_switch)
         completed = True
     finally:
         writer.stop(final=completed)  # the snapshot (a completed run), the checkpoint, the lock

@@ -160,6 +160,7 @@ class Collection:
         self._switcher: threading.Thread | None = None
         self.switch_error: str | None = None  # why the last switch to the compressed kind failed
         self.switch_progress: str | None = None  # what the switch under way is doing (/ready while a start waits)
+        self.last_switch: str | None = None  # what the last switch to the compressed kind did, in words
         self._switch_failed_at: float | None = None
         self._first_pending_at: float | None = None  # when the oldest change not in a snapshot was applied
         self.rebuilt = False  # loaded by a full rebuild: a snapshot is due as soon as a writer can take it
@@ -440,19 +441,20 @@ class Collection:
         """How this collection's index kind is chosen (/ready)."""
         return self.sizing.describe(self.index, self.switching)
 
-    def _start_switch_if_due(self) -> None:
+    def _start_switch_if_due(self) -> bool:
         """Start ``switch_index_kind`` in the background when the size calls for it (one size comparison: it
-        runs at every catch-up)."""
+        runs at every catch-up). Returns whether a switch is under way (started now or before)."""
         if not self.sizing.due(self.index):
-            return
+            return self.switching
         failed = self._switch_failed_at
         if failed is not None and time.monotonic() - failed < self.sizing.retry_seconds:
-            return
+            return self.switching
         with self._switch_lock:
             if not self.switching:
                 self.switch_progress = f"building the index {self.index.size:,} references call for"
                 self._switcher = threading.Thread(target=self._switch_loop, name="geoloc-index-switch", daemon=True)
                 self._switcher.start()
+            return True
 
     def _switch_loop(self) -> None:
         try:
@@ -472,10 +474,14 @@ class Collection:
         now (the same background switch) and wait, handing ``report`` each new line of what it is doing.
         Returns whether the index is the size's kind; False where the switch failed (the exact index then
         serves, and the switch is tried again later as at any size) or ``stop`` was set meanwhile."""
-        self.catch_up()  # applies what was logged, and starts the switch where the size calls for it
-        said = None
+        self._apply_logged()
+        if self._start_switch_if_due():  # said here at once: a small switch may be over by the first poll
+            said = self.switch_progress or f"building the index {self.index.size:,} references call for"
+            report(said)
+        else:
+            said = None
         while self.switching and not (stop is not None and stop.is_set()):
-            line = self.switch_progress or "building the index the size calls for"
+            line = self.switch_progress or said
             if line != said:
                 report(line)
                 said = line
@@ -512,16 +518,16 @@ class Collection:
                 apply_changes(compressed, [c for c in self.store.changes_since(built_at) if c.version <= self.version])
             self.index, self.version = compressed, max(self.version, built_at)
             self.rebuilt = True  # a snapshot of the new kind is due at once: a restart comes back with it
+            built_s = time.perf_counter() - t0 - trained_s
+            self.last_switch = (
+                f"index switched to {', '.join(f'{part} {kind}' for part, kind in compressed.kinds().items())} "
+                f"at {compressed.size:,} references "
+                f"(trained in {trained_s:.1f} s, built in {built_s:.1f} s)"
+            )
             self.stats.kind_switches += 1
         del exact
         release_free_memory()  # the exact index's codes, the stream's chunks
-        log.info(
-            "index switched to %s at %d references (trained in %.1f s, built in %.1f s)",
-            compressed.kinds(),
-            compressed.size,
-            trained_s,
-            time.perf_counter() - t0 - trained_s,
-        )
+        log.info(self.last_switch)
         return True
 
     def _counted(self, chunks: Iterable[CodeChunk], size: int, trained_s: float) -> Iterator[CodeChunk]:
