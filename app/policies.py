@@ -47,8 +47,11 @@ class SharedIndex:
         return {"uri": self.uri, "collection": collection_name(self.collection, part, generation)}
 
     def version_key(self, generation: int) -> str:
-        """The store's meta key holding the change-log version the server's collections hold."""
-        return f"shared_index_version:{self.kind}:{self.collection}:g{generation}"
+        """The store's meta key holding the change-log version the server's collections hold; it names their
+        layout, so collections an earlier layout filled count as never filled (the writer fills them again)."""
+        from app.engine.index.kinds.milvus import SCHEMA
+
+        return f"shared_index_version:{self.kind}:{self.collection}:g{generation}:{SCHEMA}"
 
 
 #: ``IndexSizing.switch_at``'s default (``Settings.index_switch_at``).

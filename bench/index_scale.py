@@ -54,7 +54,17 @@ from bench.scale_codes import (
     penn_positions,
     sign_bits,
 )
-from bench.true_match import Positions, TrueMatches, exact_ranks, find_true_matches, found_ranks, kept, recall_at
+from bench.true_match import (
+    M_PER_DEG_LAT,
+    Positions,
+    TrueMatches,
+    distractor_xy,
+    exact_ranks,
+    find_true_matches,
+    found_ranks,
+    kept,
+    recall_at,
+)
 
 REPO = Path(__file__).resolve().parents[1]
 OUT = REPO / "out" / "index_scale"
@@ -94,6 +104,8 @@ class KindFigures:
     sweep: list[dict] = field(default_factory=list)
     true_r10: float | None = None
     true_kept10: float | None = None
+    region_true_r10: float | None = None  # the true match's R@10 searched in its region's box (a kind that
+    region_p50_ms: float | None = None  # filters by the positions it holds: milvus)
 
 
 def _p50_ms(fn, queries: np.ndarray) -> tuple[float, list]:
@@ -148,13 +160,14 @@ BATCH = 100
 def _change_costs(index, fresh: np.ndarray, first_id: int, singles: int | None = None) -> tuple[float, float, float]:
     """Median ms of adding one new reference, then of removing it again (the first ``singles`` codes, all by
     default), and ms per reference of adding them ``BATCH`` at a time (median over the batches), removed
-    again (the collection ends as it began)."""
+    again (the collection ends as it began). A kind that holds positions is given each at (0, 0)."""
     adds, removes = [], []
     ids = np.arange(first_id, first_id + len(fresh), dtype=np.int64)
     one_by_one = ids[: len(ids) if singles is None else singles]
+    at = (lambda m: (np.zeros((m, 2)),)) if index.holds_positions else (lambda m: ())
     for i in one_by_one:
         t0 = time.perf_counter()
-        index.add(ids[i - first_id : i - first_id + 1], fresh[i - first_id][None])
+        index.add(ids[i - first_id : i - first_id + 1], fresh[i - first_id][None], *at(1))
         adds.append((time.perf_counter() - t0) * 1000)
     for i in one_by_one:
         t0 = time.perf_counter()
@@ -164,7 +177,7 @@ def _change_costs(index, fresh: np.ndarray, first_id: int, singles: int | None =
     batches = []
     for lo in range(0, len(fresh) - BATCH + 1, BATCH):
         t0 = time.perf_counter()
-        index.add(ids[lo : lo + BATCH], fresh[lo : lo + BATCH])
+        index.add(ids[lo : lo + BATCH], fresh[lo : lo + BATCH], *at(BATCH))
         batches.append((time.perf_counter() - t0) * 1000 / BATCH)
     assert index.remove(ids[: len(batches) * BATCH]) == len(batches) * BATCH
     return float(np.median(adds)), float(np.median(removes)), float(np.median(batches))
@@ -353,17 +366,22 @@ def _milvus_server(progress):
         server.remove()
 
 
-def measure_milvus(codes, n, queries, exact, n_synth_q, gen, rng, progress, uri, true=None) -> KindFigures:
+def measure_milvus(
+    codes, n, queries, exact, n_synth_q, gen, rng, progress, uri, true=None, place: Placement | None = None
+) -> KindFigures:
     """The ``milvus`` kind (float codes, HNSW on the server at the kind's defaults) as the service configures
-    it, filled with the first ``n`` codes, sealed and indexed (``settle``), searched one query at a time at
-    a timestamp taken after the fill (as the service reads); its RAM is the server's, not measured here."""
+    it, filled with the first ``n`` codes at ``place``'s positions, sealed and indexed (``settle``), searched
+    one query at a time at a timestamp taken after the fill (as the service reads); its RAM is the server's,
+    not measured here. With ``true`` and ``place``, each penn query with a true match is searched again in the
+    bounding box of its region (the filter the service sends Milvus): ``region_p50_ms`` and ``region_true_r10``."""
     from app.engine.index.kinds.milvus import MilvusIndex
 
     index = MilvusIndex(codes.shape[1], False, uri=uri, collection=f"bench_index_scale_{n}")
     index.drop()  # a previous run's rows would count twice
     t0 = time.perf_counter()
     for lo, x in chunks(codes, n):
-        index.add(np.arange(lo, lo + len(x), dtype=np.int64), np.asarray(x, np.float32))
+        at = place.of(lo, len(x)) if place is not None else np.zeros((len(x), 2))
+        index.add(np.arange(lo, lo + len(x), dtype=np.int64), np.asarray(x, np.float32), at)
     indexed = index.settle()
     build_s = time.perf_counter() - t0
     index.read_after(index.fence())
@@ -371,6 +389,12 @@ def measure_milvus(codes, n, queries, exact, n_synth_q, gen, rng, progress, uri,
     p50, res = _p50_ms(lambda q: index.search(q, K)[1][0], queries)
     found = np.stack(res)
     true_figures = true.figures(found) if true is not None else {}
+    if true is not None and place is not None:
+        true_figures |= place.region_figures(index, queries[n_synth_q:], true.truth)
+        progress(
+            f"  milvus in the region's box: {true_figures['region_true_r10']:.3f} R@10, "
+            f"p50 {true_figures['region_p50_ms']:.2f} ms"
+        )
     # a remove first reads which ids are stored, strongly consistent (a server time tick each): 50 are timed
     add_ms, remove_ms, add_batch_ms = _change_costs(index, gen.draw(3 * BATCH, rng), first_id=10**12, singles=50)
     index.drop()
@@ -388,7 +412,52 @@ def measure_milvus(codes, n, queries, exact, n_synth_q, gen, rng, progress, uri,
         add_batch_ms=add_batch_ms,
         true_r10=true_figures.get("true_r10"),
         true_kept10=true_figures.get("true_kept10"),
+        region_true_r10=true_figures.get("region_true_r10"),
+        region_p50_ms=true_figures.get("region_p50_ms"),
     )
+
+
+@dataclass
+class Placement:
+    """Where the codes are (degrees), for a kind that stores positions: penn's references at their own,
+    each synthetic code at its drawn one (``bench.true_match.distractor_xy``, the exact region ranks' draw)."""
+
+    positions: Positions
+    n_penn: int
+    extent_m: float
+    region_m: float
+    seed: int
+
+    def of(self, lo: int, count: int) -> np.ndarray:
+        """(count, 2) lat, lon of the codes ``lo .. lo+count`` (one chunk)."""
+        refs = self.positions.refs
+        out = np.zeros((count, 2))
+        penn = max(0, min(self.n_penn, lo + count) - lo)
+        out[:penn] = refs[lo : lo + penn]
+        if penn < count:
+            xy = distractor_xy(lo, count, self.extent_m, self.seed)[penn:].astype(np.float64)
+            lat0, lon0 = refs.mean(axis=0)
+            out[penn:, 0] = lat0 + xy[:, 1] / M_PER_DEG_LAT
+            out[penn:, 1] = lon0 + xy[:, 0] / (M_PER_DEG_LAT * np.cos(np.radians(lat0)))
+        return out
+
+    def region_figures(self, index, penn_queries: np.ndarray, truth: TrueMatches) -> dict:
+        """Each true-match query searched in its region's bounding box: p50 ms and the true match's R@10."""
+        from app.domain import Region
+
+        found = np.full((truth.n_queries, K), -1, np.int64)
+        times = []
+        for row in truth.rows:
+            lat, lon = self.positions.queries[row]
+            box = Region(lat=float(lat), lon=float(lon), radius_m=self.region_m).bounding_box()
+            t0 = time.perf_counter()
+            ids = index.search(penn_queries[row][None], K, box=box)[1][0]
+            times.append((time.perf_counter() - t0) * 1000)
+            found[row] = ids
+        return {
+            "region_true_r10": recall_at(found_ranks(found, truth), (10,))[10],
+            "region_p50_ms": float(np.median(times)),
+        }
 
 
 def meets_true_targets(s: dict, exact_r10: float) -> bool:
@@ -617,7 +686,10 @@ def run(args, progress=print) -> tuple[list[KindFigures], dict]:
                         _save(figures, context, args.out)
             if n <= args.milvus_up_to:
                 uri = milvus_uri or (milvus_uri := servers.enter_context(_milvus_server(progress)))
-                figures.append(measure_milvus(codes, n, queries, exact, n_synth_q, gen, rng, progress, uri, true))
+                place = Placement(positions, n_penn, args.extent_km * 1000, args.region_m, args.seed)
+                figures.append(
+                    measure_milvus(codes, n, queries, exact, n_synth_q, gen, rng, progress, uri, true, place)
+                )
                 _save(figures, context, args.out)
             if not args.no_binary:
                 exact_hamming = None
@@ -691,18 +763,23 @@ def sweep_table(figures: list[KindFigures]) -> str:
     return "\n".join(lines)
 
 
-def true_match_table(t: dict) -> str:
-    """The exact search's R@k of the true match at each size, without and with the region filter."""
+def true_match_table(t: dict, figures: list[KindFigures] = ()) -> str:
+    """The exact search's R@k of the true match at each size, without and with the region filter; where
+    milvus was measured, its R@10 and p50 searched in the region's bounding box (the positions it holds)."""
+    boxed = {f.n: f for f in figures if f.region_true_r10 is not None}
+    extra = " milvus in the region's box: R@10 / p50 ms |" if boxed else ""
     lines = [
         f"| references | exact R@1 / 10 / 100 | median rank | distractors within {t['region_m']:.0f} m (median) | "
-        f"with the {t['region_m']:.0f} m filter: R@1 / 10 / 100 |",
-        "|---|---|---|---|---|",
+        f"with the {t['region_m']:.0f} m filter: R@1 / 10 / 100 |{extra}",
+        "|---|---|---|---|---|" + ("---|" if boxed else ""),
     ]
     r = lambda d: " / ".join(f"{d[k]:.3f}" for k in sorted(d, key=int))  # noqa: E731
     for n, f in sorted(t["sizes"].items(), key=lambda kv: int(kv[0])):
+        m = boxed.get(int(n))
+        cell = (f" {m.region_true_r10:.3f} / {m.region_p50_ms:.2f} |" if m else " |") if boxed else ""
         lines.append(
             f"| {int(n):,} | {r(f['exact'])} | {f['exact_median_rank']:,.0f} | {f['region_distractors']:,.0f} | "
-            f"{r(f['region'])} |"
+            f"{r(f['region'])} |{cell}"
         )
     return "\n".join(lines)
 
@@ -720,7 +797,7 @@ def fidelity_line(f: dict) -> str:
     )
 
 
-def true_match_section(t: dict) -> str:
+def true_match_section(t: dict, figures: list[KindFigures] = ()) -> str:
     """The true match's curve in words and a table."""
     return (
         f"**The true match** (a penn reference within {t['radius_m']:.0f} m of the query; {t['queries']} of the "
@@ -728,7 +805,7 @@ def true_match_section(t: dict) -> str:
         f"fades as distractors grow, and the same with a region filter of {t['region_m']:.0f} m around the query "
         "(what a coarse prior gives back; distractors placed uniformly over a square "
         f"{t['extent_km']:.0f} km wide around the campus, penn's references at their own positions):\n\n"
-        f"{true_match_table(t)}"
+        f"{true_match_table(t, figures)}"
     )
 
 
@@ -741,7 +818,7 @@ def section(figures: list[KindFigures], context: dict) -> str:
         f"real penn queries; synthetic queries at cosine {context['query_cosine']:.2f} to their source; "
         "medians; one FAISS thread for searches, two for building):\n\n"
         f"{table(figures)}\n\nHow often a penn query's exact top-1 is still a penn reference: {penn}.\n\n"
-        f"{true_match_section(context['true_match'])}\n\n"
+        f"{true_match_section(context['true_match'], figures)}\n\n"
         f"{fidelity_line(context['fidelity'])}\n\n"
         "Sweep at the largest size (the row above is the fastest setting within 5 ms that keeps at least 97 % "
         "of the exact search's top-10 true matches with its R@10 of the true match within 0.01 of exact's; else "

@@ -115,8 +115,9 @@ def test_effective_dimension_counts_the_directions_codes_vary_in():
 
 @pytest.mark.milvus
 def test_bench_measures_the_milvus_kind_on_a_real_server(tmp_path, milvus_server):
-    """The milvus kind at a tiny size on the session's Milvus server: filled, sealed and indexed, searched
-    (its HNSW at 2,000 codes finds the exact top 10), its changes timed, its collection dropped after."""
+    """The milvus kind at a tiny size on the session's Milvus server: filled with positions, sealed and
+    indexed, searched (its HNSW at 2,000 codes finds the exact top 10), and in each penn query's region box,
+    its changes timed, its collection dropped after."""
     manifest = fake_penn(tmp_path / "penn.npz")
     out = tmp_path / "out"
     cmd = [sys.executable, "-m", "bench.index_scale", "--sizes", "2000", "--queries", "30", "--nprobe", "8"]
@@ -130,7 +131,9 @@ def test_bench_measures_the_milvus_kind_on_a_real_server(tmp_path, milvus_server
     milvus = kinds["milvus"]
     assert milvus["recall10"] >= 0.9 and milvus["true_kept10"] is not None and 0 <= milvus["true_r10"] <= 1
     assert milvus["add_ms"] > 0 and milvus["remove_ms"] > 0 and milvus["add_batch_ms"] > 0
+    assert 0 <= milvus["region_true_r10"] <= 1 and milvus["region_p50_ms"] > 0  # searched in each region's box
     assert "| 2,000 | milvus | HNSW M 32 / ef 256 |" in run.stdout
+    assert "milvus in the region's box: R@10 / p50 ms |" in run.stdout
     from pymilvus import MilvusClient
 
     assert "bench_index_scale_2000" not in MilvusClient(uri=milvus_server.uri).list_collections()

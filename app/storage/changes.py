@@ -21,6 +21,8 @@ class Change:
     op: str  # add | delete
     float_code: bytes | None
     binary_code: bytes | None
+    lat: float | None = None  # the reference's position now (an index that holds positions writes it)
+    lon: float | None = None
 
 
 class ChangeLog(Part):
@@ -49,12 +51,13 @@ class ChangeLog(Part):
             return int(self.database.db.execute("SELECT COALESCE(MAX(version), 0) FROM changes").fetchone()[0])
 
     def changes_since(self, version: int) -> list[Change]:
-        """The index changes after ``version``, oldest first, each add with its codes (NULL when the row was
-        deleted since: a later delete entry follows). Under the lock, like ``version``."""
+        """The index changes after ``version``, oldest first, each add and move with the reference's codes and
+        position now (NULL when the row was deleted since: a later delete entry follows). Under the lock, like
+        ``version``."""
         with self.database.lock:
             rows = self.database.db.execute(
-                f"SELECT c.version, c.ref_id, c.op, {CODES} FROM changes c "
-                "LEFT JOIN refs r ON r.id = c.ref_id AND r.status = 'indexed' AND c.op = 'add' "
+                f"SELECT c.version, c.ref_id, c.op, {CODES}, r.lat, r.lon FROM changes c "
+                "LEFT JOIN refs r ON r.id = c.ref_id AND r.status = 'indexed' AND c.op IN ('add', 'move') "
                 "LEFT JOIN switched_codes s ON s.ref_id = r.id "
                 "WHERE c.version > ? ORDER BY c.version",
                 (version,),

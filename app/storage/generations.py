@@ -52,6 +52,7 @@ class CodeChunk:
     ids: np.ndarray  # int64
     float_codes: np.ndarray | None  # (n, dim) float32
     binary_codes: np.ndarray | None  # (n, bytes) uint8
+    positions: np.ndarray  # (n, 2) float64 latitude, longitude (an index that holds positions stores them)
 
 
 @dataclass(frozen=True)
@@ -73,7 +74,10 @@ def _codes(column: Sequence[bytes | None], dtype, n: int) -> np.ndarray | None:
 def _chunk(rows: Sequence[tuple]) -> CodeChunk:
     n = len(rows)
     ids = np.fromiter((r[0] for r in rows), np.int64, n)
-    return CodeChunk(ids, _codes([r[1] for r in rows], np.float32, n), _codes([r[2] for r in rows], np.uint8, n))
+    positions = np.fromiter((v for r in rows for v in (r[3], r[4])), np.float64, 2 * n).reshape(n, 2)
+    return CodeChunk(
+        ids, _codes([r[1] for r in rows], np.float32, n), _codes([r[2] for r in rows], np.uint8, n), positions
+    )
 
 
 @dataclass(frozen=True)
@@ -146,7 +150,7 @@ class Generations(Part):
             version = int(db.execute("SELECT COALESCE(MAX(version), 0) FROM changes").fetchone()[0])
             rows = self.database.backend.stream_rows(
                 db,
-                f"SELECT r.id, {CODES} FROM refs r LEFT JOIN switched_codes s ON s.ref_id = r.id "
+                f"SELECT r.id, {CODES}, r.lat, r.lon FROM refs r LEFT JOIN switched_codes s ON s.ref_id = r.id "
                 "WHERE r.status='indexed' ORDER BY r.id",
                 chunk,
             )

@@ -63,7 +63,9 @@ class IndexStats:
 
 def apply_changes(index: ReferenceIndex, changes: list[Change]) -> None:
     """Apply log entries in order: runs of adds in one call each, deletions as tombstones. An add whose row
-    is gone (deleted since; its delete entry is in the same read) is skipped, and so is that delete."""
+    is gone (deleted since; its delete entry is in the same read) is skipped, and so is that delete. A move
+    changes nothing in an index that keeps no positions (the store's are read at every search); one that
+    holds them is written the reference again, at its position now."""
     skipped: set[int] = set()
     run: list[Change] = []
 
@@ -73,11 +75,13 @@ def apply_changes(index: ReferenceIndex, changes: list[Change]) -> None:
         ids = np.array([c.ref_id for c in run], np.int64)
         f = np.stack([np.frombuffer(c.float_code, np.float32) for c in run]) if index.float is not None else None
         b = np.stack([np.frombuffer(c.binary_code, np.uint8) for c in run]) if index.binary is not None else None
-        index.add(ids, f, b)
+        index.add(ids, f, b, np.array([(c.lat, c.lon) for c in run], np.float64))
         run.clear()
 
     for c in changes:
-        if c.op == "move":  # positions live in SQLite, read at every search: nothing to change in the index
+        if c.op == "move":
+            if index.holds_positions and not (c.float_code is None and c.binary_code is None):
+                run.append(c)
             continue
         if c.op == "add":
             if c.float_code is None and c.binary_code is None:
@@ -99,7 +103,7 @@ def index_from_stream(
     rest."""
     index = into if into is not None else pipeline.new_index()
     for c in chunks:
-        index.add(c.ids, c.float_codes, c.binary_codes)
+        index.add(c.ids, c.float_codes, c.binary_codes, c.positions)
     return index
 
 
@@ -127,9 +131,13 @@ class View:
     def check_mode(self, mode: str | None) -> str:
         return self.index.check_mode(mode)
 
-    def search(self, float_code, binary_code, k: int, mode: str | None = None, allowed: np.ndarray | None = None):
+    @property
+    def holds_positions(self) -> bool:
+        return self.index.holds_positions
+
+    def search(self, float_code, binary_code, k: int, mode: str | None = None, allowed=None, box=None):
         with self.collection.lock:
-            return self.index.search(float_code, binary_code, k, mode, allowed)
+            return self.index.search(float_code, binary_code, k, mode, allowed, box)
 
 
 class Collection:
@@ -609,11 +617,15 @@ class Collection:
     def check_mode(self, mode: str | None) -> str:
         return self.index.check_mode(mode)
 
-    def search(self, float_code, binary_code, k: int, mode: str | None = None, allowed: np.ndarray | None = None):
+    @property
+    def holds_positions(self) -> bool:
+        return self.index.holds_positions
+
+    def search(self, float_code, binary_code, k: int, mode: str | None = None, allowed=None, box=None):
         """``ReferenceIndex.search`` on the current index (caught up first, and safe against changes)."""
         self.catch_up()
         with self.lock:
-            return self.index.search(float_code, binary_code, k, mode, allowed)
+            return self.index.search(float_code, binary_code, k, mode, allowed, box)
 
     # -- snapshots (only the process holding the worker lock calls these) ------------------------------
     def pending_changes(self) -> int:

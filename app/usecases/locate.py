@@ -42,6 +42,9 @@ log = logging.getLogger("geoloc.locate")
 
 #: How many candidates the fused estimate is made of (after region filter and verification).
 ESTIMATE_CANDIDATES = 10
+#: The most references a search inside a circular region asks an index that filters by position for (its
+#: bounding box's corners are dropped after the search; Milvus caps a search's limit at 16,384).
+MAX_REGION_SEARCH = 4096
 #: How many of the best candidates verification looks at.
 VERIFIED_CANDIDATES = 10
 #: Fewer local features than this (a plain sky, a blank wall, a black frame) and the photo has nothing to
@@ -51,9 +54,16 @@ MIN_LOCAL_FEATURES = 8
 
 
 class Searchable(Protocol):
+    """An index to search (``ReferenceIndex``, a collection's, or one with references left out).
+    ``holds_positions``: a region is searched as a ``box`` of positions the index filters by; otherwise as
+    the ids the store finds in it (``allowed``)."""
+
+    @property
+    def holds_positions(self) -> bool: ...
+
     def check_mode(self, mode: str | None) -> str: ...
 
-    def search(self, float_code, binary_code, k: int, mode: str | None = None, allowed=None): ...
+    def search(self, float_code, binary_code, k: int, mode: str | None = None, allowed=None, box=None): ...
 
 
 class ReferenceSource(Protocol):
@@ -127,13 +137,39 @@ class Excluding:
         self.index = index
         self.excluded = np.asarray(sorted({int(i) for i in excluded}), np.int64)
 
+    @property
+    def holds_positions(self) -> bool:
+        return self.index.holds_positions
+
     def check_mode(self, mode: str | None) -> str:
         return self.index.check_mode(mode)
 
-    def search(self, float_code, binary_code, k: int, mode: str | None = None, allowed=None):
-        s, i = self.index.search(float_code, binary_code, k + len(self.excluded), mode, allowed)
+    def search(self, float_code, binary_code, k: int, mode: str | None = None, allowed=None, box=None):
+        s, i = self.index.search(float_code, binary_code, k + len(self.excluded), mode, allowed, box)
         keep = ~np.isin(i, self.excluded)
         return s[keep][:k], i[keep][:k]
+
+
+def search_positions(
+    index: Searchable, refs: ReferenceSource, codes, n: int, mode: str, region: Region
+) -> tuple[np.ndarray, np.ndarray, bool]:
+    """The best ``n`` references inside ``region`` on an index that holds positions: the index keeps to the
+    region's bounding box, and a circle's corners are dropped here (the positions from ``refs``), asking for
+    more while too few are left. Returns (scores, ids, whether the region holds no reference at all)."""
+    box = region.bounding_box()
+    k = n
+    while True:
+        scores, ids = index.search(codes.float_, codes.binary, k, mode, box=box)
+        exhausted = len(ids) < k
+        if region.bbox is not None:  # the box is the region
+            return scores, ids, exhausted and not len(ids)
+        info = refs.info(ids)  # a reference deleted since is no position: left out, as the answer leaves it out
+        at = np.array([(info[i].lat, info[i].lon) if i in info else (np.nan, np.nan) for i in ids.tolist()])
+        inside = region.contains(at[:, 0], at[:, 1]) if len(at) else np.zeros(0, bool)
+        if inside.sum() >= n or exhausted or k >= MAX_REGION_SEARCH:
+            kept = np.flatnonzero(inside)[:n]
+            return scores[kept], ids[kept], exhausted and not len(kept)
+        k = min(4 * k, MAX_REGION_SEARCH)
 
 
 # -- the one locate path --------------------------------------------------------------------------------
@@ -280,7 +316,7 @@ def locate_features(
     verify = options.rerank if options.rerank is not None else profile is not None
     t: dict[str, float] = {}
     allowed = None
-    if options.region is not None:
+    if options.region is not None and not index.holds_positions:
         t0 = time.perf_counter()
         allowed = refs.in_region(options.region)
         t["region"] = (time.perf_counter() - t0) * 1000
@@ -291,8 +327,11 @@ def locate_features(
     t.update(codes.timings_ms)
     n = max(options.top_k, ESTIMATE_CANDIDATES)
     t0 = time.perf_counter()
-    if allowed is not None and len(allowed) == 0:
+    region_empty = allowed is not None and len(allowed) == 0
+    if region_empty:
         scores, ids = np.zeros(0, np.float32), np.zeros(0, np.int64)
+    elif options.region is not None and allowed is None:
+        scores, ids, region_empty = search_positions(index, refs, codes, n, mode, options.region)
     else:
         scores, ids = index.search(codes.float_, codes.binary, n, mode, allowed)
     t["search"] = (time.perf_counter() - t0) * 1000
@@ -342,13 +381,12 @@ def locate_features(
         # in binary mode) are on another scale, and reading them through it would invent probabilities.
         calibration = Calibration.conservative(f"this collection is calibrated for {index.check_mode(None)} search")
     decision = calibration.decide(evidence, estimate)
-    if allowed is not None and decision.code == NO_MATCH:  # the references searched: the region's only
+    if options.region is not None and decision.code == NO_MATCH:  # the references searched: the region's only
         decision = replace(
             decision, reason=decision.reason.replace("no reference looks", "no reference in the requested region looks")
         )
     probability = {} if decision.p_within is None else dict(zip(fused_ids, decision.p_within, strict=True))
     t["estimate"] = (time.perf_counter() - t0) * 1000
-    region_empty = allowed is not None and len(allowed) == 0
     if region_empty:
         decision = Decision(False, NO_REFERENCES, "no references in the requested region", None, None)
     if decision.confident and decision.radius_m is not None:  # the collection's disc, and its rate

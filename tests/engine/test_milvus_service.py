@@ -3,9 +3,10 @@ embedded standalone, started once for the module's session) and real penn photos
 
 A fitted pipeline's codes are served from Milvus (``GEOLOC_MILVUS_URI``: ``IndexSizing.shared``): the
 writer fills and updates the server's collections, a second service on the same store (a replica) builds
-nothing and finds what the writer indexed, in every search mode, with the region filter, and a delete is
-gone at once through both. Milvus stopped and started again: tests/api/test_milvus_hosts.py, through a real
-server (one restart of the session's Milvus for both modules: it is most of a minute on two cores)."""
+nothing and finds what the writer indexed, in every search mode, with the region filter (run by Milvus on
+the positions it stores), and a delete or a move holds at once through both. Milvus stopped and started
+again: tests/api/test_milvus_hosts.py, through a real server (one restart of the session's Milvus for both
+modules: it is most of a minute on two cores)."""
 
 from __future__ import annotations
 
@@ -164,15 +165,77 @@ def test_milvus_reads_at_the_writers_timestamp_see_its_writes_and_deletes(milvus
     rng = np.random.default_rng(0)
     x = rng.standard_normal((200, 64)).astype(np.float32)
     x /= np.linalg.norm(x, axis=1, keepdims=True)
-    writer.add(np.arange(200), x)
+    writer.add(np.arange(200), x, np.zeros((200, 2)))
     assert replica.read_ts is None and replica._consistency() == {"consistency_level": "Strong"}
     replica.read_after(writer.fence())
     assert replica._consistency()["consistency_level"] == "Customized"
     assert replica.search(x[:1], 1)[1][0, 0] == 0 and replica.size == 200
     writer.remove([0])
-    writer.add(np.array([500]), x[1:2])
+    writer.add(np.array([500]), x[1:2], np.zeros((1, 2)))
     replica.read_after(writer.fence())
     ids = replica.search(x[:2], 2)[1]
     assert 0 not in ids[0] and set(ids[1]) == {1, 500} and replica.size == 200
     assert replica.reconstruct([500]).shape == (1, 64)
     writer.drop()
+
+
+def test_the_region_filter_runs_on_the_positions_milvus_holds(fitted_models, mini_manifest, milvus_server, tmp_path):
+    """Each reference's position is stored in Milvus beside its codes, and a region is a filter on them that
+    the server applies inside the search (the store is not asked for the region's ids): a circle and a box
+    keep to the references inside, a region with none says so, and a reference moved through a replica is
+    written again at its new position by the writer, found inside its new region and no longer in its old."""
+    from app.domain import LocateOptions, ReferenceEdit, Region, Upload
+    from app.engine.calibration import NO_REFERENCES
+    from app.usecases.service import GeolocService
+
+    sizing = _sizing(milvus_server, "region")
+    writer = GeolocService.open(tmp_path / "data", fitted_models, CONFIG.name, sizing=sizing)
+    writer.collection.hold_writer_role(True)
+    db = [r for r in read_manifest(mini_manifest) if r.split == "db"][:8]
+    ids = _indexed(writer, [Upload(r.image.read_bytes(), r.image.name, r.lat, r.lon) for r in db])
+    replica = GeolocService.open(tmp_path / "data", fitted_models, CONFIG.name, sizing=sizing)
+    assert writer.collection.index.holds_positions and replica.collection.index.holds_positions
+    stored = _stored_positions(writer, ids)
+    assert stored == {i: (r.lat, r.lon) for i, r in zip(ids, db, strict=True)}
+
+    photo = db[3].image.read_bytes()
+    other = next(r for r in db if (r.lat, r.lon) != (db[3].lat, db[3].lon))
+    inside = {i for i, r in zip(ids, db, strict=True) if (r.lat, r.lon) == (other.lat, other.lon)}
+    circle = Region(lat=other.lat, lon=other.lon, radius_m=1.0)
+    box = Region(bbox=(other.lon - 1e-6, other.lat - 1e-6, other.lon + 1e-6, other.lat + 1e-6))
+    for region in (circle, box):
+        for mode in MODES:
+            answer = replica.locate(photo, LocateOptions(top_k=5, mode=mode, region=region))
+            assert answer.candidates and {c.reference_id for c in answer.candidates} <= inside, (region, mode)
+            assert "region" not in answer.timings_ms  # no read of the region's ids from the store
+
+    far = Region(lat=other.lat + 0.5, lon=other.lon, radius_m=1000.0)
+    answer = replica.locate(photo, LocateOptions(top_k=5, region=far))
+    assert not answer.candidates and answer.reason_code == NO_REFERENCES, answer.reason
+
+    # moved through the replica (which does not write to Milvus): the writer's catch-up writes it again
+    assert replica.update(ids[3], ReferenceEdit(lat=other.lat, lon=other.lon)) is not None
+    writer.collection.catch_up()
+    assert _stored_positions(writer, [ids[3]]) == {ids[3]: (other.lat, other.lon)}
+    for svc in (replica, writer):
+        for mode in MODES:
+            assert _first(svc, photo, mode, circle) == ids[3], mode
+            assert _first(svc, photo, mode, Region(lat=db[3].lat, lon=db[3].lon, radius_m=1.0)) != ids[3], mode
+    assert writer.collection.size == replica.collection.size == 8
+    writer.store.close()
+    replica.store.close()
+
+
+def _stored_positions(service, ids) -> dict[int, tuple[float, float]]:
+    """(lat, lon) of ``ids`` as the Milvus collections hold them (the same in every part)."""
+    found = []
+    for part in service.collection.index.parts().values():
+        rows = part._call(
+            "read positions",
+            lambda c, part=part: c.query(
+                part.collection, filter=f"id in {[int(i) for i in ids]}", output_fields=["id", "lat", "lon"]
+            ),
+        )
+        found.append({int(r["id"]): (r["lat"], r["lon"]) for r in rows})
+    assert all(f == found[0] for f in found), found
+    return found[0]

@@ -46,6 +46,9 @@ class VectorIndex(Protocol):
     kind: str  # the registered kind's name
     dim: int  # float dimension, or bits for binary codes
     binary: bool
+    #: True for a kind that stores each reference's position beside its codes: its ``add`` takes
+    #: ``positions`` and its ``search`` a ``box`` (``ReferenceIndex.holds_positions``).
+    holds_positions: bool
 
     @property
     def is_trained(self) -> bool:

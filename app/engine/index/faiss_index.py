@@ -36,6 +36,8 @@ class FaissIndex:
     kind: ClassVar[str]
     #: Whether ``compact`` may remove vectors in place (flat: one array); else the live ones are re-added.
     removes_in_place: ClassVar[bool] = False
+    #: Positions stay in the store: a region is searched as the ids the store finds in it.
+    holds_positions: ClassVar[bool] = False
 
     def __init__(self, dim: int, binary: bool):
         if binary and dim % 8:

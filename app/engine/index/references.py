@@ -178,11 +178,29 @@ class ReferenceIndex:
                 idx.load(path)
 
     # -- changes --------------------------------------------------------------------------------------
-    def add(self, ids: np.ndarray, float_codes: np.ndarray | None, binary_codes: np.ndarray | None) -> None:
-        if self.float is not None:
-            self.float.add(ids, float_codes)
-        if self.binary is not None:
-            self.binary.add(ids, binary_codes)
+    @property
+    def holds_positions(self) -> bool:
+        """Whether the parts store each reference's position, so a search can keep to a box of positions
+        (``search``'s ``box``) instead of a list of ids read from the store (a remote kind: ``milvus``)."""
+        parts = list(self.parts().values())
+        return bool(parts) and all(idx.holds_positions for idx in parts)
+
+    def add(
+        self,
+        ids: np.ndarray,
+        float_codes: np.ndarray | None,
+        binary_codes: np.ndarray | None,
+        positions: np.ndarray | None = None,
+    ) -> None:
+        """``positions``: (n, 2) latitude and longitude of each reference, handed to the parts that hold them
+        (``holds_positions``; the others keep none: the store has them)."""
+        for idx, codes in ((self.float, float_codes), (self.binary, binary_codes)):
+            if idx is None:
+                continue
+            if idx.holds_positions:
+                idx.add(ids, codes, positions)
+            else:
+                idx.add(ids, codes)
 
     def remove(self, ids) -> int:
         n = 0
@@ -233,16 +251,24 @@ class ReferenceIndex:
         k: int,
         mode: str | None = None,
         allowed: np.ndarray | None = None,
+        box: tuple[float, float, float, float] | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
-        """One query -> (scores, ids) of up to ``k`` references, best first, scores in [0, 1]."""
+        """One query -> (scores, ids) of up to ``k`` references, best first, scores in [0, 1]. ``allowed``:
+        only those ids; ``box`` (min_lon, min_lat, max_lon, max_lat): only references positioned inside it,
+        on an index that ``holds_positions``."""
         mode = self.check_mode(mode)
+        where: dict[str, Any] = {"allowed": allowed}
+        if box is not None:
+            if not self.holds_positions:
+                raise ValueError("this index holds no positions: filter by the region's ids (allowed)")
+            where["box"] = box
         if mode == "float":
-            s, i = self.float.search(float_code[None], k, allowed)
+            s, i = self.float.search(float_code[None], k, **where)
         elif mode == "binary":
-            s, i = self.binary.search(binary_code[None], k, allowed)
+            s, i = self.binary.search(binary_code[None], k, **where)
         else:
             shortlist = max(self.config.shortlist, k)
-            _, cand = self.binary.search(binary_code[None], shortlist, allowed)
+            _, cand = self.binary.search(binary_code[None], shortlist, **where)
             cand = cand[0][cand[0] >= 0]
             scores = self.float.score_ids(float_code, cand) if len(cand) else np.zeros(0, np.float32)
             order = np.argsort(-scores, kind="stable")[:k]

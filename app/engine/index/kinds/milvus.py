@@ -4,14 +4,18 @@ every replica, past what one replica's RAM holds.
 Why a remote kind: the FAISS kinds keep the whole index in each replica, built from the store's change log.
 Past about 10^8 references, or where one shared index is wanted rather than N copies, the index belongs on
 a distributed vector engine. Milvus fits the codes: float vectors (inner product, HNSW), binary vectors
-(Hamming), filter expressions (the region filter: ``id in [...]``), deletes by primary key, and strong
+(Hamming), scalar fields in filter expressions (the region filter), deletes by primary key, and strong
 consistency (a search sees every write acknowledged before it).
 
-One Milvus collection per part (``float`` / ``binary``): an ``id`` primary key and a ``code`` vector. Writes
-are upserts, so replaying a change the server already holds changes nothing (a new writer replays from the
-last version it recorded). There is nothing to train, compact or snapshot here: the server keeps its data.
-The client connects on first use, so a process starts while Milvus is down and answers ``IndexUnavailable``
-(a 503) until it is back; every call that fails drops the connection and the next one connects again.
+One Milvus collection per part (``float`` / ``binary``): an ``id`` primary key, a ``code`` vector and the
+reference's position (``lat``, ``lon``), so that a region filter is a range expression the server applies
+inside the search, whatever the region holds; an ``id in [...]`` list of the region's references, read from
+the store first, grows with the region and has a size cap. Writes are upserts, so replaying a change the
+server already holds changes nothing (a new writer replays from the last version it recorded), and a
+reference moved is written again with its new position. There is nothing to train, compact or snapshot
+here: the server keeps its data. The client connects on first use, so a process starts while Milvus is
+down and answers ``IndexUnavailable`` (a 503) until it is back; every call that fails drops the connection
+and the next one connects again.
 
 pymilvus is an optional dependency (the ``milvus`` extra): this module imports it only when used.
 """
@@ -35,6 +39,9 @@ from app.engine.index.base import StagedDump, checked_codes, register_index_kind
 BATCH = 4096
 #: Seconds one call to the server may take before the index counts as unreachable.
 DEFAULT_TIMEOUT = 10.0
+#: The collections' layout: the meta key recording what a writer filled names it (``SharedIndex``), so a
+#: layout change makes the writer fill its collections again from the store, as for a server that lost them.
+SCHEMA = "positions"
 
 
 class IndexUnavailable(GeolocError):
@@ -55,6 +62,13 @@ def public_uri(uri: str) -> str:
     return urlunsplit(parts._replace(netloc=netloc))
 
 
+def box_expression(box: tuple[float, float, float, float]) -> str:
+    """The filter expression of positions inside ``box`` (min_lon, min_lat, max_lon, max_lat), bounds
+    included; ``repr`` keeps every digit of a float."""
+    min_lon, min_lat, max_lon, max_lat = (float(v) for v in box)
+    return f"lat >= {min_lat!r} and lat <= {max_lat!r} and lon >= {min_lon!r} and lon <= {max_lon!r}"
+
+
 def collection_name(base: str, part: str, generation: int) -> str:
     """The Milvus collection of one part of one generation (a re-fit's codes go into new collections)."""
     name = re.sub(r"[^A-Za-z0-9_]", "_", f"{base}_{part}_g{generation}")
@@ -67,6 +81,9 @@ class MilvusIndex:
 
     kind = "milvus"
     shared = True
+    #: Each reference's position is stored beside its codes (``add``'s ``positions``) and a search can keep to
+    #: a box of them (``search``'s ``box``).
+    holds_positions = True
 
     def __init__(
         self,
@@ -128,6 +145,8 @@ class MilvusIndex:
         schema = MilvusClient.create_schema(auto_id=False, enable_dynamic_field=False)
         schema.add_field("id", DataType.INT64, is_primary=True)
         schema.add_field("code", DataType.BINARY_VECTOR if self.binary else DataType.FLOAT_VECTOR, dim=self.dim)
+        schema.add_field("lat", DataType.DOUBLE)
+        schema.add_field("lon", DataType.DOUBLE)
         params = client.prepare_index_params()
         if self.binary:  # the codes are small (32 B at 256 bits): an exact Hamming scan of each segment
             params.add_index(field_name="code", index_type="BIN_FLAT", metric_type="HAMMING")
@@ -215,13 +234,24 @@ class MilvusIndex:
     def _vectors(self, x: np.ndarray) -> list:
         return [row.tobytes() for row in x] if self.binary else x.tolist()
 
-    def add(self, ids: np.ndarray, x: np.ndarray) -> None:
-        """Upserts: an id the server holds already is replaced, so a replayed change is harmless."""
+    def add(self, ids: np.ndarray, x: np.ndarray, positions: np.ndarray | None = None) -> None:
+        """Upserts: an id the server holds already is replaced, so a replayed change is harmless.
+        ``positions``: (n, 2) latitude and longitude of each reference, required (the region filter reads them)."""
         ids = np.ascontiguousarray(ids, dtype=np.int64)
         x = self._prepare(x)
+        if positions is None:
+            raise ValueError("the milvus kind stores each reference's position: add needs positions")
+        positions = np.asarray(positions, np.float64).reshape(-1, 2)
+        if len(positions) != len(ids) or not np.isfinite(positions).all():
+            raise ValueError(f"{len(ids)} ids need as many finite (lat, lon) positions, not {len(positions)}")
         for s in range(0, len(ids), BATCH):
-            chunk = zip(ids[s : s + BATCH].tolist(), self._vectors(x[s : s + BATCH]), strict=True)
-            rows = [{"id": int(i), "code": v} for i, v in chunk]
+            chunk = zip(
+                ids[s : s + BATCH].tolist(),
+                self._vectors(x[s : s + BATCH]),
+                positions[s : s + BATCH].tolist(),
+                strict=True,
+            )
+            rows = [{"id": int(i), "code": v, "lat": lat, "lon": lon} for i, v, (lat, lon) in chunk]
             self._call("store codes", lambda c, rows=rows: c.upsert(self.collection, rows, timeout=self.timeout))
 
     def _present(self, ids: list[int]) -> list[int]:
@@ -267,21 +297,30 @@ class MilvusIndex:
             return 1.0 - np.asarray(d, np.float32) / self.dim
         return np.clip((1.0 + np.asarray(d, np.float32)) / 2.0, 0.0, 1.0).astype(np.float32)
 
-    def search(self, q: np.ndarray, k: int, allowed: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """Top ``k`` per query, best first, -1 padded. ``allowed`` (the region filter) becomes the filter
-        expression ``id in [...]``, which the server applies inside the search."""
+    def search(
+        self,
+        q: np.ndarray,
+        k: int,
+        allowed: np.ndarray | None = None,
+        box: tuple[float, float, float, float] | None = None,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Top ``k`` per query, best first, -1 padded. ``box`` (min_lon, min_lat, max_lon, max_lat: the region
+        filter) and ``allowed`` (ids) become the filter expression the server applies inside the search."""
         q = self._prepare(q)
         nq = len(q)
         scores = np.zeros((nq, k), np.float32)
         out_ids = np.full((nq, k), -1, np.int64)
         if k <= 0:
             return scores, out_ids
-        expr = ""
+        terms = []
         if allowed is not None:
             allowed = np.unique(np.asarray(allowed, np.int64))
             if not len(allowed):
                 return scores, out_ids
-            expr = f"id in {allowed.tolist()}"
+            terms.append(f"id in {allowed.tolist()}")
+        if box is not None:
+            terms.append(box_expression(box))
+        expr = " and ".join(f"({t})" for t in terms)
         metric = "HAMMING" if self.binary else "IP"
         params: dict[str, Any] = {"metric_type": metric}
         if not self.binary:
