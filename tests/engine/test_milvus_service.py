@@ -239,3 +239,89 @@ def _stored_positions(service, ids) -> dict[int, tuple[float, float]]:
         found.append({int(r["id"]): (r["lat"], r["lon"]) for r in rows})
     assert all(f == found[0] for f in found), found
     return found[0]
+
+
+def test_collections_filled_without_positions_are_filled_again_by_the_writer(
+    fitted_models, mini_manifest, milvus_server, tmp_path
+):
+    """A data dir whose Milvus collections an earlier version filled (codes only, no positions; its version
+    recorded under the earlier meta key): the writer's first catch-up fills them again from the store, with
+    positions, and a region search runs on them."""
+    from pymilvus import DataType, MilvusClient
+
+    from app.domain import Region, Upload
+    from app.usecases.service import GeolocService
+
+    sizing = _sizing(milvus_server, "layout")
+    data = tmp_path / "data"
+    db = [r for r in read_manifest(mini_manifest) if r.split == "db"][:6]
+    first = GeolocService.open(data, fitted_models, CONFIG.name, sizing=sizing)
+    first.collection.hold_writer_role(True)
+    ids = _indexed(first, [Upload(r.image.read_bytes(), r.image.name, r.lat, r.lon) for r in db])
+    parts = {name: (p.collection, p.dim, p.binary) for name, p in first.collection.index.parts().items()}
+    first.store.close()
+
+    client = MilvusClient(uri=milvus_server.uri)
+    old = GeolocService.open(data, fitted_models, CONFIG.name)
+    version, stored_ids, f, b = old.store.all_codes()
+    assert sorted(stored_ids.tolist()) == sorted(ids)
+    codes = {"float": f, "binary": b}
+    for name, (collection, dim, binary) in parts.items():  # the earlier layout: an id and a code
+        client.drop_collection(collection)
+        schema = MilvusClient.create_schema(auto_id=False, enable_dynamic_field=False)
+        schema.add_field("id", DataType.INT64, is_primary=True)
+        schema.add_field("code", DataType.BINARY_VECTOR if binary else DataType.FLOAT_VECTOR, dim=dim)
+        params = client.prepare_index_params()
+        params.add_index(
+            field_name="code", index_type="BIN_FLAT" if binary else "FLAT", metric_type="HAMMING" if binary else "IP"
+        )
+        client.create_collection(collection, schema=schema, index_params=params, consistency_level="Strong")
+        rows = [
+            {"id": int(i), "code": c.tobytes() if binary else c.tolist()}
+            for i, c in zip(stored_ids, codes[name], strict=True)
+        ]
+        client.upsert(collection, rows)
+    with old.store.transaction() as sql:  # the earlier version recorded what it filled under the earlier key
+        sql.execute("DELETE FROM meta WHERE key = ?", (sizing.shared.version_key(0),))
+    old.store.set_meta("shared_index_version:milvus:layout:g0", str(version))
+    old.store.close()
+
+    writer = GeolocService.open(data, fitted_models, CONFIG.name, sizing=sizing)
+    writer.collection.hold_writer_role(True)
+    writer.collection.catch_up()
+    assert writer.collection.stats.full_rebuilds == 1
+    assert _stored_positions(writer, ids) == {i: (r.lat, r.lon) for i, r in zip(ids, db, strict=True)}
+    for mode in MODES:
+        assert _first(writer, db[2].image.read_bytes(), mode, Region(lat=db[2].lat, lon=db[2].lon, radius_m=1.0)) in {
+            i for i, r in zip(ids, db, strict=True) if (r.lat, r.lon) == (db[2].lat, db[2].lon)
+        }, mode
+    writer.store.close()
+
+
+def test_a_search_in_a_box_is_exact_where_the_box_holds_few(milvus_server):
+    """A box that few references fall in is searched exactly (their codes read and scored here: Milvus's
+    filtered HNSW search misses many of the best when the filter passes few rows); above the threshold the
+    server applies the filter inside its own search. Either way only references inside come back."""
+    import numpy as np
+
+    from app.engine.index.kinds.milvus import MilvusIndex
+
+    rng = np.random.default_rng(1)
+    x = rng.standard_normal((2000, 64)).astype(np.float32)
+    x /= np.linalg.norm(x, axis=1, keepdims=True)
+    at = rng.uniform(0.0, 1.0, (2000, 2))  # lat, lon
+    index = MilvusIndex(64, False, uri=milvus_server.uri, collection="box")
+    index.add(np.arange(2000), x, at)
+    box = (0.2, 0.3, 0.45, 0.5)  # min_lon, min_lat, max_lon, max_lat
+    inside = np.flatnonzero((at[:, 0] >= 0.3) & (at[:, 0] <= 0.5) & (at[:, 1] >= 0.2) & (at[:, 1] <= 0.45))
+    assert 50 < len(inside) < 200
+    for q in x[:20:4] + 0.5 * x[20:40:4]:
+        q = q / np.linalg.norm(q)
+        best = inside[np.argsort(-(x[inside] @ q), kind="stable")[:10]]
+        scores, ids = index.search(q[None], 10, box=box)
+        assert ids[0].tolist() == best.tolist() and np.all(np.diff(scores[0]) <= 0)
+        index.exact_filtered = 0  # the server's filtered search
+        assert set(index.search(q[None], 10, box=box)[1][0].tolist()) <= set(inside.tolist())
+        index.exact_filtered = len(inside)
+    assert (index.search(x[:1], 10, box=(0.2, 1.5, 0.3, 1.6))[1] == -1).all()  # nothing there
+    index.drop()

@@ -39,6 +39,13 @@ from app.engine.index.base import StagedDump, checked_codes, register_index_kind
 BATCH = 4096
 #: Seconds one call to the server may take before the index counts as unreachable.
 DEFAULT_TIMEOUT = 10.0
+#: The most rows one query returns (Milvus's query result window).
+MAX_QUERY_ROWS = 16384
+#: A filtered search whose filter passes at most this many references scores them all here, exactly, from
+#: their codes read in one query: Milvus's HNSW search under a filter that passes few rows (a region of a
+#: large collection) misses many of their best matches, whatever its ``ef``. Reading the codes costs time in
+#: proportion to their number, hence a bound (docs/milvus.md measures both).
+EXACT_FILTERED = 1024
 #: The collections' layout: the meta key recording what a writer filled names it (``SharedIndex``), so a
 #: layout change makes the writer fill its collections again from the store, as for a server that lost them.
 SCHEMA = "positions"
@@ -96,12 +103,16 @@ class MilvusIndex:
         m: int = 32,
         ef_construction: int = 200,
         ef_search: int = 256,
+        exact_filtered: int = EXACT_FILTERED,
     ):
         if binary and dim % 8:
             raise ValueError("binary codes need a multiple of 8 bits")
         self.dim, self.binary = dim, binary
         self.uri, self.collection, self.token, self.timeout = uri, collection, token, timeout
         self.m, self.ef_construction, self.ef_search = m, ef_construction, ef_search
+        if not 0 <= exact_filtered <= MAX_QUERY_ROWS:
+            raise ValueError(f"exact_filtered must lie in 0..{MAX_QUERY_ROWS} (one query's rows), not {exact_filtered}")
+        self.exact_filtered = exact_filtered
         self.created = False  # this process made the collection (it was absent: new, or the server lost it)
         #: The server timestamp reads are guaranteed at (``read_after``); None: strong consistency.
         self.read_ts: int | None = None
@@ -305,7 +316,8 @@ class MilvusIndex:
         box: tuple[float, float, float, float] | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
         """Top ``k`` per query, best first, -1 padded. ``box`` (min_lon, min_lat, max_lon, max_lat: the region
-        filter) and ``allowed`` (ids) become the filter expression the server applies inside the search."""
+        filter) and ``allowed`` (ids) become a filter expression: where it passes at most ``exact_filtered``
+        references they are all read and scored exactly here, else the server applies it inside its search."""
         q = self._prepare(q)
         nq = len(q)
         scores = np.zeros((nq, k), np.float32)
@@ -321,6 +333,8 @@ class MilvusIndex:
         if box is not None:
             terms.append(box_expression(box))
         expr = " and ".join(f"({t})" for t in terms)
+        if expr and self._count(expr) <= self.exact_filtered:
+            return self._search_exactly(q, k, expr)
         metric = "HAMMING" if self.binary else "IP"
         params: dict[str, Any] = {"metric_type": metric}
         if not self.binary:
@@ -345,6 +359,54 @@ class MilvusIndex:
                 scores[r, : len(row)] = self._to_scores([h["distance"] for h in row])
         return scores, out_ids
 
+    def _count(self, expr: str) -> int:
+        """How many stored references pass ``expr`` (a scan of the scalar fields on the server)."""
+        rows = self._call(
+            "count",
+            lambda c: c.query(
+                self.collection, filter=expr, output_fields=["count(*)"], timeout=self.timeout, **self._consistency()
+            ),
+        )
+        return int(rows[0]["count(*)"]) if rows else 0
+
+    def _search_exactly(self, q: np.ndarray, k: int, expr: str) -> tuple[np.ndarray, np.ndarray]:
+        """``search`` among the references passing ``expr``, every one scored here from its code."""
+        rows = self._call(
+            "read codes",
+            lambda c: c.query(
+                self.collection,
+                filter=expr,
+                output_fields=["id", "code"],
+                limit=max(1, self.exact_filtered),
+                timeout=self.timeout,
+                **self._consistency(),
+            ),
+        )
+        scores = np.zeros((len(q), k), np.float32)
+        out_ids = np.full((len(q), k), -1, np.int64)
+        if not rows:
+            return scores, out_ids
+        ids = np.array([int(r["id"]) for r in rows], np.int64)
+        codes = np.stack([self._decode(r["code"]) for r in rows])
+        for n, query in enumerate(q):
+            s = self._scores(query, codes)
+            best = np.lexsort((ids, -s))[:k]  # best first; ties by id, as a stable order
+            scores[n, : len(best)], out_ids[n, : len(best)] = s[best], ids[best]
+        return scores, out_ids
+
+    def _decode(self, code) -> np.ndarray:
+        """One stored code as the server returns it (bytes in a list for a binary vector)."""
+        if self.binary:
+            code = code[0] if isinstance(code, list) else code
+            return np.frombuffer(bytes(code), np.uint8)
+        return np.asarray(code, np.float32)
+
+    def _scores(self, query: np.ndarray, codes: np.ndarray) -> np.ndarray:
+        """Exact scores of one prepared query row against stored codes."""
+        if self.binary:
+            return self._to_scores((np.unpackbits(codes, axis=1) != np.unpackbits(query)).sum(axis=1))
+        return self._to_scores(codes @ query)
+
     def reconstruct(self, ids) -> np.ndarray:
         """Stored codes of ``ids``, in order (an id not stored: a ``KeyError``)."""
         ids = [int(i) for i in ids]
@@ -366,23 +428,14 @@ class MilvusIndex:
                 ),
             )
             for row in rows:
-                code = row["code"]
-                if self.binary:
-                    code = code[0] if isinstance(code, list) else code
-                    by_id[int(row["id"])] = np.frombuffer(bytes(code), np.uint8)
-                else:
-                    by_id[int(row["id"])] = np.asarray(code, np.float32)
+                by_id[int(row["id"])] = self._decode(row["code"])
         for n, i in enumerate(ids):
             out[n] = by_id[i]
         return out
 
     def score_ids(self, q: np.ndarray, ids: np.ndarray) -> np.ndarray:
         """Exact scores against stored ``ids`` (the two-stage re-rank), computed here from their codes."""
-        codes = self.reconstruct(ids)
-        if self.binary:
-            qb = np.unpackbits(self._prepare(q)[0])
-            return self._to_scores((np.unpackbits(codes, axis=1) != qb).sum(axis=1))
-        return self._to_scores(codes @ self._prepare(q)[0])
+        return self._scores(self._prepare(q)[0], self.reconstruct(ids))
 
     def ids(self) -> np.ndarray:
         out: list[int] = []
