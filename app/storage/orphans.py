@@ -9,8 +9,9 @@ young file no row names may be an upload in flight. Only files older than ``MIN_
 each unlink happens under the database's write lock after re-checking that no row names the file (an add
 of the same bytes re-checks its file under that lock too: see ``app.storage.removals``).
 
-Cost: a sweep lists every file of ``images/``, stats the unnamed ones and looks each name up in the sha256
-index, so it is O(collection); the writer process runs it in a background thread once an hour
+Cost: a sweep reads every file name of ``images/`` (a chunk at a time: its memory does not grow with the
+collection), stats the unnamed ones and looks each name up in the sha256 index, so its time is
+O(collection); the writer process runs it in a background thread once an hour
 (``Janitor``), never on a request, and its unlinks take the write lock for one short transaction per
 ``CHUNK`` names. Retrying queued removals reads a table that is nearly always empty,
 so it runs every few seconds.
@@ -78,38 +79,54 @@ def _age(entry: os.DirEntry, now: float) -> float:
 
 def sweep(store: ReferenceStore, min_age_s: float = MIN_AGE_S) -> SweepReport:
     """Remove image files no row names and temporary files (``.NAME.PID.TID.tmp``, left by a killed
-    writer), both older than ``min_age_s``. O(collection): see the module's docstring."""
+    writer), both older than ``min_age_s``. O(collection) in time, one ``CHUNK`` of entries in memory: the
+    folder is read as it is swept, never listed whole (a list of every entry held hundreds of bytes per
+    reference while the sweep ran). See the module's docstring."""
     r = SweepReport()
     now = time.time()
     with os.scandir(store.images_dir) as it:
-        entries = [e for e in it if e.is_file(follow_symlinks=False)]
-    tmp = [e for e in entries if e.name.startswith(".") and e.name.endswith(".tmp")]
-    for e in tmp:
-        if _age(e, now) > min_age_s:
-            try:
-                os.unlink(e.path)
-                r.removed_tmp.append(e.name)
-            except FileNotFoundError:
-                pass
-            except OSError as err:
-                log.warning("cannot remove %s: %s", e.path, err)
-                r.failed.append(e.name)
-    images = (e for e in entries if not e.name.startswith("."))
-    for chunk in _chunks(images, CHUNK):
-        named = store.named_files([e.name for e in chunk])
-        unnamed = [e for e in chunk if e.name not in named]
-        old = []
-        for e in unnamed:
-            age = _age(e, now)
-            if age > min_age_s:
-                old.append(e.name)
-            elif age >= 0:
-                r.young.append(e.name)
-        if old:
-            removed, failed = store.remove_unnamed(old)  # re-checked under the write lock
-            r.removed += removed
-            r.failed += failed
+        for chunk in _chunks((e for e in it if e.is_file(follow_symlinks=False)), CHUNK):
+            images = []
+            for e in chunk:
+                if not e.name.startswith("."):
+                    images.append(e)
+                elif e.name.endswith(".tmp"):
+                    _remove_stale_tmp(e, now, min_age_s, r)
+            if images:
+                _sweep_images(store, images, now, min_age_s, r)
     return r
+
+
+def _remove_stale_tmp(e: os.DirEntry, now: float, min_age_s: float, r: SweepReport) -> None:
+    if _age(e, now) <= min_age_s:
+        return
+    try:
+        os.unlink(e.path)
+        r.removed_tmp.append(e.name)
+    except FileNotFoundError:
+        pass
+    except OSError as err:
+        log.warning("cannot remove %s: %s", e.path, err)
+        r.failed.append(e.name)
+
+
+def _sweep_images(store: ReferenceStore, chunk: list[os.DirEntry], now: float, min_age_s: float, r: SweepReport):
+    """One chunk of image files: the names no row names looked up at once, the old ones removed under the
+    write lock (re-checked there), the young ones reported."""
+    named = store.named_files([e.name for e in chunk])
+    old = []
+    for e in chunk:
+        if e.name in named:
+            continue
+        age = _age(e, now)
+        if age > min_age_s:
+            old.append(e.name)
+        elif age >= 0:
+            r.young.append(e.name)
+    if old:
+        removed, failed = store.remove_unnamed(old)  # re-checked under the write lock
+        r.removed += removed
+        r.failed += failed
 
 
 def retry_removals(store: ReferenceStore) -> tuple[list[str], list[str]]:
