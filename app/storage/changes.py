@@ -18,7 +18,7 @@ from app.storage.generations import CODES
 class Change:
     version: int
     ref_id: int
-    op: str  # add | delete
+    op: str  # add | delete | move
     float_code: bytes | None
     binary_code: bytes | None
     lat: float | None = None  # the reference's position now (an index that holds positions writes it)

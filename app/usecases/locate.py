@@ -155,9 +155,11 @@ def search_positions(
 ) -> tuple[np.ndarray, np.ndarray, bool]:
     """The best ``n`` references inside ``region`` on an index that holds positions: the index keeps to the
     region's bounding box, and a circle's corners are dropped here (the positions from ``refs``), asking for
-    more while too few are left. Returns (scores, ids, whether the region holds no reference at all)."""
+    more while too few are left. Returns (scores, ids, whether the region holds no reference at all). A
+    circle asks for twice ``n`` at first (its box is 4/pi of its area): one search, where asking for ``n``
+    often came short and searched again."""
     box = region.bounding_box()
-    k = n
+    k = n if region.bbox is not None else min(2 * n, MAX_REGION_SEARCH)
     while True:
         scores, ids = index.search(codes.float_, codes.binary, k, mode, box=box)
         exhausted = len(ids) < k
