@@ -228,7 +228,7 @@ def fit(
     # Every row is fitted on, in the manifest's order; the db rows are the references (the bank retrieves
     # against them, the calibration locates them), numbered by their place among the rows.
     photos = [
-        FitPhoto(r.image, lat=r.lat, lon=r.lon, group=r.group, reference=r.split == "db", ref_id=i)
+        FitPhoto(r.image, lat=r.lat, lon=r.lon, group=r.group, reference=r.split == "db", ref_id=i, taken=r.time)
         for i, r in enumerate(rows)
     ]
     options = FitOptions(

@@ -85,6 +85,9 @@ def test_eval_reports_the_sequence_beside_the_photos_alone(tmp_path, models_dir,
     assert seq["window"] == 3 and not seq["online"] and seq["photos"] == 6 and seq["max_speed_mps"] == 1.5
     assert set(report["recall_at"]) == set(report["single_recall_at"]) == {"1", "5", "10", "20"}
     assert report["answers"] is not None and report["single_answers"] is not None
+    # The fold's collection was calibrated on its own walks too: its db photos' EXIF times.
+    (walks,) = [c["sequence"] for c in report["calibration_per_fold"]]
+    assert walks["window"] == 5 and walks["walks"] >= 2 and walks["photos"] >= 2 * walks["walks"]
     # The photos alone are what a run without sequences reports.
     alone = tmp_path / "alone.json"
     geoloc(*args[:-1], str(alone))

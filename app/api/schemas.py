@@ -275,13 +275,15 @@ class SequencePhotoOut(LocateOut):
     """One photo's answer in its sequence: /locate's answer, and what it rests on."""
 
     rests_on: str = Field(
-        description="pixels: the photo's own answer (confident alone, or not confident even with the sequence); "
-        "sequence: the estimate comes from the path through the photos around it"
+        description="pixels: the photo alone was confident at the place its estimate names, or it has no estimate; "
+        "sequence: the estimate comes from the path through the photos around it. Where the collection was "
+        "calibrated on its own walks, every estimate's disc and radius_rate are the walks' (docs/sequences.md)"
     )
     sequence_p: float | None = Field(
         None,
         description="the sequence's posterior probability of the place the answer names (its estimate's, else the "
-        "most probable state, which may be 'not in this collection'); null when the collection is not calibrated",
+        "most probable place, or with a collection not calibrated on walks the most probable state, which may be "
+        "'not in this collection'); null when the collection is not calibrated",
     )
 
     @field_validator("sequence_p")

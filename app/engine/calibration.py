@@ -202,6 +202,11 @@ class Calibration:
     #: The highest probability this calibration states (``max_p``): what its sample of captures can support.
     #: 1.0 in a calibration fitted before it.
     ceiling: float = 1.0
+    #: The disc a photo of a sequence states (``Disc``'s fields, ``basis`` ``sequence_p``: the sequence's
+    #: posterior of the place), fitted on the collection's references arranged as held-out walks
+    #: (``app.usecases.walk_calibration``); None: no references with capture times, too few of them, or a
+    #: calibration fitted before it (a sequence's answers then read the single-photo disc, their rate unstated).
+    sequence_disc: dict | None = None
 
     @classmethod
     def conservative(cls, note: str, report: dict | None = None) -> Calibration:

@@ -360,7 +360,15 @@ def evaluate(
         # /locate reads no calibration in another) the rule for verified answers too, as
         # `geoloc fit --calibrate-rerank` fits it.
         photos = [
-            FitPhoto(rows[i].image, extracted[i].features, rows[i].lat, rows[i].lon, rows[i].group, ref_id=i)
+            FitPhoto(
+                rows[i].image,
+                extracted[i].features,
+                rows[i].lat,
+                rows[i].lon,
+                rows[i].group,
+                ref_id=i,
+                taken=rows[i].time or extracted[i].captured_at,
+            )
             for i in db_idx
         ] + [
             FitPhoto(rows[i].image, extracted[i].features, rows[i].lat, rows[i].lon, rows[i].group, reference=False)

@@ -121,6 +121,7 @@ def fit_generation(
             group=capture_group(rows[i].lat, rows[i].lon),
             ref_id=i,
             sha256=rows[i].sha256,
+            taken=rows[i].captured_at,
         )
         for i in (int(i) for i in picked)
         if i in rows

@@ -35,6 +35,7 @@ from app.errors import FitRefused
 from app.runtime import fit_threads
 from app.usecases.extraction import Counter, Extracted, extract_batch
 from app.usecases.stored_photos import PhotoStoredFeatures
+from app.usecases.walk_calibration import WalkAnswers, capture_seconds, fit_walk_disc, walk_note, walk_windows
 
 log = logging.getLogger("geoloc.fit")
 
@@ -115,7 +116,9 @@ class FitPhoto:
     numbered ``ref_id`` (None: by its place among the references kept); else a training photo: geotagged,
     not a reference. ``in_fit``: whether the codebook, PCA-whitening and binariser learn from it (a
     refit's training photos train the bank only). ``sha256``: of its bytes, when known already (a stored
-    reference's); else that of the bytes read."""
+    reference's); else that of the bytes read. ``taken``: when it was taken (ISO 8601), when known already (a
+    manifest's ``time``, a stored reference's ``captured_at``); else the photo's EXIF time where it has one:
+    the calibration arranges the references that have one into walks (``app.usecases.walk_calibration``)."""
 
     path: Path | None = None
     features: Features | None = None
@@ -126,6 +129,7 @@ class FitPhoto:
     ref_id: int | None = None
     in_fit: bool = True
     sha256: str | None = None
+    taken: str | None = None
 
 
 @dataclass(frozen=True)
@@ -230,6 +234,7 @@ def fit_pipeline(
     refs: dict[int, Geotagged] = {}
     hashes: dict[int, str] = {}
     images: dict[int, Path] = {}
+    taken: dict[int, str] = {}
     for p in kept:
         if not p.reference:
             continue
@@ -239,6 +244,8 @@ def fit_pipeline(
             hashes[i] = p.sha256
         if p.path is not None:
             images[i] = p.path
+        if p.taken:
+            taken[i] = p.taken
     ids = sorted(refs)
     train = [Geotagged(p.features, p.lat, p.lon, p.group) for p in kept if not p.reference]
     source, index = options.bank, None
@@ -275,6 +282,7 @@ def fit_pipeline(
             stored=stored,
             radius_rate=options.radius_rate,
             max_radius_m=options.max_radius_m,
+            times=capture_seconds(taken),
         )
         seconds["calibration"] = time.perf_counter() - t0
     return FittedPipeline(pipe, refs, source, seconds, index)
@@ -293,6 +301,7 @@ class _Ready:
     ref_id: int | None
     in_fit: bool
     sha256: str | None
+    taken: str | None = None
 
 
 def _extracted(pipe: Pipeline, photos: Sequence[FitPhoto], options: FitOptions, progress: FitProgress) -> list[_Ready]:
@@ -326,7 +335,8 @@ def _extracted(pipe: Pipeline, photos: Sequence[FitPhoto], options: FitOptions, 
         group = p.group or capture_group(lat, lon)
         features = p.features if p.features is not None else e.features
         sha256 = p.sha256 or (e.sha256 if e else None)
-        out.append(_Ready(p.path, features, lat, lon, group, p.reference, p.ref_id, p.in_fit, sha256))
+        taken = p.taken or (e.captured_at if e else None)
+        out.append(_Ready(p.path, features, lat, lon, group, p.reference, p.ref_id, p.in_fit, sha256, taken))
     return out
 
 
@@ -454,6 +464,7 @@ def calibrate_collection(
     stored: PhotoStoredFeatures | None = None,
     radius_rate: float = RADIUS_RATE,
     max_radius_m: float = MAX_RADIUS_M,
+    times: Mapping[int, float] | None = None,
 ) -> Calibration:
     """The confidence rule and ``p_within_25m`` for ``pipe`` (fitted, with its bank), fitted on the collection
     ``refs`` itself.
@@ -486,7 +497,11 @@ def calibrate_collection(
 
     The disc every answer states (``fit_disc``) is fitted on the same answers, the absent ones counting as
     held by no disc, at ``radius_rate``, an estimate stated up to ``max_radius_m`` and a share of the
-    collection's extent (``collection_extent_m``)."""
+    collection's extent (``collection_extent_m``).
+
+    ``times`` (reference id -> its capture time in seconds, on one clock): the held-out references that have
+    one are also located as walks (``app.usecases.walk_calibration``), and the disc a sequence's answers state
+    is fitted on them (``Calibration.sequence_disc``)."""
     from app.usecases.locate import ESTIMATE_CANDIDATES, MIN_LOCAL_FEATURES, Excluding, locate_features
 
     ids = sorted(refs)
@@ -499,9 +514,10 @@ def calibrate_collection(
         )
     by_group: dict[str, list[int]] = {}
     by_spot: dict[str, list[int]] = {}  # a manifest without groups names each crop its own group
+    spot_of = {i: capture_group(refs[i].lat, refs[i].lon) for i in ids}
     for i in ids:
         by_group.setdefault(refs[i].group, []).append(i)
-        by_spot.setdefault(capture_group(refs[i].lat, refs[i].lon), []).append(i)
+        by_spot.setdefault(spot_of[i], []).append(i)
     source = GeotaggedReferences(refs, dict(images) if images else None)
     options = LocateOptions(top_k=ESTIMATE_CANDIDATES, rerank=False)  # the unverified rule, whatever the default
     verified_options = LocateOptions(top_k=ESTIMATE_CANDIDATES, rerank=True)
@@ -516,6 +532,7 @@ def calibrate_collection(
     verified_seconds = 0.0
     features_cache = BoundedCache(FEATURES_KEPT)
     samples, verified_samples, verified_refs = [], [], 0
+    walks: list[WalkAnswers] = []
     for k, part in enumerate(parts):
         out = {g for i in part for g in [refs[i].group]}
         kept = [i for i in ids if refs[i].group not in out]
@@ -533,13 +550,15 @@ def calibrate_collection(
         # Only the references it was fitted on are searched, as every reference is for a real query.
         rest = [i for i in ids if refs[i].group not in out]
         index = index_of(aux, rest, (refs[i].features for i in rest))
+        part_codes = {}
         for i in part:
             r = refs[i]
             if aux.config.local is not None and r.features.n_local < MIN_LOCAL_FEATURES:
                 continue
-            codes = aux.encode_features(r.features, aux.select(r.features))  # once for both searches
+            codes = aux.encode_features(r.features, aux.select(r.features))  # once for every search
+            part_codes[i] = codes
             # Its capture left out: its group, and every reference taken at the same spot (``capture_group``).
-            own = sorted(set(by_group[r.group]) | set(by_spot[capture_group(r.lat, r.lon)]))
+            own = sorted(set(by_group[r.group]) | set(by_spot[spot_of[i]]))
             t0 = time.perf_counter()
             rgb = query = None
             if i in to_verify and stored is not None:
@@ -574,8 +593,25 @@ def calibrate_collection(
                 s = calibration_sample(answer, r.lat, r.lon, absent, group=r.group)
                 if s is not None:
                     verified_samples.append(s)
+        # The part's references with a time, as walks: each window located with all of its captures left out.
+        for window in walk_windows([i for i in part if i in part_codes], refs, times or {}):
+            own = sorted({j for i in window for j in by_group[refs[i].group] + by_spot[spot_of[i]]})
+            near = sorted({j for i in window for j in near_ids(refs, refs[i].lat, refs[i].lon, absent_radius_m)})
+            for absent, excluded in ((False, own), (True, own + near)):
+                searched = Excluding(index, excluded)
+                answers = [
+                    locate_features(aux, searched, source, refs[i].features, options, codes=part_codes[i])
+                    for i in window
+                ]
+                walks.append(WalkAnswers(window, answers, absent))
     extent_m = collection_extent_m(refs)
     cal = fit_calibration(samples, seed, radius_rate, max_radius_m, extent_m)
+    if times:
+        cal.sequence_disc, cal.report["sequence"] = fit_walk_disc(
+            cal, walks, refs, times, rate=radius_rate, max_radius_m=max_radius_m, extent_m=extent_m
+        )
+        if cal.calibrated:
+            cal.note += f"; {walk_note(cal.sequence_disc, cal.report['sequence'])}"
     cal.references = sorted({hashes[i] for i in held if i in hashes}) if hashes else []
     cal.report["absent_radius_m"] = absent_radius_m
     cal.report["sampled"] = len(held)

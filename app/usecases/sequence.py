@@ -7,10 +7,12 @@ gives a probability. ``sequence_answers`` then reads those answers as observatio
 (``app.engine.sequence``) and turns each photo's posterior back into a /locate-shaped answer:
 
 - a photo confident alone keeps its answer: it rests on ``pixels``;
-- a photo not confident alone whose sequence posterior for one place gets an estimate by the single-photo
-  rule (``Calibration.estimate_disc``: the collection's disc for evidence that strong) gets that place as
-  its estimate, with that disc (never below the place's own spread plus the constant rule's margin): it
-  rests on ``sequence``;
+- a photo not confident alone whose sequence posterior for one place gets an estimate by the sequence's
+  own disc (``Calibration.sequence_disc``, fitted on the collection's references arranged as held-out
+  walks: ``walk_answer``) gets that place as its estimate, with that disc and its rate (never below the
+  place's own spread plus the constant rule's margin): it rests on ``sequence``. A collection calibrated
+  without walks (no capture times, or before them) reads the single-photo disc there instead
+  (``sequence_estimate``), its rate unstated;
 - any other photo keeps its single-photo answer (no estimate), its reason saying what the sequence found.
 
 The cost per sequence is N single locates plus arrays of ``SEQUENCE_K`` x ``SEQUENCE_K`` per photo: it does
@@ -25,7 +27,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from app.domain import Candidate, LocateAnswer, LocateOptions
-from app.engine.calibration import AMBIGUOUS, NO_MATCH, Calibration
+from app.engine.calibration import AMBIGUOUS, NO_MATCH, Calibration, Disc, rate_words
 from app.engine.errors import GeolocError
 from app.engine.estimate import MARGIN_M, RADIUS_FLOOR_M, Estimate
 from app.engine.geo import haversine_m
@@ -116,6 +118,7 @@ def sequence_answers(
         return SequenceAnswer(photos, [PathPoint(None, None, False) for _ in singles], times_from, note)
     observations = [observation(a, t) for a, t in zip(singles, times_s, strict=True)]
     result = solve(observations, in_collection(motion, calibration), burst_s)
+    walk_disc = Disc(**calibration.sequence_disc) if calibration.sequence_disc else None
     photos, path = [], []
     for n, alone in enumerate(singles):
         s = result.step_of(n)
@@ -128,6 +131,9 @@ def sequence_answers(
         best_is_place = best < len(places.lats)
         if single.reason is None:
             photos.append(SequencePhoto(_shown(single, options), PIXELS, _p_near(places, post, single), alone))
+            continue
+        if walk_disc is not None and len(places.lats):
+            photos.append(walk_answer(single, alone, places, post, walk_disc, options))
             continue
         p = float(post[best])
         estimate = sequence_estimate(places, post, calibration)
@@ -152,6 +158,52 @@ def sequence_answers(
             )
         photos.append(SequencePhoto(_shown(answer, options), PIXELS, p, alone))
     return SequenceAnswer(photos, path, times_from)
+
+
+def walk_answer(
+    single: LocateAnswer, alone: LocateAnswer, places: Places, post: np.ndarray, disc: Disc, options: LocateOptions
+) -> SequencePhoto:
+    """The answer of a photo not confident alone, by the sequence's own disc (``Calibration.sequence_disc``,
+    fitted on the collection's references arranged as held-out walks): the place the posterior favours most,
+    with the disc that held for ``disc.rate`` of the walks' photos whose posterior was as strong, and that
+    rate, where the disc informs (it rests on ``sequence``); else no estimate, saying why. Why not the
+    single-photo disc: in a walk the collection holds none of the walk's photos nor, often, the places
+    between them, and the single-photo disc, fitted with each reference's neighbours present, held far less
+    often there than it stated (docs/sequences.md)."""
+    k = int(np.argmax(post[:-1]))
+    p = float(post[k])
+    radius = disc.estimate_radius(p)
+    if radius is not None:
+        radius = max(radius, float(places.spread_m[k]) + MARGIN_M, RADIUS_FLOOR_M)
+        estimate = Estimate(float(places.lats[k]), float(places.lons[k]), radius, p, None, radius_rate=disc.rate)
+        answer = replace(single, estimate=estimate, reason=None, reason_code=None, answer_p=p)
+        return SequencePhoto(_shown(answer, options), SEQUENCE, p, alone)
+    if post[-1] > p:
+        reason = (
+            "no reference looks like this photo: with the sequence, its most probable state is none of the "
+            f"candidates' places ({float(post[-1]):.0%})"
+        )
+        code = NO_MATCH if single.reason_code in (AMBIGUOUS, NO_MATCH) else single.reason_code
+    else:
+        reason = f"{single.reason}; with the sequence, the most probable place: {walk_disc_reason(disc, p)}"
+        code = single.reason_code
+    answer = replace(single, reason=reason, reason_code=code)
+    return SequencePhoto(_shown(answer, options), PIXELS, p, alone)
+
+
+def walk_disc_reason(disc: Disc, p: float) -> str:
+    """Why a sequence's answer this strong has no estimate, in words that claim only what the walks
+    measured."""
+    share = f"{rate_words(disc.rate)} such answers"
+    r = disc.radius(p)
+    if r is None:
+        return (
+            f"no disc holds {share} (posterior {p:.0%}): of this collection's own held-out walks, more than "
+            f"{rate_words(1 - disc.rate)} photos this weak were off their place or walked where it holds none"
+        )
+    return (
+        f"{share} (posterior {p:.0%}) lie within {r:.0f} m, wider than the {disc.limit_m:.0f} m an estimate may state"
+    )
 
 
 def in_collection(motion: Motion, calibration: Calibration) -> Motion:

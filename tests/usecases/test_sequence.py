@@ -37,9 +37,9 @@ def test_the_walk_answers_each_photo_and_a_confident_one_rests_on_its_pixels(ser
         assert photo.sequence_p is None or 0 <= photo.sequence_p <= 1
         if alone.reason is None:  # confident alone: kept as it is
             assert photo.rests_on == PIXELS and photo.answer.estimate == alone.estimate
-        if photo.rests_on == SEQUENCE:
-            calibration = service.answer_calibration(LocateOptions())
-            assert photo.answer.reason is None and calibration.estimate_disc(photo.sequence_p) is not None
+        if photo.rests_on == SEQUENCE:  # by the collection's walk disc (fitted on its photos' EXIF times)
+            walks = Disc(**service.answer_calibration(LocateOptions()).sequence_disc)
+            assert photo.answer.reason is None and walks.estimate_radius(photo.sequence_p) is not None
 
 
 def test_a_sequence_of_one_photo_is_the_photo_alone(service, walk_collection):
@@ -119,3 +119,46 @@ def test_a_sequence_estimate_takes_the_single_photo_rules_disc_and_claims_no_rat
     assert (e.lat, e.lon, e.radius_m, e.radius_rate) == (39.952, -75.193, 45.0, None)  # the place's spread + 40 m
     assert sequence_estimate(places, np.array([0.7, 0.25, 0.05]), calibration) is None  # no disc that weak
     assert sequence_estimate(places, np.array([0.1, 0.05, 0.85]), calibration) is None  # not in the collection
+
+
+def check_walk_answers(result, disc: Disc) -> None:
+    """A photo confident alone keeps its own answer; every other estimate is the walk disc's at its
+    posterior, with its rate, resting on the sequence; every photo without one reads a posterior the disc
+    does not inform, and says why."""
+    for photo in result.photos:
+        e, alone, p = photo.answer.estimate, photo.alone, photo.sequence_p
+        if alone.reason is None:
+            assert photo.rests_on == PIXELS and e == alone.estimate and photo.answer.reason is None
+        elif photo.answer.reason is None:
+            assert disc.estimate_radius(p) is not None and e.radius_rate == disc.rate
+            assert e.radius_m >= disc.estimate_radius(p) and photo.rests_on == SEQUENCE
+        else:
+            assert disc.estimate_radius(p) is None and photo.rests_on == PIXELS
+            assert "with the sequence" in photo.answer.reason
+
+
+def test_the_walk_disc_states_the_sequence_s_estimates_and_their_rate(service, walk_collection):
+    """A collection calibrated on its own walks (`geoloc fit` read the photos' EXIF times) answers each photo
+    not confident alone by the sequence's disc, at its rate. With a disc that informs half of the walk's
+    posteriors, those of them not confident alone get it."""
+    from dataclasses import replace
+
+    from app.usecases.sequence import single_options
+    from app.usecases.sequence_inputs import exif_time
+
+    _, _, walk = walk_collection
+    options = LocateOptions(top_k=5)
+    calibration = service.answer_calibration(options)
+    assert calibration.sequence_disc is not None and calibration.sequence_disc["basis"] == "sequence_p"
+    singles = [service.locate(p.read_bytes(), single_options(options)) for p in walk]
+    times = seconds([exif_time(p.read_bytes()) for p in walk])
+    served = sequence_answers(singles, times, calibration, Motion(), options)
+    check_walk_answers(served, Disc(**calibration.sequence_disc))
+    posteriors = sorted(p.sequence_p for p in served.photos if p.alone.reason is not None)
+    middle = posteriors[len(posteriors) // 2]
+    disc = {**calibration.sequence_disc, "edges": [middle], "radius_m": [None, 60.0], "n": [25, 25]}
+    informed = sequence_answers(singles, times, replace(calibration, sequence_disc=disc), Motion(), options)
+    check_walk_answers(informed, Disc(**disc))
+    by_walks = [p for p in informed.photos if p.rests_on == SEQUENCE]
+    assert len(by_walks) == sum(p >= middle for p in posteriors) > 0
+    assert all(p.answer.estimate.radius_rate == calibration.sequence_disc["rate"] for p in by_walks)

@@ -289,7 +289,10 @@ const TIMES_FROM = {
 
 // What one photo's answer rests on, in words: the path only where the photo alone was not enough.
 function restsOnInWords(a) {
-  if (a.rests_on === "sequence") return "Placed by the path through the photos around it; alone, this photo was not enough.";
+  if (a.rests_on === "sequence") {
+    const measured = a.estimate && a.estimate.radius_rate != null ? " (its disc measured on this collection's own walks)" : "";
+    return `Placed by the path through the photos around it${measured}; alone, this photo was not enough.`;
+  }
   if (a.estimate) return "From this photo alone.";
   return a.reason ? `No estimate: ${a.reason.replace(/\.$/, "")}.` : "No estimate.";
 }
