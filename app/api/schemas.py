@@ -276,8 +276,8 @@ class SequencePhotoOut(LocateOut):
 
     rests_on: str = Field(
         description="pixels: the photo alone was confident at the place its estimate names, or it has no estimate; "
-        "sequence: the estimate comes from the path through the photos around it. Where the collection was "
-        "calibrated on its own walks, every estimate's disc and radius_rate are the walks' (docs/sequences.md)"
+        "sequence: the estimate comes from the path through the photos around it; where the collection was "
+        "calibrated on its own walks, its disc and radius_rate are the walks' (docs/sequences.md)"
     )
     sequence_p: float | None = Field(
         None,

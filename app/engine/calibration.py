@@ -338,8 +338,9 @@ class Calibration:
         """Whether evidence this strong gets an estimate, and with which disc: (radius, rate) where it does,
         (None, None) for the constant rule's radius, None where it does not. The fitted disc (``fit_disc``)
         where the collection has one: its radius at its rate, where that is small enough to inform; else
-        the confident threshold (``confident_p``) and its stated radius. One rule for every answer: a photo
-        alone, a photo in a sequence, a photo in a library's run."""
+        the confident threshold (``confident_p``) and its stated radius. The rule for a photo alone, and for a
+        photo in a library's run or in a sequence of a collection without a disc of its own for sequences
+        (``sequence_disc``)."""
         if self.disc is not None:
             disc = Disc(**self.disc)
             radius = disc.estimate_radius(answer_p)

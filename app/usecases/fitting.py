@@ -533,6 +533,7 @@ def calibrate_collection(
     features_cache = BoundedCache(FEATURES_KEPT)
     samples, verified_samples, verified_refs = [], [], 0
     walks: list[WalkAnswers] = []
+    verified_walks: list[WalkAnswers] = []
     for k, part in enumerate(parts):
         out = {g for i in part for g in [refs[i].group]}
         kept = [i for i in ids if refs[i].group not in out]
@@ -593,10 +594,12 @@ def calibrate_collection(
                 s = calibration_sample(answer, r.lat, r.lon, absent, group=r.group)
                 if s is not None:
                     verified_samples.append(s)
-        # The part's references with a time, as walks: each window located with all of its captures left out.
+        # The part's references with a time, as walks: each window located with all of its captures left out
+        # (and, where every photo of it can be, verified too, for the verified rule's own disc).
         for window in walk_windows([i for i in part if i in part_codes], refs, times or {}):
             own = sorted({j for i in window for j in by_group[refs[i].group] + by_spot[spot_of[i]]})
             near = sorted({j for i in window for j in near_ids(refs, refs[i].lat, refs[i].lon, absent_radius_m)})
+            verify = all(i in to_verify for i in window)
             for absent, excluded in ((False, own), (True, own + near)):
                 searched = Excluding(index, excluded)
                 answers = [
@@ -604,6 +607,29 @@ def calibrate_collection(
                     for i in window
                 ]
                 walks.append(WalkAnswers(window, answers, absent))
+                if not verify:
+                    continue
+                t0 = time.perf_counter()
+                answers = []
+                for i in window:
+                    query = stored.query(i) if stored is not None else None
+                    rgb = _photo(aux, images[i]) if stored is None else None
+                    answers.append(
+                        locate_features(
+                            aux,
+                            searched,
+                            source,
+                            refs[i].features,
+                            verified_options,
+                            rgb,
+                            codes=part_codes[i],
+                            features_cache=features_cache,
+                            stored=stored,
+                            stored_query=query,
+                        )
+                    )
+                verified_walks.append(WalkAnswers(window, answers, absent))
+                verified_seconds += time.perf_counter() - t0
     extent_m = collection_extent_m(refs)
     cal = fit_calibration(samples, seed, radius_rate, max_radius_m, extent_m)
     if times:
@@ -618,6 +644,10 @@ def calibrate_collection(
     cal.report["auxiliary_fits"] = len(parts)
     if to_verify:
         verified = fit_calibration(verified_samples, seed, radius_rate, max_radius_m, extent_m)
+        if times and verified.calibrated:
+            verified.sequence_disc, verified.report["sequence"] = fit_walk_disc(
+                verified, verified_walks, refs, times, rate=radius_rate, max_radius_m=max_radius_m, extent_m=extent_m
+            )
         cal.report["verified_sampled"] = verified_refs  # those whose photo could be read
         # What locating them verified added to the calibration's time (the stored records made, included).
         cal.report["verified_seconds"] = round(verified_seconds, 1)
@@ -626,6 +656,8 @@ def calibrate_collection(
             cal.report["verified_from"] = f"stored features ({stored.profile})"
         if verified.calibrated:
             verified.note = f"fitted on {verified_refs} references of this collection, located {how}"
+            if "sequence" in verified.report:
+                verified.note += f"; {walk_note(verified.sequence_disc, verified.report['sequence'])}"
             cal.verified = asdict(verified)
             which = "verified answers" if stored is not None else "verified answers (rerank)"
             cal.note += f"; {which} by their own rule, {verified_refs} located {how}"

@@ -14,9 +14,16 @@ located as a user's walk would be: every photo of it, with the captures of the w
 places present where other captures show them), and once more with every reference within the absent
 radius of any of its photos removed (a walk elsewhere). Once the single-photo rule is fitted, each window's
 answers go through the sequence model as /locate/sequence's do (``fit_walk_disc``), and the disc is fitted
-on their posteriors and errors as the single disc is (``fit_disc``: split-conformal per bin of strength,
-counted in captures, the absent walks held by no disc). /locate/sequence then states that disc and its rate
-for every photo of a sequence (``Calibration.sequence_disc``).
+on the posteriors and errors of the photos not confident alone (those /locate/sequence places by it) as the
+single disc is (``fit_disc``: split-conformal per bin of strength, counted in captures, the absent walks
+held by no disc). /locate/sequence then states that disc and its rate for each photo of a sequence not
+confident alone (``Calibration.sequence_disc``).
+
+What it does not measure: a window holds the captures one auxiliary fit holds out (a quarter of the
+collection, dealt at random), so the captures taken between its photos stay references, and a walk whose
+every place is new is harder than these; the photos of a window share one path, yet count as captures
+apart. Verified answers (``rerank``, a configuration with stored features) have their own disc, fitted on
+the windows whose every photo the calibration verifies (``Calibration.verified``).
 
 Cost: one more pair of searches per held-out reference with a time, within the auxiliary fits the
 single-photo calibration makes already, plus the sequence model over windows of ``WALK_WINDOW``: bounded by
@@ -56,19 +63,22 @@ class WalkAnswers:
 
 @dataclass
 class WalkSample:
-    """What the sequence model said of each photo of the located walks: the strength of the place it
-    favours most (its posterior), that place's error from the truth (inf: none, or a walk elsewhere) and the
-    capture it belongs to."""
+    """What the sequence model said of each photo of the located walks not confident alone: the strength of
+    the place it favours most (its posterior), that place's error from the truth (inf: none, or a walk
+    elsewhere) and the capture it belongs to; and how many photos were confident alone (left out: their own
+    answer stands in a sequence)."""
 
     strength: list[float] = field(default_factory=list)
     errors: list[float] = field(default_factory=list)
     groups: list[tuple[str, bool]] = field(default_factory=list)
+    confident_alone: int = 0
 
 
 def capture_seconds(taken: Mapping[int, str]) -> dict[int, float]:
     """Each reference's capture time in seconds on one clock (a time without a zone takes the zone of the
-    first that has one, as a sequence's times do); times that cannot be read are left out (that reference
-    belongs to no walk)."""
+    first, in the order given, that has one, as a sequence's times do: right for one camera's clock, off by
+    the difference where cameras in several zones wrote local times without one); times that cannot be read
+    are left out (that reference belongs to no walk)."""
     parsed: dict[int, datetime] = {}
     for i, text in taken.items():
         try:
@@ -80,8 +90,6 @@ def capture_seconds(taken: Mapping[int, str]) -> dict[int, float]:
     zone = next((t.tzinfo for t in parsed.values() if t.tzinfo is not None), None)
     if zone is not None:
         parsed = {i: t if t.tzinfo is not None else t.replace(tzinfo=zone) for i, t in parsed.items()}
-    elif any(t.tzinfo is not None for t in parsed.values()):
-        parsed = {i: t for i, t in parsed.items() if t.tzinfo is not None}
     if not parsed:
         return {}
     first = min(parsed.values())
@@ -149,13 +157,17 @@ def walk_sample(
     motion: Motion,
 ) -> WalkSample:
     """Each located walk through the sequence model, as /locate/sequence runs it (``solve``, the motion
-    weighed against the collection's extent): per photo, the posterior of the place it favours most and
-    that place's distance from the truth."""
+    weighed against the collection's extent): per photo not confident alone under ``cal``, the posterior of
+    the place it favours most and that place's distance from the truth."""
     out = WalkSample()
     for w in walks:
         t0 = times[w.ids[0]]
         result = solve([observe(cal, a, times[i] - t0) for i, a in zip(w.ids, w.answers, strict=True)], motion)
         for n, i in enumerate(w.ids):
+            a = w.answers[n]
+            if a.evidence is not None and len(a.evidence.values) and cal.decide(a.evidence, a.estimate).confident:
+                out.confident_alone += 1
+                continue
             s = result.step_of(n)
             places, post = result.places[s], result.posterior[s]
             r = refs[i]
@@ -190,6 +202,7 @@ def fit_walk_disc(
     motion = motion or Motion()
     motion = motion if motion.extent_m is not None or not extent_m else replace(motion, extent_m=extent_m)
     sample = walk_sample(cal, walks, refs, times, motion)
+    report["confident_alone"] = sample.confident_alone
     disc = fit_disc(np.array(sample.strength), np.array(sample.errors), sample.groups, rate, max_radius_m, extent_m)
     if disc is None:
         report["disc"] = "too few walk photos for a disc"

@@ -52,9 +52,13 @@ def test_stored_features_written_verified_and_removed(sv_models, mini_manifest, 
     from app.engine.calibration import Calibration
     from app.engine.pipeline import pipeline_dir
 
-    report = Calibration.load(pipeline_dir(sv_models, CONFIG)).report
+    calibration = Calibration.load(pipeline_dir(sv_models, CONFIG))
+    report = calibration.report
     assert report["verified_from"] == "stored features (xfeat-640-n900)"
     assert report["verified_sampled"] == report["sampled"] > 0
+    # The verified rule's own walks (the photos' EXIF times), each window located verified from stored records.
+    walks = calibration.for_answer(True).report["sequence"]
+    assert walks["walks"] == report["sequence"]["walks"] > 0 and walks["photos"] == report["sequence"]["photos"]
     data = tmp_path / "data"
     service = GeolocService.open(data, sv_models, CONFIG)
     photos = [r for r in read_manifest(mini_manifest) if r.split == "db" and r.image.parent.name == "photos"]

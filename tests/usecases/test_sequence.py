@@ -38,7 +38,9 @@ def test_the_walk_answers_each_photo_and_a_confident_one_rests_on_its_pixels(ser
         if alone.reason is None:  # confident alone: kept as it is
             assert photo.rests_on == PIXELS and photo.answer.estimate == alone.estimate
         if photo.rests_on == SEQUENCE:  # by the collection's walk disc (fitted on its photos' EXIF times)
-            walks = Disc(**service.answer_calibration(LocateOptions()).sequence_disc)
+            fitted = service.answer_calibration(LocateOptions()).sequence_disc
+            assert fitted is not None, "an answer rests on the sequence, but the collection has no walk disc"
+            walks = Disc(**fitted)
             assert photo.answer.reason is None and walks.estimate_radius(photo.sequence_p) is not None
 
 
@@ -156,7 +158,7 @@ def test_the_walk_disc_states_the_sequence_s_estimates_and_their_rate(service, w
     check_walk_answers(served, Disc(**calibration.sequence_disc))
     posteriors = sorted(p.sequence_p for p in served.photos if p.alone.reason is not None)
     middle = posteriors[len(posteriors) // 2]
-    disc = {**calibration.sequence_disc, "edges": [middle], "radius_m": [None, 60.0], "n": [25, 25]}
+    disc = {**calibration.sequence_disc, "edges": [middle], "radius_m": [None, 60.0], "n": [25, 25], "limit_m": 80.0}
     informed = sequence_answers(singles, times, replace(calibration, sequence_disc=disc), Motion(), options)
     check_walk_answers(informed, Disc(**disc))
     by_walks = [p for p in informed.photos if p.rests_on == SEQUENCE]

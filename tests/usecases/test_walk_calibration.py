@@ -18,13 +18,16 @@ from tests.walks import CONFIG
 
 
 def penn_walk_refs():
-    """Every penn photo with a time as a reference (its capture its group), its time, and its camera."""
-    refs, times, camera = {}, {}, {}
+    """Every penn photo with a time as a reference (its capture its group), its time on the collection's one
+    clock (``capture_seconds`` of the EXIF times), and its camera."""
+    refs, taken, camera = {}, {}, {}
     for cam, photos in walks(PENN).items():
-        for r, secs, _ in photos:
+        for r, _, iso in photos:
             i = len(refs)
             refs[i] = Geotagged(None, float(r["lat"]), float(r["lon"]), r["photo_id"])
-            times[i], camera[i] = secs, cam
+            taken[i], camera[i] = iso, cam
+    times = capture_seconds(taken)
+    assert len(times) == len(refs)
     return refs, times, camera
 
 
@@ -70,7 +73,7 @@ def test_references_without_a_time_form_no_walk_and_a_capture_counts_once():
     timed[crop] = timed[3]
     windows = walk_windows(sorted(refs), refs, timed)
     seen = [i for w in windows for i in w]
-    assert set(seen) <= set(timed) and crop not in seen
+    assert windows and set(seen) <= set(timed) and crop not in seen and 3 in seen
 
 
 def test_the_calibration_fits_the_sequence_disc_on_its_held_out_walks(walk_built):
@@ -79,7 +82,9 @@ def test_the_calibration_fits_the_sequence_disc_on_its_held_out_walks(walk_built
     disc, its rate the collection's."""
     data = json.loads((walk_built / "models" / "pipelines" / CONFIG / CALIBRATION_FILE).read_text())
     report = data["report"]["sequence"]
-    assert report["window"] == WALK_WINDOW and report["walks"] >= 3 and report["photos"] >= 2 * report["walks"]
+    assert report["window"] == WALK_WINDOW and report["walks"] >= 3
+    assert MIN_WALK * report["walks"] <= report["photos"] <= WALK_WINDOW * report["walks"]
+    assert 0 <= report["confident_alone"] < report["photos"]
     assert f"{report['walks']} held-out walks ({report['photos']} photos)" in data["note"]  # what fit says
     if data["sequence_disc"] is not None:
         disc = Disc(**data["sequence_disc"])

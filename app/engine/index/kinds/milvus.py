@@ -48,9 +48,8 @@ MAX_QUERY_ROWS = 16384
 EXACT_FILTERED = 1024
 #: The HNSW ``ef`` of a filtered search above ``EXACT_FILTERED`` (a larger region): the graph walk must
 #: visit many references the filter rejects before it collects enough that pass, so the unfiltered search's
-#: ``ef`` misses most of a region's best matches where the region holds a sixth of the collection; this
-#: ``ef`` finds nearly all of them there, in about twice the time (docs/milvus.md measures it). Where the
-#: region holds only a few percent, no ``ef`` helps much.
+#: ``ef`` misses many of a large region's best matches, and this one finds them, at a few times the cost
+#: (docs/milvus.md measures both, and the regions no ``ef`` helps).
 FILTERED_EF = 4096
 #: The collections' layout: the meta key recording what a writer filled names it (``SharedIndex``), so a
 #: layout change makes the writer fill its collections again from the store, as for a server that lost them.
