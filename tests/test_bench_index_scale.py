@@ -14,6 +14,10 @@ from bench.true_match import Positions, distractor_xy, exact_ranks, find_true_ma
 REPO = Path(__file__).resolve().parents[1]
 
 
+#: Scores this close count as a tie (float32 dot products of unit vectors summed in another order).
+TIE = 4e-6
+
+
 def fake_penn(path: Path) -> Path:
     """Stand-in for the cached real codes (a fresh clone has no fitted pipeline): clustered unit codes, five
     references per place 100 m apart, the queries of the first 20 places at their place; returns the manifest
@@ -64,8 +68,13 @@ def test_true_match_ranks_count_the_codes_above_the_best_true_reference(tmp_path
     inside = np.hstack([truth.near_refs, (((truth.xy[:, None] - xy[None, 200:]) ** 2).sum(axis=2) <= 300**2)])
     for i, m in enumerate(truth.matches):
         s[i, m] = -np.inf  # a true reference never counts against itself
-    assert (ranks.ranks == 1 + (s > best[:, None]).sum(axis=1)).all()
-    assert (ranks.region_ranks == 1 + ((s > best[:, None]) & inside).sum(axis=1)).all()
+    # A code scoring within float rounding of the best true reference may fall either side of it: the bench
+    # scores chunk by chunk, this one matrix product, and BLAS sums them in another order.
+    above, tied = s > best[:, None] + TIE, np.abs(s - best[:, None]) <= TIE
+    assert (1 + above.sum(axis=1) <= ranks.ranks).all() and (ranks.ranks <= 1 + (above | tied).sum(axis=1)).all()
+    low, high = 1 + (above & inside).sum(axis=1), 1 + ((above | tied) & inside).sum(axis=1)
+    assert (low <= ranks.region_ranks).all() and (ranks.region_ranks <= high).all()
+    assert tied.sum(axis=1).max() <= 20  # a few codes per query at most: the ranks are pinned to within them
     assert (ranks.region_ranks <= ranks.ranks).all() and (ranks.region_ranks < ranks.ranks).any()
     # 250,000 codes over 20 km x 20 km: about 177 within 300 m of a query
     assert 120 < ranks.region_distractors < 240
