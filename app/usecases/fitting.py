@@ -551,7 +551,9 @@ def calibrate_collection(
         # Only the references it was fitted on are searched, as every reference is for a real query.
         rest = [i for i in ids if refs[i].group not in out]
         index = index_of(aux, rest, (refs[i].features for i in rest))
-        part_codes = {}
+        # Per located reference of the part, what its walk reuses: its codes, the references near it, and
+        # (when it was located verified) its stored query features (None: it is verified from its photo).
+        part_codes, part_near, part_verified = {}, {}, {}
         for i in part:
             r = refs[i]
             if aux.config.local is not None and r.features.n_local < MIN_LOCAL_FEATURES:
@@ -569,7 +571,10 @@ def calibrate_collection(
             verify = rgb is not None or query is not None
             verified_refs += verify
             verified_seconds += time.perf_counter() - t0
-            for absent, excluded in ((False, own), (True, own + near_ids(refs, r.lat, r.lon, absent_radius_m))):
+            if verify:
+                part_verified[i] = query
+            part_near[i] = near_ids(refs, r.lat, r.lon, absent_radius_m)
+            for absent, excluded in ((False, own), (True, own + part_near[i])):
                 searched = Excluding(index, excluded)
                 answer = locate_features(aux, searched, source, r.features, options, codes=codes)
                 s = calibration_sample(answer, r.lat, r.lon, absent, group=r.group)
@@ -598,8 +603,12 @@ def calibrate_collection(
         # (and, where every photo of it can be, verified too, for the verified rule's own disc).
         for window in walk_windows([i for i in part if i in part_codes], refs, times or {}):
             own = sorted({j for i in window for j in by_group[refs[i].group] + by_spot[spot_of[i]]})
-            near = sorted({j for i in window for j in near_ids(refs, refs[i].lat, refs[i].lon, absent_radius_m)})
-            verify = all(i in to_verify for i in window)
+            near = sorted({j for i in window for j in part_near[i]})
+            verify = all(i in part_verified for i in window)
+            if verify:  # each photo's verification input read once for both searches (a photo decoded again)
+                t0 = time.perf_counter()
+                inputs = {i: (None if stored is not None else _photo(aux, images[i]), part_verified[i]) for i in window}
+                verified_seconds += time.perf_counter() - t0
             for absent, excluded in ((False, own), (True, own + near)):
                 searched = Excluding(index, excluded)
                 answers = [
@@ -612,8 +621,7 @@ def calibrate_collection(
                 t0 = time.perf_counter()
                 answers = []
                 for i in window:
-                    query = stored.query(i) if stored is not None else None
-                    rgb = _photo(aux, images[i]) if stored is None else None
+                    rgb, query = inputs[i]
                     answers.append(
                         locate_features(
                             aux,

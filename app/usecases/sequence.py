@@ -150,12 +150,7 @@ def sequence_answers(
             why = f"; with the sequence, the most probable place has a {p:.1%} chance: {needs}"
             answer = replace(single, reason=(single.reason or "") + why)
         else:
-            answer = replace(
-                single,
-                reason=f"no reference looks like this photo: with the sequence, its most probable state is none of "
-                f"the candidates' places ({p:.0%})",
-                reason_code=NO_MATCH if single.reason_code in (AMBIGUOUS, NO_MATCH) else single.reason_code,
-            )
+            answer = not_in_collection(single, p)
         photos.append(SequencePhoto(_shown(answer, options), PIXELS, p, alone))
     return SequenceAnswer(photos, path, times_from)
 
@@ -179,16 +174,22 @@ def walk_answer(
         answer = replace(single, estimate=estimate, reason=None, reason_code=None, answer_p=p)
         return SequencePhoto(_shown(answer, options), SEQUENCE, p, alone)
     if post[-1] > p:
-        reason = (
-            "no reference looks like this photo: with the sequence, its most probable state is none of the "
-            f"candidates' places ({float(post[-1]):.0%})"
-        )
-        code = NO_MATCH if single.reason_code in (AMBIGUOUS, NO_MATCH) else single.reason_code
+        answer = not_in_collection(single, float(post[-1]))
     else:
         reason = f"{single.reason}; with the sequence, the most probable place: {walk_disc_reason(disc, p)}"
-        code = single.reason_code
-    answer = replace(single, reason=reason, reason_code=code)
+        answer = replace(single, reason=reason)
     return SequencePhoto(_shown(answer, options), PIXELS, p, alone)
+
+
+def not_in_collection(single: LocateAnswer, p_absent: float) -> LocateAnswer:
+    """A photo's answer when the sequence's most probable state for it is "not in this collection"
+    (``p_absent``): said as what was measured, ``no_match`` where the photo alone was ambiguous or no match."""
+    return replace(
+        single,
+        reason=f"no reference looks like this photo: with the sequence, its most probable state is none of the "
+        f"candidates' places ({p_absent:.0%})",
+        reason_code=NO_MATCH if single.reason_code in (AMBIGUOUS, NO_MATCH) else single.reason_code,
+    )
 
 
 def walk_disc_reason(disc: Disc, p: float) -> str:
